@@ -1,0 +1,1 @@
+"""Reproducible benchmarks (DESIGN.md §4): ``python -m companion.bench --help``."""

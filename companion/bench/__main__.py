@@ -1,0 +1,124 @@
+"""``python -m companion.bench``: the reproducible benchmarks of DESIGN.md §4.
+
+Subcommands:
+  seed004   seed-004 scenario, Monte Carlo over pixel noise (and the gyro model)
+  seed000   seed-000 scenario, relative range error against L = V·T/D0
+  timing    per-stage timings on one core
+  all       all three; with --write FILE, rewrite docs/BENCHMARKS.md with figures and commands
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+from companion.bench import report
+
+
+def _progress(total: int, label: str, quiet: bool):
+    """A rich progress bar on stderr (silent with --json or when stderr is not a terminal)."""
+    if quiet or not sys.stderr.isatty():
+        class _Null:
+            def __enter__(self):
+                return lambda n: None
+
+            def __exit__(self, *a):
+                return False
+
+        return _Null()
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    class _Bar:
+        def __enter__(self):
+            self.p = Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True)
+            self.p.start()
+            self.task = self.p.add_task(label, total=total)
+            return lambda n: self.p.advance(self.task, n)
+
+        def __exit__(self, *a):
+            self.p.stop()
+            return False
+
+    return _Bar()
+
+
+def cmd_seed004(args) -> dict:
+    from companion.bench import seed004
+
+    total = args.runs * sum(len(c) for c in seed004.CASES.values())
+    t0 = time.perf_counter()
+    with _progress(total, "seed-004 Monte Carlo", args.json) as tick:
+        res = seed004.run_all(args.runs, workers=args.workers, progress=tick)
+    res["wall_time_s"] = time.perf_counter() - t0
+    return res
+
+
+def cmd_seed000(args) -> dict:
+    from companion.bench import seed000
+
+    with _progress(args.runs, "seed-000 Monte Carlo", args.json) as tick:
+        return seed000.run(args.runs, progress=tick)
+
+
+def cmd_timing(args) -> dict:
+    from companion.bench import timing
+
+    return timing.run_all(repeats=args.repeats)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m companion.bench",
+        description="Benchmarks of the estimation core against the source papers' scenarios (DESIGN.md §4).",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="Examples:\n  python -m companion.bench seed004 --runs 100\n"
+               "  python -m companion.bench timing --json\n"
+               "  python -m companion.bench all --runs 200 --write docs/BENCHMARKS.md",
+    )
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    workers_default = min(2, os.cpu_count() or 1)
+    for name, helptext in (("seed004", "seed-004 scenario: triangulation vs EKFs vs the Cramér–Rao bound"),
+                           ("seed000", "seed-000 scenario: relative range error vs L"),
+                           ("all", "every benchmark; --write rewrites the benchmarks document")):
+        p = sub.add_parser(name, help=helptext, description=helptext)
+        p.add_argument("--runs", type=int, default=100, help="Monte Carlo runs per case (default 100)")
+        p.add_argument("--workers", type=int, default=workers_default, help=f"worker processes (default {workers_default})")
+        p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
+        if name == "all":
+            p.add_argument("--write", metavar="FILE", help="write the markdown report to FILE")
+            p.add_argument("--repeats", type=int, default=50, help="timing repeats (default 50)")
+    p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")
+    p.add_argument("--repeats", type=int, default=50, help="repeats per measurement; the median is reported")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    args = ap.parse_args(argv)
+    if getattr(args, "runs", 1) < 1:
+        ap.error("--runs must be >= 1")
+
+    if args.cmd == "seed004":
+        res = cmd_seed004(args)
+        print(json.dumps(report.seed004_json(res)) if args.json else report.seed004_markdown(res, args.runs))
+    elif args.cmd == "seed000":
+        res = cmd_seed000(args)
+        print(json.dumps(res) if args.json else report.seed000_markdown(res))
+    elif args.cmd == "timing":
+        res = cmd_timing(args)
+        print(json.dumps(report.timing_json(res)) if args.json else report.timing_markdown(res))
+    else:
+        res = {"seed004": cmd_seed004(args), "seed000": cmd_seed000(args), "timing": cmd_timing(args)}
+        if args.json:
+            print(json.dumps(res))
+        else:
+            text = report.full_markdown(res, args.runs, args.repeats)
+            if args.write:
+                with open(args.write, "w", encoding="utf-8") as fh:
+                    fh.write(text)
+                print(f"wrote {args.write}", file=sys.stderr)
+            print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

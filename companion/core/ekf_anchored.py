@@ -1,0 +1,412 @@
+"""Anchored inverse-depth EKF, one 3-state filter per landmark (DESIGN.md §3.4).
+
+Parametrization (Civera et al., ref. [4] of seed 004), with the anchor pose taken from telemetry
+instead of being estimated:
+
+    x = (θ, φ, ρ),   m(θ, φ) = (cos φ sin θ, −sin φ, cos φ cos θ)   (in the anchor camera frame)
+    p_world = p_world_camA + R_world_camA · m(θ, φ) / ρ
+
+θ is the azimuth (to the right), φ the elevation (up) of the ray seen from the anchor camera and
+ρ = 1/d the inverse distance along it.  The landmark is static, so the prediction is the identity
+(F = I, Q = 0) and all the work is in the update.
+
+Measurement (undistorted normalized coordinates in the current camera, pose R_world_cam, C):
+
+    h_c = ρ · R_cam_world (p_world_camA − C) + R_cam_camA · m(θ, φ) = ρ · t + R_ca · m
+    z   = (h_c,x / h_c,z,  h_c,y / h_c,z)
+
+h_c is the camera-frame point scaled by ρ, so the model stays finite at infinity (ρ = 0).  The
+analytic Jacobian is H = ∂z/∂h_c · [R_ca ∂m/∂θ, R_ca ∂m/∂φ, t] with
+∂z/∂h = [[1/h_z, 0, −h_x/h_z²], [0, 1/h_z, −h_y/h_z²]],
+∂m/∂θ = (cos φ cos θ, 0, −cos φ sin θ), ∂m/∂φ = (−sin φ sin θ, −cos φ, −sin φ cos θ).
+
+Attitude drift (DESIGN §4 gyro model).  Telemetry attitude drifts (gyro bias), and that error is
+correlated in time, so inflating R cannot keep the filter honest.  When ``attitude_drift_deg_s`` > 0
+each filter carries three more states: the gyro bias b (camera axes, rad/s, prior σ =
+attitude_drift_deg_s).  A body-fixed bias makes the reported attitude drift in the world frame at
+the rate R_world_cam(τ)·b, so between anchor and now the true rotation is the reported one
+followed by Exp(w), w = D·b with D = ∫ R_world_cam dτ ≈ Δt·(R_world_camA + R_world_cam)/2
+(trapezoid over the landmark's life, Δt = t − t_anchor):
+
+    h_c = R_cam_world · Exp(w) · g,    g = ρ (p_world_camA − C) + R_world_camA · m(θ, φ),
+
+with ∂h_c/∂b = −R_cam_world [Exp(w) g]× J_l(w) D (J_l the left Jacobian of SO(3)).
+Each landmark estimates its own copy of b from its own pixels only, so every filter remains a
+proper posterior of its own measurements (the bank does not pool b across landmarks).  Without
+drift (n = 3 states) the same equations hold with b = 0.
+
+Update: iterated EKF (Gauss–Newton on the prior + measurement cost, ``iterations`` relinearizations;
+1 = the plain EKF), χ² innovation gate on the first linearization, Joseph-form covariance.
+Measurement noise R = (σ_px/f)² + σ_att² (white attitude noise of each telemetry sample).
+
+All operations are batched over landmarks: arrays of shape (N, 3), (N, 3, 3); no loop per landmark.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from companion.config import require, require_finite
+from companion.core.frames import skew
+from companion.errors import InputError
+
+
+@dataclasses.dataclass(frozen=True)
+class AnchoredEKFConfig:
+    """The ``[ekf_anchored]`` table."""
+
+    sigma_px: float = 1.0  # pixel measurement noise σ
+    gate_probability: float = 0.999  # χ² (2 dof) innovation gate
+    iterations: int = 2  # iterated-EKF relinearizations per update (1 = plain EKF)
+    attitude_sigma_deg: float = 0.0  # white attitude error of each telemetry pose
+    attitude_drift_deg_s: float = 0.0  # σ of the gyro bias per axis (°/s); > 0 adds 3 bias states
+    converged_rel_sigma: float = 0.1  # converged when range σ / range is below this
+    min_updates: int = 3  # ... and at least this many accepted updates
+    max_consecutive_rejects: int = 5  # then the landmark is flagged diverged
+    max_range_m: float = 10000.0  # ranges beyond this are reported as this value
+
+    def __post_init__(self) -> None:
+        require_finite("sigma_px", self.sigma_px, positive=True)
+        require_finite("gate_probability", self.gate_probability)
+        require(0.5 < self.gate_probability < 1.0, f"gate_probability must be in (0.5, 1), got {self.gate_probability}")
+        require(isinstance(self.iterations, int) and 1 <= self.iterations <= 20, "iterations must be an integer in 1..20")
+        require_finite("attitude_sigma_deg", self.attitude_sigma_deg, nonnegative=True)
+        require_finite("attitude_drift_deg_s", self.attitude_drift_deg_s, nonnegative=True)
+        require_finite("converged_rel_sigma", self.converged_rel_sigma, positive=True)
+        require(isinstance(self.min_updates, int) and self.min_updates >= 0, "min_updates must be an integer >= 0")
+        require(isinstance(self.max_consecutive_rejects, int) and self.max_consecutive_rejects >= 1, "max_consecutive_rejects must be >= 1")
+        require_finite("max_range_m", self.max_range_m, positive=True)
+
+    @property
+    def gate_threshold(self) -> float:
+        """χ²₂ quantile: for 2 dof the CDF is 1 − exp(−x/2), so the quantile is −2 ln(1 − p)."""
+        return -2.0 * math.log(1.0 - self.gate_probability)
+
+
+# -- reasons an update was not applied --------------------------------------------------------
+UPDATED = 0
+GATED = 1  # innovation failed the χ² gate
+BEHIND = 2  # the predicted point is behind the current camera
+
+
+@dataclasses.dataclass
+class UpdateResult:
+    ids: np.ndarray
+    accepted: np.ndarray  # (M,) bool
+    nis: np.ndarray  # (M,) normalized innovation squared (first linearization)
+    reason: np.ndarray  # (M,) UPDATED / GATED / BEHIND
+
+
+@dataclasses.dataclass
+class LandmarkEstimates:
+    """Per landmark, relative to a given camera: everything a consumer needs, always finite."""
+
+    ids: np.ndarray
+    p_world: np.ndarray  # (N, 3); for ρ ≤ 1/max_range the point is placed at max_range along the ray
+    range: np.ndarray  # (N,) distance from the camera centre, ≤ max_range_m
+    range_sigma: np.ndarray  # (N,) first-order σ of range, ≤ max_range_m
+    inv_depth: np.ndarray  # (N,) ρ
+    inv_depth_sigma: np.ndarray  # (N,)
+    converged: np.ndarray  # (N,) bool
+    valid: np.ndarray  # (N,) bool: not diverged, ρ not significantly negative
+
+
+def ray(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """m(θ, φ) of DESIGN §3.4, (N, 3)."""
+    cp, sp, ct, st = np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta)
+    return np.stack([cp * st, -sp, cp * ct], -1)
+
+
+def ray_jacobian(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """[∂m/∂θ, ∂m/∂φ] as (N, 3, 2)."""
+    cp, sp, ct, st = np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta)
+    dth = np.stack([cp * ct, np.zeros_like(cp), -cp * st], -1)
+    dph = np.stack([-sp * st, -cp, -sp * ct], -1)
+    return np.stack([dth, dph], -1)
+
+
+def angles_of(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(θ, φ) of direction vectors v (N, 3) in a camera frame: inverse of :func:`ray`."""
+    theta = np.arctan2(v[..., 0], v[..., 2])
+    phi = np.arctan2(-v[..., 1], np.hypot(v[..., 0], v[..., 2]))
+    return theta, phi
+
+
+def inverse_depth_state(p_world: np.ndarray, R_world_camA: np.ndarray, p_world_camA: np.ndarray) -> np.ndarray:
+    """True state (θ, φ, ρ) of world points relative to anchors (for NEES and tests), (N, 3)."""
+    v = np.einsum("...ji,...j->...i", R_world_camA, np.asarray(p_world, float) - p_world_camA)
+    th, ph = angles_of(v)
+    return np.stack([th, ph, 1.0 / np.linalg.norm(v, axis=-1)], -1)
+
+
+def _exp_and_left_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exp(φ) and the left Jacobian of SO(3) from one [φ]× (N, 3, 3) each:
+
+    Exp(φ) = I + sin θ/θ K + (1 − cos θ)/θ² K²,   J_l(φ) = I + (1 − cos θ)/θ² K + (θ − sin θ)/θ³ K².
+    """
+    th = np.linalg.norm(phi, axis=-1)[:, None, None]
+    K = skew(phi)
+    K2 = K @ K
+    small = th < 1e-6
+    ths = np.where(small, 1.0, th)
+    s, c = np.sin(ths), np.cos(ths)
+    a = np.where(small, 1.0 - th**2 / 6, s / ths)
+    b = np.where(small, 0.5 - th**2 / 24, (1 - c) / ths**2)
+    d = np.where(small, 1.0 / 6 - th**2 / 120, (ths - s) / ths**3)
+    eye = np.eye(3)
+    return eye + a * K + b * K2, eye + b * K + d * K2
+
+
+def _inv2(S: np.ndarray) -> np.ndarray:
+    a, b, c, d = S[:, 0, 0], S[:, 0, 1], S[:, 1, 0], S[:, 1, 1]
+    det = a * d - b * c
+    out = np.empty_like(S)
+    out[:, 0, 0] = d / det
+    out[:, 0, 1] = -b / det
+    out[:, 1, 0] = -c / det
+    out[:, 1, 1] = a / det
+    return out
+
+
+def _as_batch(name: str, a, n: int, tail: tuple[int, ...]) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    if a.shape == tail:
+        a = np.broadcast_to(a, (n,) + tail)
+    if a.shape != (n,) + tail:
+        raise InputError(f"{name} must have shape {tail} or {(n,) + tail}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"{name} contains NaN or inf")
+    return a
+
+
+def _shared_or_batch(name: str, a, n: int, tail: tuple[int, ...]) -> np.ndarray:
+    """Like :func:`_as_batch` but keeps a shared pose unbroadcast (cheaper batched products)."""
+    a = np.asarray(a, dtype=float)
+    if a.shape == tail:
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"{name} contains NaN or inf")
+        return a
+    return _as_batch(name, a, n, tail)
+
+
+class AnchoredInverseDepthEKF:
+    """A bank of independent anchored inverse-depth filters, addressed by landmark id."""
+
+    def __init__(self, config: AnchoredEKFConfig, fx: float, fy: float):
+        require_finite("fx", fx, positive=True)
+        require_finite("fy", fy, positive=True)
+        self.config = config
+        self.sigma_xy = np.array([config.sigma_px / fx, config.sigma_px / fy])
+        self.ids = np.zeros(0, dtype=np.int64)
+        #: state size: (θ, φ, ρ), plus the drift rate β when attitude drift is modelled
+        self.n = 6 if config.attitude_drift_deg_s > 0 else 3
+        self.x = np.zeros((0, self.n))
+        self.P = np.zeros((0, self.n, self.n))
+        self.R_world_camA = np.zeros((0, 3, 3))
+        self.p_world_camA = np.zeros((0, 3))
+        self.t_anchor = np.zeros(0)
+        self.n_updates = np.zeros(0, dtype=np.int64)
+        self.n_rejects = np.zeros(0, dtype=np.int64)  # consecutive
+        self.diverged = np.zeros(0, dtype=bool)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    # -- bookkeeping ----------------------------------------------------------------------------
+    def index_of(self, ids) -> np.ndarray:
+        """Row of each id; InputError naming the ids that are not in the bank."""
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        idx = np.searchsorted(self.ids, ids)
+        idx_c = np.minimum(idx, max(len(self.ids) - 1, 0))
+        found = (len(self.ids) > 0) & (self.ids[idx_c] == ids) if len(self.ids) else np.zeros(len(ids), bool)
+        if not np.all(found):
+            raise InputError(f"unknown landmark ids: {ids[~found][:10].tolist()}")
+        return idx_c
+
+    def contains(self, ids) -> np.ndarray:
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        if len(self.ids) == 0:
+            return np.zeros(len(ids), bool)
+        idx = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
+        return self.ids[idx] == ids
+
+    def add(self, ids, xy_anchor, R_world_cam, p_world_cam, t_anchor, inv_depth, inv_depth_sigma) -> None:
+        """Start filters anchored at the given camera pose(s) and first observation(s).
+
+        ``xy_anchor``: (M, 2) undistorted normalized coordinates of the landmark in the anchor image.
+        ``inv_depth`` / ``inv_depth_sigma``: (M,) or scalar prior on ρ (from triangulation, or the
+        estimator's wide prior that includes ρ = 0).
+        """
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        m = len(ids)
+        if m == 0:
+            return
+        if len(np.unique(ids)) != m or np.any(self.contains(ids)):
+            raise InputError("add: landmark ids must be new and unique")
+        xy = _as_batch("xy_anchor", xy_anchor, m, (2,))
+        R = _as_batch("R_world_cam", R_world_cam, m, (3, 3))
+        p = _as_batch("p_world_cam", p_world_cam, m, (3,))
+        t = _as_batch("t_anchor", np.asarray(t_anchor, float).reshape(-1) if np.ndim(t_anchor) else t_anchor, m, ())
+        cfg = self.config
+        rho = _as_batch("inv_depth", inv_depth, m, ())
+        srho = _as_batch("inv_depth_sigma", inv_depth_sigma, m, ())
+        if np.any(srho <= 0):
+            raise InputError("inv_depth_sigma must be > 0")
+        x_, y_ = xy[:, 0], xy[:, 1]
+        theta, phi = angles_of(np.stack([x_, y_, np.ones(m)], 1))
+        # Jacobian of (θ, φ) w.r.t. (x, y): θ = atan(x), φ = atan2(−y, √(1+x²))
+        r2 = 1 + x_**2
+        J = np.zeros((m, 2, 2))
+        J[:, 0, 0] = 1.0 / r2
+        J[:, 1, 0] = y_ * x_ / (np.sqrt(r2) * (r2 + y_**2))
+        J[:, 1, 1] = -np.sqrt(r2) / (r2 + y_**2)
+        Rxy = np.diag(self.sigma_xy**2)
+        P0 = np.zeros((m, self.n, self.n))
+        P0[:, :2, :2] = J @ Rxy @ np.swapaxes(J, 1, 2)
+        P0[:, 2, 2] = srho**2
+        x0 = np.stack([theta, phi, rho], 1)
+        if self.n == 6:
+            sb = np.radians(cfg.attitude_drift_deg_s)
+            P0[:, 3:, 3:] = sb**2 * np.eye(3)
+            x0 = np.concatenate([x0, np.zeros((m, 3))], 1)
+        order = np.argsort(np.concatenate([self.ids, ids]), kind="stable")
+        self.ids = np.concatenate([self.ids, ids])[order]
+        self.x = np.concatenate([self.x, x0])[order]
+        self.P = np.concatenate([self.P, P0])[order]
+        self.R_world_camA = np.concatenate([self.R_world_camA, R])[order]
+        self.p_world_camA = np.concatenate([self.p_world_camA, p])[order]
+        self.t_anchor = np.concatenate([self.t_anchor, t])[order]
+        self.n_updates = np.concatenate([self.n_updates, np.zeros(m, np.int64)])[order]
+        self.n_rejects = np.concatenate([self.n_rejects, np.zeros(m, np.int64)])[order]
+        self.diverged = np.concatenate([self.diverged, np.zeros(m, bool)])[order]
+
+    def remove(self, ids) -> None:
+        keep = np.ones(len(self.ids), bool)
+        keep[self.index_of(ids)] = False
+        for name in ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged"):
+            setattr(self, name, getattr(self, name)[keep])
+
+    # -- model ----------------------------------------------------------------------------------
+    @staticmethod
+    def measure(x, R_world_camA, p_world_camA, R_world_cam, p_world_cam, dt=None):
+        """h_c (N,3), predicted z (N,2) and H (N,2,n) for states x (N,n) seen from (R_world_cam, C).
+
+        The current pose may be shared, (3,3) and (3,), or per landmark, (N,3,3) and (N,3).
+        With n = 6 the last three states are the gyro bias b and ``dt`` (N,) is t − t_anchor.
+        """
+        a = p_world_camA - p_world_cam
+        th, ph = x[:, 0], x[:, 1]
+        mw = (R_world_camA @ ray(th, ph)[:, :, None])[:, :, 0]
+        g = x[:, 2:3] * a + mw
+        dg = np.concatenate([R_world_camA @ ray_jacobian(th, ph), a[:, :, None]], 2)  # ∂g/∂(θ,φ,ρ)
+        R_cam_world = np.swapaxes(R_world_cam, -1, -2)
+        if x.shape[1] == 6:
+            D = (0.5 * dt)[:, None, None] * (R_world_camA + R_world_cam)
+            phi = (D @ x[:, 3:, None])[:, :, 0]
+            E, J_l = _exp_and_left_jacobian(phi)
+            gr = (E @ g[:, :, None])[:, :, 0]
+            dh_dx = R_cam_world @ np.concatenate([E @ dg, -skew(gr) @ J_l @ D], 2)
+        else:
+            gr = g
+            dh_dx = R_cam_world @ dg
+        h = (R_cam_world @ gr[:, :, None])[:, :, 0]
+        hz = h[:, 2]
+        inv_hz = 1.0 / np.where(np.abs(hz) > 1e-12, hz, 1e-12)
+        z = h[:, :2] * inv_hz[:, None]
+        # ∂z/∂h = (1/h_z) [I₂ | −z], applied row-wise without forming it
+        H = (dh_dx[:, :2, :] - z[:, :, None] * dh_dx[:, 2:3, :]) * inv_hz[:, None, None]
+        return h, z, H
+
+    def measurement_noise(self, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """R (M,2,2): pixel noise plus the white attitude noise of the telemetry (normalized units)."""
+        att = np.radians(self.config.attitude_sigma_deg) ** 2
+        var = np.broadcast_to(self.sigma_xy[None, :] ** 2 + att, (len(rows), 2))
+        R = np.zeros((len(rows), 2, 2))
+        R[:, 0, 0] = var[:, 0]
+        R[:, 1, 1] = var[:, 1]
+        return R
+
+    # -- update ---------------------------------------------------------------------------------
+    def update(self, ids, xy, R_world_cam, p_world_cam, t) -> UpdateResult:
+        """Fuse one observation per listed landmark; poses shared (3,3)/(3,) or per landmark."""
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        m = len(ids)
+        if m == 0:
+            e = np.zeros(0)
+            return UpdateResult(ids, e.astype(bool), e, e.astype(np.int8))
+        rows = self.index_of(ids)
+        z = _as_batch("xy", xy, m, (2,))
+        Rc = _shared_or_batch("R_world_cam", R_world_cam, m, (3, 3))
+        C = _shared_or_batch("p_world_cam", p_world_cam, m, (3,))
+        t = _as_batch("t", np.asarray(t, float).reshape(-1) if np.ndim(t) else t, m, ())
+        x0 = self.x[rows]
+        P0 = self.P[rows]
+        RA, pA = self.R_world_camA[rows], self.p_world_camA[rows]
+        Rn = self.measurement_noise(t, rows)
+        dt = t - self.t_anchor[rows]
+
+        h, zhat, H = self.measure(x0, RA, pA, Rc, C, dt)
+        reason = np.zeros(m, np.int8)
+        reason[h[:, 2] <= 1e-9] = BEHIND
+        y = z - zhat
+        PHt = P0 @ np.swapaxes(H, 1, 2)
+        Si = _inv2(H @ PHt + Rn)
+        nis = np.einsum("ni,nij,nj->n", y, Si, y)
+        nis = np.where(reason == BEHIND, np.inf, nis)
+        reason[(reason == UPDATED) & ~(nis <= self.config.gate_threshold)] = GATED
+        ok = reason == UPDATED
+
+        # iterated EKF: x_{i+1} = x0 + K_i (z − h(x_i) − H_i (x0 − x_i)), K_i = P0 H_iᵀ S_i⁻¹
+        xi = x0
+        K = PHt @ Si
+        for it in range(self.config.iterations):
+            if it > 0:
+                h, zhat, H = self.measure(xi, RA, pA, Rc, C, dt)
+                PHt = P0 @ np.swapaxes(H, 1, 2)
+                K = PHt @ _inv2(H @ PHt + Rn)
+                ok &= h[:, 2] > 1e-9
+            innov = z - zhat - (H @ (x0 - xi)[:, :, None])[:, :, 0]
+            x_new = x0 + (K @ innov[:, :, None])[:, :, 0]
+            xi = np.where(ok[:, None], x_new, xi)
+        # P = (I − K H) P0 = P0 − K (P0 Hᵀ)ᵀ at the last linearization, symmetrized
+        P_new = P0 - K @ np.swapaxes(PHt, 1, 2)
+        P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
+        good = ok & np.all(np.isfinite(xi), 1) & np.all(np.isfinite(P_new), (1, 2))
+        reason[ok & ~good] = GATED
+        self.x[rows] = np.where(good[:, None], xi, x0)
+        self.P[rows] = np.where(good[:, None, None], P_new, P0)
+        self.n_updates[rows] += good
+        self.n_rejects[rows] = np.where(good, 0, self.n_rejects[rows] + 1)
+        self.diverged[rows] |= self.n_rejects[rows] >= self.config.max_consecutive_rejects
+        return UpdateResult(ids, good, nis, reason)
+
+    # -- output ---------------------------------------------------------------------------------
+    def estimates(self, p_world_cam) -> LandmarkEstimates:
+        """Point, range and σ of every landmark as seen from camera centre ``p_world_cam`` (3,)."""
+        C = np.asarray(p_world_cam, float).reshape(3)
+        if not np.all(np.isfinite(C)):
+            raise InputError("p_world_cam contains NaN or inf")
+        cfg = self.config
+        x = self.x
+        rho = x[:, 2]
+        srho = np.sqrt(np.maximum(self.P[:, 2, 2], 0.0))
+        rho_floor = 1.0 / cfg.max_range_m
+        rho_eff = np.maximum(rho, rho_floor)
+        mw = np.einsum("nij,nj->ni", self.R_world_camA, ray(x[:, 0], x[:, 1]))
+        a = self.p_world_camA - C
+        g = rho_eff[:, None] * a + mw  # ρ · (p − C)
+        ng = np.linalg.norm(g, axis=1)
+        rng = np.minimum(ng / rho_eff, cfg.max_range_m)
+        J = np.zeros((len(x), 3))
+        dm = np.einsum("nij,njk->nik", self.R_world_camA, ray_jacobian(x[:, 0], x[:, 1]))
+        J[:, :2] = np.einsum("ni,nik->nk", g, dm) / (ng * rho_eff)[:, None]
+        J[:, 2] = np.einsum("ni,ni->n", g, a) / (ng * rho_eff) - ng / rho_eff**2
+        rsig = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", J, self.P[:, :3, :3], J), 0.0))
+        rsig = np.minimum(rsig, cfg.max_range_m)
+        p_world = self.p_world_camA + mw / rho_eff[:, None]
+        valid = ~self.diverged & (rho > -3.0 * srho)
+        converged = valid & (rho > rho_floor) & (rsig < cfg.converged_rel_sigma * rng) & (self.n_updates >= cfg.min_updates)
+        return LandmarkEstimates(self.ids.copy(), p_world, rng, rsig, rho.copy(), srho, converged, valid)

@@ -1,0 +1,345 @@
+"""The one entry point from pixel tracks and camera poses to ranges (DESIGN.md §3.3–§3.5).
+
+``RangeEstimator.process`` takes one frame at a time, in time order: the camera pose from
+telemetry (``R_world_cam``, ``p_world_cam``; optionally the camera velocity and angular rate), and
+the tracked pixels of that frame with their track ids.  It returns the current estimate of every
+landmark.  The benchmarks drive it now; the live process and the replay tool drive it later.
+
+Life of a landmark (the "combined method" of seeds 000 and 004):
+
+1. *pending*: its first observation is the anchor; the next observations are buffered
+   (at most ``init_max_frames``).
+2. *initialization*: as soon as two-view triangulation between the anchor and the current view
+   (the longest baseline available) passes every gate, the filter starts from it, with the
+   triangulated σ inflated by ``tri_sigma_scale`` because the replay below reuses those pixels;
+   if the gates still fail after ``init_max_frames`` frames, the filter starts from the wide
+   inverse-depth prior that includes infinity.
+3. *filtering*: the anchored EKF (§3.4) is anchored at the first observation and replays the
+   buffered observations, so no measurement is lost; the seed-000 EKF (§3.5) starts in the
+   current frame and is then propagated with the camera twist between frames.
+4. a landmark unseen for ``max_unseen_s`` or flagged diverged is dropped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from companion.config import require, require_finite
+from companion.core.camera import CameraConfig, CameraModel
+from companion.core.ekf_anchored import AnchoredEKFConfig, AnchoredInverseDepthEKF
+from companion.core.ekf_landmark import LandmarkEKFBank, LandmarkEKFConfig
+from companion.core.frames import se3_twist
+from companion.core.triangulation import Reject, TriangulationConfig, triangulate_poses
+from companion.errors import InputError
+
+FILTERS = ("anchored", "landmark")
+
+
+@dataclasses.dataclass(frozen=True)
+class EstimatorConfig:
+    """The ``[estimator]`` table."""
+
+    filter: str = "anchored"  # "anchored" (§3.4) or "landmark" (seed 000, §3.5)
+    init_max_frames: int = 10  # frames to wait for a triangulation before the wide prior
+    prior_inv_depth: float = 0.01  # wide prior on inverse range ρ0 (1/m), used without triangulation
+    prior_inv_depth_sigma: float = 0.02  # its σ: ρ = 0 (a point at infinity) lies within 1σ
+    tri_sigma_scale: float = 3.0  # inflation of the triangulated σ used to seed a filter
+    max_unseen_s: float = 0.5  # drop a landmark not observed for this long
+    max_landmarks: int = 1000  # hard bound on pending + filtered landmarks
+
+    def __post_init__(self) -> None:
+        require(self.filter in FILTERS, f"filter must be one of {FILTERS}, got {self.filter!r}")
+        require(isinstance(self.init_max_frames, int) and 1 <= self.init_max_frames <= 1000, "init_max_frames must be an integer in 1..1000")
+        require_finite("prior_inv_depth", self.prior_inv_depth, nonnegative=True)
+        require_finite("prior_inv_depth_sigma", self.prior_inv_depth_sigma, positive=True)
+        require_finite("tri_sigma_scale", self.tri_sigma_scale, positive=True)
+        require(self.tri_sigma_scale >= 1.0, f"tri_sigma_scale must be >= 1, got {self.tri_sigma_scale}")
+        require_finite("max_unseen_s", self.max_unseen_s, positive=True)
+        require(isinstance(self.max_landmarks, int) and self.max_landmarks > 0, "max_landmarks must be a positive integer")
+
+
+@dataclasses.dataclass
+class RangeOutput:
+    """Estimates after one frame, relative to that frame's camera; every array is finite."""
+
+    t: float
+    ids: np.ndarray  # (N,) landmark (track) ids with a running filter
+    p_world: np.ndarray  # (N, 3)
+    range: np.ndarray  # (N,) m from the camera centre
+    range_sigma: np.ndarray  # (N,)
+    converged: np.ndarray  # (N,) bool
+    valid: np.ndarray  # (N,) bool
+    n_pending: int  # landmarks waiting for initialization
+    n_initialized_tri: int  # started from triangulation in this frame
+    n_initialized_prior: int  # started from the wide prior in this frame
+    n_rejected: int  # measurements refused by the χ² gate in this frame
+    tri_reasons: dict  # Reject name -> count among pending landmarks tried this frame
+
+
+class _Pending:
+    """Vectorized store of landmarks awaiting initialization (anchor + buffered observations)."""
+
+    def __init__(self, window: int):
+        self.W = window
+        self.ids = np.zeros(0, np.int64)
+        self.count = np.zeros(0, np.int64)  # observations stored (≥ 1, anchor included)
+        self.t = np.zeros((0, window + 1))
+        self.xy = np.zeros((0, window + 1, 2))
+        self.R = np.zeros((0, window + 1, 3, 3))
+        self.p = np.zeros((0, window + 1, 3))
+        self.t_last = np.zeros(0)
+
+    _fields = ("ids", "count", "t", "xy", "R", "p", "t_last")
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def rows_of(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(mask of ids present, their rows)."""
+        if len(self.ids) == 0:
+            return np.zeros(len(ids), bool), np.zeros(len(ids), np.int64)
+        order = np.argsort(self.ids)
+        pos = np.minimum(np.searchsorted(self.ids[order], ids), len(self.ids) - 1)
+        rows = order[pos]
+        return self.ids[rows] == ids, rows
+
+    def add(self, ids, t, xy, R, p) -> None:
+        m = len(ids)
+        if m == 0:
+            return
+        W1 = self.W + 1
+        new = {
+            "ids": ids, "count": np.ones(m, np.int64), "t": np.zeros((m, W1)), "xy": np.zeros((m, W1, 2)),
+            "R": np.broadcast_to(np.eye(3), (m, W1, 3, 3)).copy(), "p": np.zeros((m, W1, 3)), "t_last": np.full(m, t),
+        }
+        new["t"][:, 0] = t
+        new["xy"][:, 0] = xy
+        new["R"][:, 0] = R
+        new["p"][:, 0] = p
+        for f in self._fields:
+            setattr(self, f, np.concatenate([getattr(self, f), new[f]]))
+
+    def append(self, rows, t, xy, R, p) -> None:
+        c = self.count[rows]
+        self.t[rows, c] = t
+        self.xy[rows, c] = xy
+        self.R[rows, c] = R
+        self.p[rows, c] = p
+        self.count[rows] = c + 1
+        self.t_last[rows] = t
+
+    def keep(self, mask) -> None:
+        for f in self._fields:
+            setattr(self, f, getattr(self, f)[mask])
+
+
+class RangeEstimator:
+    """Tracks + poses in, landmark ranges out; see the module docstring for the life cycle."""
+
+    def __init__(
+        self,
+        camera: CameraConfig,
+        config: EstimatorConfig | None = None,
+        triangulation: TriangulationConfig | None = None,
+        ekf_anchored: AnchoredEKFConfig | None = None,
+        ekf_landmark: LandmarkEKFConfig | None = None,
+    ):
+        self.camera = CameraModel(camera)
+        self.config = config or EstimatorConfig()
+        self.tri_config = triangulation or TriangulationConfig()
+        fx, fy = camera.fx, camera.fy
+        if self.config.filter == "anchored":
+            self.ekf = AnchoredInverseDepthEKF(ekf_anchored or AnchoredEKFConfig(), fx, fy)
+        else:
+            self.ekf = LandmarkEKFBank(ekf_landmark or LandmarkEKFConfig(), fx, fy)
+        # measurement σ in normalized units, used by the triangulation's uncertainty gate
+        self.sigma_xy = self.ekf.config.sigma_px / min(fx, fy)
+        self.pending = _Pending(self.config.init_max_frames)
+        self.t_seen = np.zeros(0)  # last observation time of each filtered landmark, aligned with ekf.ids
+        self._seen_ids = np.zeros(0, np.int64)
+        self.t_prev: float | None = None
+        self.pose_prev: tuple[np.ndarray, np.ndarray] | None = None
+
+    # -- validation -----------------------------------------------------------------------------
+    @staticmethod
+    def _validate(t, R_world_cam, p_world_cam, ids, uv):
+        if not np.isfinite(t):
+            raise InputError(f"frame time is not finite: {t!r}")
+        R = np.asarray(R_world_cam, float)
+        p = np.asarray(p_world_cam, float)
+        if R.shape != (3, 3) or p.shape != (3,):
+            raise InputError(f"camera pose must be R (3,3) and p (3,), got {R.shape} and {p.shape}")
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p))):
+            raise InputError("camera pose contains NaN or inf")
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise InputError("R_world_cam is not a rotation matrix")
+        ids = np.asarray(ids)
+        if ids.ndim != 1 or (len(ids) and not np.issubdtype(ids.dtype, np.integer)):
+            raise InputError(f"ids must be a 1-D integer array, got shape {ids.shape} dtype {ids.dtype}")
+        uv = np.asarray(uv, float)
+        if uv.shape != (len(ids), 2):
+            raise InputError(f"uv must have shape ({len(ids)}, 2) to match ids, got {uv.shape}")
+        if not np.all(np.isfinite(uv)):
+            bad = ids[~np.all(np.isfinite(uv), 1)]
+            raise InputError(f"uv contains NaN or inf for track ids {bad[:10].tolist()}")
+        if len(np.unique(ids)) != len(ids):
+            raise InputError("ids contain duplicates")
+        return R, p, ids.astype(np.int64), uv
+
+    # -- main step ------------------------------------------------------------------------------
+    def process(self, t, R_world_cam, p_world_cam, ids, uv, v_cam=None, w_cam=None) -> RangeOutput:
+        """Fuse one frame.  ``uv``: raw (distorted) pixels (M, 2) of tracks ``ids`` (M,)."""
+        R, p, ids, uv = self._validate(t, R_world_cam, p_world_cam, ids, uv)
+        t = float(t)
+        if self.t_prev is not None and not t > self.t_prev:
+            raise InputError(f"frame times must increase: {t} after {self.t_prev}")
+        xy = self.camera.pixels_to_normalized(uv)
+
+        if isinstance(self.ekf, LandmarkEKFBank) and self.t_prev is not None and len(self.ekf):
+            dt = t - self.t_prev
+            if v_cam is None or w_cam is None:
+                v_cam, w_cam = se3_twist(*self.pose_prev, R, p, dt)
+            self.ekf.predict(np.asarray(v_cam, float), np.asarray(w_cam, float), dt)
+
+        # 1. landmarks with a running filter
+        in_ekf = self.ekf.contains(ids) if len(self.ekf) else np.zeros(len(ids), bool)
+        n_rej = 0
+        if np.any(in_ekf):
+            res = self._update(ids[in_ekf], xy[in_ekf], R, p, t)
+            n_rej = int(np.sum(~res))
+            rows = self.ekf.index_of(ids[in_ekf])
+            self.t_seen[rows] = t
+
+        # 2. pending landmarks: buffer, then try to initialize
+        rest = ~in_ekf
+        in_pend, prow = self.pending.rows_of(ids[rest])
+        self.pending.append(prow[in_pend], t, xy[rest][in_pend], R, p)
+        room = self.config.max_landmarks - len(self.ekf) - len(self.pending)
+        new_ids = ids[rest][~in_pend][: max(room, 0)]
+        new_xy = xy[rest][~in_pend][: max(room, 0)]
+        self.pending.add(new_ids, t, new_xy, R, p)
+        n_tri, n_prior, reasons = self._initialize(t, R, p)
+
+        # 3. forget what is no longer seen
+        self._expire(t)
+        self.t_prev = t
+        self.pose_prev = (R, p)
+        return self._output(t, R, p, n_tri, n_prior, n_rej, reasons)
+
+    def drop(self, ids) -> None:
+        """Forget landmarks whose tracks ended (e.g. the track manager's dropped ids)."""
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        if len(self.ekf):
+            hit = self.ekf.contains(ids)
+            if np.any(hit):
+                keep = np.ones(len(self.ekf), bool)
+                keep[self.ekf.index_of(ids[hit])] = False
+                self.ekf.remove(ids[hit])
+                self.t_seen = self.t_seen[keep]
+                self._seen_ids = self.ekf.ids.copy()
+        present, rows = self.pending.rows_of(ids)
+        if np.any(present):
+            keep = np.ones(len(self.pending), bool)
+            keep[rows[present]] = False
+            self.pending.keep(keep)
+
+    def _update(self, ids, xy, R, p, t) -> np.ndarray:
+        if isinstance(self.ekf, AnchoredInverseDepthEKF):
+            return self.ekf.update(ids, xy, R, p, t).accepted
+        return self.ekf.update(ids, xy).accepted
+
+    def _initialize(self, t, R, p):
+        pend = self.pending
+        fresh = pend.t_last == t
+        reasons: dict = {}
+        if not np.any(fresh) or len(pend) == 0:
+            return 0, 0, reasons
+        rows = np.flatnonzero(fresh & (pend.count >= 2))
+        tri = triangulate_poses(
+            pend.xy[rows, 0], pend.R[rows, 0], pend.p[rows, 0], pend.xy[rows, pend.count[rows] - 1], R, p,
+            self.tri_config, sigma_xy=self.sigma_xy,
+        )
+        for code in np.unique(tri.reason):
+            reasons[Reject(code).name] = int(np.sum(tri.reason == code))
+        ok = tri.ok
+        timeout = pend.count[rows] >= self.config.init_max_frames
+        start_tri = rows[ok]
+        start_prior = rows[~ok & timeout]
+        # range along the anchor ray → inverse depth and its σ (inflated: the replay reuses these pixels)
+        d_anchor = np.linalg.norm(tri.p[ok] - pend.p[start_tri, 0], axis=1)
+        rho_tri = 1.0 / d_anchor
+        srho_tri = self.config.tri_sigma_scale * tri.range_sigma[ok] / d_anchor**2
+        self._start(start_tri, rho_tri, srho_tri, tri.p[ok], R, p)
+        self._start(start_prior, None, None, None, R, p)
+        done = np.zeros(len(pend), bool)
+        done[start_tri] = True
+        done[start_prior] = True
+        pend.keep(~done)
+        return len(start_tri), len(start_prior), reasons
+
+    def _start(self, rows, rho, srho, p_world_tri, R, p) -> None:
+        if len(rows) == 0:
+            return
+        pend = self.pending
+        ids = pend.ids[rows]
+        cfg = self.config
+        if rho is None:  # the wide prior, identical for every landmark
+            rho = np.full(len(rows), cfg.prior_inv_depth)
+            srho = np.full(len(rows), cfg.prior_inv_depth_sigma)
+        if isinstance(self.ekf, AnchoredInverseDepthEKF):
+            self.ekf.add(ids, pend.xy[rows, 0], pend.R[rows, 0], pend.p[rows, 0], pend.t[rows, 0], rho, srho)
+            cnt = pend.count[rows]
+            for j in range(1, int(cnt.max())):  # replay buffered observations, vectorized per slot
+                sel = cnt > j
+                r = rows[sel]
+                self.ekf.update(ids[sel], pend.xy[r, j], pend.R[r, j], pend.p[r, j], pend.t[r, j])
+        else:
+            last = pend.count[rows] - 1
+            xy_now = pend.xy[rows, last]
+            if p_world_tri is None:  # inverse range ρ → inverse depth ξ = ρ·√(1 + x̄² + ȳ²)
+                stretch = np.sqrt(1.0 + np.sum(xy_now**2, axis=1))
+                xi, srho_xi = rho * stretch, srho * stretch
+            else:
+                Z = (p_world_tri - p) @ R[:, 2]  # depth in the current camera
+                Z = np.maximum(Z, self.tri_config.min_depth_m)
+                xi = 1.0 / Z
+                srho_xi = srho * (np.linalg.norm(p_world_tri - pend.p[rows, 0], axis=1) / Z) ** 2
+            self.ekf.add(ids, xy_now, xi, srho_xi)
+        self._set_seen(ids, pend.t_last[rows])
+
+    def _set_seen(self, new_ids, new_t) -> None:
+        """Keep ``t_seen`` aligned with the bank's (sorted) ids after landmarks were added."""
+        old_ids, old_t = self._seen_ids, self.t_seen
+        t_seen = np.zeros(len(self.ekf))
+        if len(old_ids):
+            t_seen[self.ekf.index_of(old_ids)] = old_t
+        t_seen[self.ekf.index_of(new_ids)] = new_t
+        self.t_seen = t_seen
+        self._seen_ids = self.ekf.ids.copy()
+
+    def _expire(self, t) -> None:
+        """Drop filtered landmarks unseen for ``max_unseen_s`` or diverged, and stale pending ones."""
+        cfg = self.config
+        if len(self.ekf):
+            gone = ((t - self.t_seen) > cfg.max_unseen_s) | self.ekf.diverged
+            if np.any(gone):
+                self.drop(self.ekf.ids[gone])
+        if len(self.pending):
+            self.pending.keep((t - self.pending.t_last) <= cfg.max_unseen_s)
+
+    def _output(self, t, R, p, n_tri, n_prior, n_rej, reasons) -> RangeOutput:
+        if isinstance(self.ekf, AnchoredInverseDepthEKF):
+            e = self.ekf.estimates(p)
+            ids, p_world, rng, rsig, conv, valid = e.ids, e.p_world, e.range, e.range_sigma, e.converged, e.valid
+        else:
+            e = self.ekf.estimates()
+            ids = e.ids
+            p_world = e.p_cam @ R.T + p
+            rng, rsig, conv, valid = e.range, e.range_sigma, e.converged, e.valid
+        return RangeOutput(
+            t=t, ids=ids, p_world=p_world, range=rng, range_sigma=rsig, converged=conv, valid=valid,
+            n_pending=len(self.pending), n_initialized_tri=n_tri, n_initialized_prior=n_prior,
+            n_rejected=n_rej, tri_reasons=reasons,
+        )

@@ -1,0 +1,191 @@
+"""Frames and rotations (DESIGN.md §2).
+
+Conventions used everywhere in the package:
+
+* world: local NED (x north, y east, z down), metres;
+* body: FRD (x forward, y right, z down); attitude as roll, pitch, yaw (ZYX Euler, rad);
+* camera: OpenCV (x right, y down, z along the optical axis).
+
+``R_a_b`` maps vectors expressed in frame *b* into frame *a*; ``p_a`` is a position in frame *a*.
+Quaternions are scalar-first ``(w, x, y, z)``, as MAVLink ATTITUDE_QUATERNION uses, and
+``q_a_b`` corresponds to ``R_a_b``.  All functions broadcast over leading dimensions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.errors import InputError
+
+#: Body FRD -> camera (OpenCV) for a forward-looking camera: cam_x = body_y, cam_y = body_z, cam_z = body_x.
+R_CAM_BODY_FORWARD = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+
+
+def _finite(name: str, a: np.ndarray) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"{name} contains NaN or inf")
+    return a
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix ``[v]x`` with ``[v]x @ w == v × w``; shape (..., 3, 3)."""
+    v = np.asarray(v, dtype=float)
+    z = np.zeros(v.shape[:-1])
+    return np.stack(
+        [
+            np.stack([z, -v[..., 2], v[..., 1]], -1),
+            np.stack([v[..., 2], z, -v[..., 0]], -1),
+            np.stack([-v[..., 1], v[..., 0], z], -1),
+        ],
+        -2,
+    )
+
+
+def euler_zyx_to_R(roll, pitch, yaw) -> np.ndarray:
+    """``R_world_body`` from ZYX Euler angles (yaw about z, then pitch about y, then roll about x).
+
+    This is the attitude MAVLink ATTITUDE reports: body FRD relative to local NED.
+    """
+    roll, pitch, yaw = (np.asarray(a, dtype=float) for a in (roll, pitch, yaw))
+    cr, sr = np.cos(roll), np.sin(roll)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    R = np.stack(
+        [
+            np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+            np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+            np.stack([-sp, cp * sr, cp * cr], -1),
+        ],
+        -2,
+    )
+    return R
+
+
+def R_to_euler_zyx(R_world_body: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`euler_zyx_to_R`: returns (..., 3) = roll, pitch, yaw in rad."""
+    R = np.asarray(R_world_body, dtype=float)
+    pitch = -np.arcsin(np.clip(R[..., 2, 0], -1.0, 1.0))
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return np.stack([roll, pitch, yaw], -1)
+
+
+def quat_to_R(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit quaternion ``(w, x, y, z)`` (normalized here)."""
+    q = _finite("quaternion", q)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    if np.any(n < 1e-12):
+        raise InputError("quaternion has zero norm")
+    w, x, y, z = np.moveaxis(q / n, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def R_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(w, x, y, z)`` with w ≥ 0 of a rotation matrix (Shepperd's method)."""
+    R = np.asarray(R, dtype=float)
+    shape = R.shape[:-2]
+    R = R.reshape(-1, 3, 3)
+    q = np.empty((R.shape[0], 4))
+    tr = np.trace(R, axis1=1, axis2=2)
+    diag = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], 1)
+    case = np.argmax(np.concatenate([tr[:, None], diag], 1), axis=1)
+    for c in range(4):  # four branches, each vectorized over the rows that take it
+        m = case == c
+        if not np.any(m):
+            continue
+        r = R[m]
+        if c == 0:
+            s = np.sqrt(1.0 + tr[m]) * 2
+            q[m] = np.stack([0.25 * s, (r[:, 2, 1] - r[:, 1, 2]) / s, (r[:, 0, 2] - r[:, 2, 0]) / s, (r[:, 1, 0] - r[:, 0, 1]) / s], 1)
+        elif c == 1:
+            s = np.sqrt(1.0 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2]) * 2
+            q[m] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / s, 0.25 * s, (r[:, 0, 1] + r[:, 1, 0]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s], 1)
+        elif c == 2:
+            s = np.sqrt(1.0 + r[:, 1, 1] - r[:, 0, 0] - r[:, 2, 2]) * 2
+            q[m] = np.stack([(r[:, 0, 2] - r[:, 2, 0]) / s, (r[:, 0, 1] + r[:, 1, 0]) / s, 0.25 * s, (r[:, 1, 2] + r[:, 2, 1]) / s], 1)
+        else:
+            s = np.sqrt(1.0 + r[:, 2, 2] - r[:, 0, 0] - r[:, 1, 1]) * 2
+            q[m] = np.stack([(r[:, 1, 0] - r[:, 0, 1]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s, (r[:, 1, 2] + r[:, 2, 1]) / s, 0.25 * s], 1)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q.reshape(shape + (4,))
+
+
+def quat_slerp(q0: np.ndarray, q1: np.ndarray, s: float | np.ndarray) -> np.ndarray:
+    """Spherical linear interpolation between unit quaternions, ``s`` in [0, 1]."""
+    q0 = np.asarray(q0, float)
+    q1 = np.asarray(q1, float)
+    s = np.asarray(s, float)[..., None]
+    d = np.sum(q0 * q1, -1, keepdims=True)
+    q1 = np.where(d < 0, -q1, q1)
+    d = np.abs(d)
+    theta = np.arccos(np.clip(d, -1.0, 1.0))
+    small = theta < 1e-8
+    st = np.where(small, 1.0, np.sin(theta))
+    w0 = np.where(small, 1 - s, np.sin((1 - s) * theta) / st)
+    w1 = np.where(small, s, np.sin(s * theta) / st)
+    q = w0 * q0 + w1 * q1
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def so3_exp(phi: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation matrix of the rotation vector ``phi`` (..., 3)."""
+    phi = np.asarray(phi, float)
+    th = np.linalg.norm(phi, axis=-1)[..., None, None]
+    K = skew(phi)
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th**2 / 6, np.sin(ths) / ths)
+    b = np.where(small, 0.5 - th**2 / 24, (1 - np.cos(ths)) / ths**2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of ``R`` (angle < π), inverse of :func:`so3_exp`."""
+    R = np.asarray(R, float)
+    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
+    th = np.arccos(cos)
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    small = th < 1e-6
+    s = np.where(small, 1.0, np.sin(th))
+    f = np.where(small, 0.5 + th**2 / 12, th / (2 * s))
+    return f[..., None] * w
+
+
+def se3_twist(R_world_cam0, p_world_cam0, R_world_cam1, p_world_cam1, dt: float):
+    """Constant body-frame twist that carries camera pose 0 to pose 1 in ``dt`` (DESIGN §3.5 inputs).
+
+    Returns ``(v_cam, w_cam)``: the camera's linear velocity and angular rate in its own frame,
+    such that a point obeys dP/dt = −v − w × P (the seed-000 motion model) along the whole step.
+    """
+    if not dt > 0:
+        raise InputError(f"dt must be > 0, got {dt}")
+    R_rel = np.swapaxes(R_world_cam0, -1, -2) @ R_world_cam1  # R_cam0_cam1
+    t_rel = np.einsum("...ji,...j->...i", R_world_cam0, np.asarray(p_world_cam1) - np.asarray(p_world_cam0))
+    phi = so3_log(R_rel)
+    th = np.linalg.norm(phi, axis=-1)[..., None, None]
+    K = skew(phi)
+    small = th < 1e-6
+    ths = np.where(small, 1.0, th)
+    # V^{-1} of the SE(3) exponential
+    c = np.where(small, 1.0 / 12.0, (1 - ths * np.sin(ths) / (2 * (1 - np.cos(ths)))) / ths**2)
+    V_inv = np.eye(3) - 0.5 * K + c * (K @ K)
+    rho = np.einsum("...ij,...j->...i", V_inv, t_rel)
+    return rho / dt, phi / dt
+
+
+def mount_rotation(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
+    """``R_cam_body`` of a camera mounted with the given extra rotation relative to forward-looking.
+
+    The angles rotate the camera relative to the body (ZYX, degrees): yaw turns it right, pitch
+    tilts it up, roll about its optical axis.  Zero angles give :data:`R_CAM_BODY_FORWARD`.
+    """
+    R_body_mount = euler_zyx_to_R(np.radians(roll_deg), np.radians(pitch_deg), np.radians(yaw_deg))
+    return R_CAM_BODY_FORWARD @ R_body_mount.T

@@ -1,0 +1,531 @@
+"""Normalized cross-correlation matching in a predicted window (DESIGN.md §3.2, seed 004 eq. 13–14).
+
+For a template f around a point of the previous frame and a candidate patch g of the current
+frame (eq. 13)
+
+    k(f, g) = Σ (f − f̄)(g − ḡ) / sqrt( Σ (f − f̄)² · Σ (g − ḡ)² ),
+
+evaluated for every candidate in a search window of the current frame; the match is the argmax
+(eq. 14) and is accepted only if k ≥ k_min.  ``cv2.matchTemplate(..., cv2.TM_CCOEFF_NORMED)``
+computes exactly this quantity.  As seed 004 notes, the known camera motion shrinks the search
+area: the window is centred on the *predicted* pixel (``pts_pred``, from telemetry, see
+:mod:`companion.core.prediction`) and its half-size is the prediction's uncertainty radius.
+
+Every point gets a verdict (``reason``):
+
+* ``OK`` — accepted;
+* ``OUT_OF_IMAGE`` — the template does not fit in the previous frame, the search window does not
+  fit in the current one, or the best match sits on a side of the window cut by the image border
+  (the point is leaving the image);
+* ``FLAT_TEMPLATE`` — template standard deviation below ``min_template_std`` grey levels (NCC is
+  undefined on a flat patch);
+* ``LOW_SCORE`` — best score below ``k_min``;
+* ``PEAK_AT_EDGE`` — the best score lies on the edge of the search window (inside the image), so
+  the true peak may lie outside it and the argmax is not a verified maximum;
+* ``AMBIGUOUS`` — another local maximum at least ``ambiguity_min_separation`` px away scores at
+  least best − ``ambiguity_margin`` (repeated texture).
+
+Sub-pixel accuracy: the template is cut at the integer pixel nearest to the sub-pixel point, and
+the point's fractional offset inside that pixel is carried over to the match (exact for a locally
+translating patch, and no interpolation blur in the template); the integer peak is refined by a
+1-D parabola through the peak and its two neighbours on each axis (clipped to ±0.5 px).
+
+Cost: one ``cv2.matchTemplate`` per point (the only per-point Python loop); everything else —
+template extraction, argmax, second-peak test, parabola refinement — is vectorized over points.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+
+from companion.config import require, require_finite
+from companion.core.harris import as_gray_u8
+from companion.errors import InputError
+
+#: Verdicts in :attr:`NCCResult.reason` (int8).
+OK = 0
+OUT_OF_IMAGE = 1
+FLAT_TEMPLATE = 2
+LOW_SCORE = 3
+AMBIGUOUS = 4
+PEAK_AT_EDGE = 5
+
+REASON_NAMES = {
+    OK: "ok",
+    OUT_OF_IMAGE: "out_of_image",
+    FLAT_TEMPLATE: "flat_template",
+    LOW_SCORE: "low_score",
+    AMBIGUOUS: "ambiguous",
+    PEAK_AT_EDGE: "peak_at_edge",
+}
+
+_EMPTY = np.float32(-2.0)  # score of cells outside a point's search window (NCC is in [-1, 1])
+_MIN_BATCH = 8  # fewer small-window points than this go through cv2.matchTemplate one by one
+
+
+@dataclasses.dataclass(frozen=True)
+class NCCConfig:
+    """The ``[ncc]`` table: template and search sizes, acceptance and ambiguity thresholds."""
+
+    template_half: int = 5  # template is (2h+1)² = 11×11 px
+    search_half: int = 8  # default search half-size (px) when no radius is given
+    max_search_half: int = 32  # cap on any requested search radius (px)
+    batch_search_half: int = 5  # windows up to this radius are scored in one numpy batch (speed only)
+    k_min: float = 0.8  # acceptance threshold on the NCC score (eq. 14)
+    ambiguity_margin: float = 0.03  # second peak >= best - margin ...
+    ambiguity_min_separation: float = 3.0  # ... and at least this far (px) from the best: ambiguous
+    subpixel: bool = True  # refine the integer peak to sub-pixel
+    subpixel_method: str = "lk"  # "lk" (Lucas–Kanade on the patch) or "parabola" (through the NCC peak)
+    lk_iterations: int = 3  # Lucas–Kanade iterations of the sub-pixel step
+    min_template_std: float = 3.0  # grey levels; flatter templates are refused
+
+    def __post_init__(self) -> None:
+        for name in ("template_half", "search_half", "max_search_half"):
+            v = getattr(self, name)
+            require(isinstance(v, int) and not isinstance(v, bool) and v >= 1, f"{name} must be an integer >= 1, got {v!r}")
+        require(self.max_search_half >= self.search_half, "max_search_half must be >= search_half")
+        require(
+            isinstance(self.batch_search_half, int) and not isinstance(self.batch_search_half, bool) and self.batch_search_half >= 0,
+            f"batch_search_half must be an integer >= 0 (0 = always cv2.matchTemplate), got {self.batch_search_half!r}",
+        )
+        require_finite("k_min", self.k_min)
+        require(-1.0 <= self.k_min <= 1.0, f"k_min must lie in [-1, 1], got {self.k_min}")
+        require_finite("ambiguity_margin", self.ambiguity_margin, nonnegative=True)
+        require_finite("ambiguity_min_separation", self.ambiguity_min_separation, positive=True)
+        require(isinstance(self.subpixel, bool), f"subpixel must be true or false, got {self.subpixel!r}")
+        require(
+            self.subpixel_method in ("lk", "parabola"),
+            f"subpixel_method must be 'lk' or 'parabola', got {self.subpixel_method!r}",
+        )
+        require(
+            isinstance(self.lk_iterations, int) and not isinstance(self.lk_iterations, bool) and self.lk_iterations >= 1,
+            f"lk_iterations must be an integer >= 1, got {self.lk_iterations!r}",
+        )
+        require_finite("min_template_std", self.min_template_std, nonnegative=True)
+
+
+@dataclasses.dataclass
+class NCCResult:
+    """Per point: matched pixel (u, v), best NCC score, accepted flag and verdict code.
+
+    Rejected points keep finite values: ``pts`` is the search centre and ``score`` the best score
+    found (0 where nothing was searched).
+    """
+
+    pts: np.ndarray  # (N, 2) float64
+    score: np.ndarray  # (N,) float64
+    ok: np.ndarray  # (N,) bool
+    reason: np.ndarray  # (N,) int8, one of the module constants
+
+
+def _check_pts(name: str, pts, n: int | None = None) -> np.ndarray:
+    a = np.asarray(pts, dtype=float)
+    if a.size == 0 and (n is None or n == 0):
+        return np.zeros((0, 2))
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise InputError(f"{name} must have shape (N, 2), got {a.shape}")
+    if n is not None and len(a) != n:
+        raise InputError(f"{name} has {len(a)} rows, expected {n}")
+    bad = ~np.all(np.isfinite(a), 1)
+    if np.any(bad):
+        raise InputError(f"{name} contains NaN or inf (rows {np.flatnonzero(bad)[:5].tolist()})")
+    return a
+
+
+def _search_half(config: NCCConfig, search_radius, n: int) -> np.ndarray:
+    if search_radius is None:
+        return np.full(n, config.search_half, np.int64)
+    r = np.asarray(search_radius, dtype=float)
+    if r.ndim == 0:
+        r = np.full(n, float(r))
+    if r.shape != (n,):
+        raise InputError(f"search_radius must be a scalar or have shape ({n},), got {r.shape}")
+    if not np.all(np.isfinite(r)) or np.any(r < 0):
+        raise InputError("search_radius must be finite and >= 0")
+    return np.clip(np.ceil(r - 1e-9), 1, config.max_search_half).astype(np.int64)
+
+
+def extract_templates(image: np.ndarray, pts: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cut templates around the pixels nearest to ``pts`` (one vectorized gather).
+
+    Each template is (2·half+3)²: the (2·half+1)² patch that is matched plus a 1-px rim used
+    only for the template gradients of the sub-pixel step.  Returns ``templates`` (N, T+2, T+2)
+    uint8 (zeros where they do not fit), ``frac`` (N, 2) = pts − rounded pts (the sub-pixel
+    offset carried over to the match) and ``inside`` (N,) bool (template and rim fit).
+    """
+    image = as_gray_u8(image, "image")
+    pts = _check_pts("pts", pts)
+    h_img, w_img = image.shape
+    r = half + 1
+    q = np.rint(pts).astype(np.int64)
+    inside = (q[:, 0] >= r) & (q[:, 0] <= w_img - 1 - r) & (q[:, 1] >= r) & (q[:, 1] <= h_img - 1 - r)
+    frac = pts - q
+    templates = _patches(image, q, r)
+    templates[~inside] = 0
+    return templates, frac, inside
+
+
+def _patches(image: np.ndarray, centres: np.ndarray, r: int) -> np.ndarray:
+    """(N, 2r+1, 2r+1) copies of the patches around integer ``centres`` (u, v), clamped to the image.
+
+    Indexing a sliding-window view copies whole blocks, ~6× faster than gathering every pixel.
+    """
+    H, W = image.shape
+    size = 2 * r + 1
+    if H < size or W < size:
+        return np.zeros((len(centres), size, size), image.dtype)
+    x = np.clip(centres[:, 0] - r, 0, W - size)
+    y = np.clip(centres[:, 1] - r, 0, H - size)
+    return np.lib.stride_tricks.sliding_window_view(image, (size, size))[y, x]
+
+
+def _ncc_batch(img: np.ndarray, tpl: np.ndarray, centres: np.ndarray, sb: int, h: int) -> np.ndarray:
+    """Eq. 13 for B templates (B, T, T) over (2·sb+1)² positions around integer ``centres`` at once.
+
+    With f̂ the zero-mean, unit-norm template, k = Σ f̂·g / sqrt(Σ (g − ḡ)²) (Σ f̂ = 0 removes ḡ
+    from the numerator).  Numerator: for each column offset j the windows' columns j … j+T−1
+    are copied once, after which every row offset is a contiguous T² block of that copy, so one
+    einsum per column offset scores all rows and all points.  Window sums Σ g, Σ g² come from
+    ``cv2.boxFilter`` / ``cv2.sqrBoxFilter`` over the windows laid side by side (valid positions
+    never straddle two windows; integer sums below 2²⁴ are exact in float32).  Same values as
+    ``cv2.matchTemplate(..., TM_CCOEFF_NORMED)`` to ~1e-4.  Windows must lie inside the image.
+    Returns (B, 2·sb+1, 2·sb+1) float32, 0 where the window is flat.
+    """
+    t = 2 * h + 1
+    size = t + 2 * sb
+    rb = 2 * sb + 1
+    nb = len(centres)
+    win = np.lib.stride_tricks.sliding_window_view(img, (size, size))[centres[:, 1] - sb - h, centres[:, 0] - sb - h]
+    win = win.astype(np.float32)  # (B, size, size)
+    f = tpl.reshape(nb, t * t).astype(np.float32)
+    f = f - f.mean(axis=1, keepdims=True)
+    f = f / np.sqrt(np.einsum("nk,nk->n", f, f))[:, None]
+    num = np.empty((nb, rb, rb), np.float32)
+    item = win.itemsize
+    for j in range(rb):
+        cols = np.ascontiguousarray(win[:, :, j : j + t])  # (B, size, t)
+        blocks = np.lib.stride_tricks.as_strided(cols, shape=(nb, rb, t * t), strides=(size * t * item, t * item, item))
+        num[:, :, j] = np.einsum("nik,nk->ni", blocks, f)
+    wide = np.ascontiguousarray(win.transpose(1, 0, 2)).reshape(size, nb * size)
+    s1 = cv2.boxFilter(wide, -1, (t, t), normalize=False, borderType=cv2.BORDER_REPLICATE)
+    s2 = cv2.sqrBoxFilter(wide, -1, (t, t), normalize=False, borderType=cv2.BORDER_REPLICATE)
+
+    def valid(a: np.ndarray) -> np.ndarray:
+        return a.reshape(size, nb, size).transpose(1, 0, 2)[:, h : h + rb, h : h + rb].astype(np.float64)
+
+    m1 = valid(s1)
+    var = valid(s2) - m1 * m1 / (t * t)
+    den = np.sqrt(np.maximum(var, 0.0))
+    ok = den > 1e-3
+    return np.where(ok, num / np.where(ok, den, 1.0), 0.0).astype(np.float32)
+
+
+def _lk_refine(templates: np.ndarray, img: np.ndarray, peak: np.ndarray, h: int, iterations: int) -> np.ndarray:
+    """Sub-pixel offsets (M, 2) of stored templates (M, T+2, T+2) around their integer NCC peaks.
+
+    Used when the frame the templates were cut from is no longer available (a track that missed
+    a frame).  Lucas–Kanade, inverse-compositional form: minimizes Σ (ĝ(x + δ) − f̂(x))² over the
+    translation δ, with f̂, ĝ the zero-mean, unit-norm template and current patch (the
+    normalization of eq. 13, so the step has the same gain/offset invariance as the score).  The
+    template gradients (from the 1-px rim) and the 2×2 normal matrix are computed once; each
+    iteration resamples the current patch bilinearly at the grid + δ and takes a Gauss–Newton
+    step; |δ| ≤ 1 px.  Exact (δ = 0) for an integer shift.
+    """
+    m = len(peak)
+    tpl = templates.astype(np.float32)
+    f = tpl[:, 1:-1, 1:-1]
+    f = f - f.mean(axis=(1, 2), keepdims=True)
+    nf = np.sqrt(np.einsum("nij,nij->n", f, f))[:, None, None]
+    nf = np.where(nf > 1e-6, nf, np.float32(1.0))
+    f = f / nf
+    gx = (tpl[:, 1:-1, 2:] - tpl[:, 1:-1, :-2]) * (0.5 / nf)
+    gy = (tpl[:, 2:, 1:-1] - tpl[:, :-2, 1:-1]) * (0.5 / nf)
+    axx = np.einsum("nij,nij->n", gx, gx)
+    axy = np.einsum("nij,nij->n", gx, gy)
+    ayy = np.einsum("nij,nij->n", gy, gy)
+    det = axx * ayy - axy * axy
+    solvable = det > 1e-6 * np.maximum(axx * ayy, 1e-30)
+    det = np.where(solvable, det, 1.0)
+
+    patch = _patches(img, peak, h + 1).astype(np.float32)  # (M, t+2, t+2)
+    d = np.zeros((m, 2), np.float32)
+    for it in range(iterations):
+        if it == 0:
+            g = patch[:, 1:-1, 1:-1]
+        else:
+            dx = d[:, 0, None, None]
+            dy = d[:, 1, None, None]
+            c = patch[:, :, 1:-1]
+            hor = c + np.abs(dx) * (np.where(dx >= 0, patch[:, :, 2:], patch[:, :, :-2]) - c)
+            c = hor[:, 1:-1, :]
+            g = c + np.abs(dy) * (np.where(dy >= 0, hor[:, 2:, :], hor[:, :-2, :]) - c)
+        g = g - g.mean(axis=(1, 2), keepdims=True)
+        ng = np.sqrt(np.einsum("nij,nij->n", g, g))[:, None, None]
+        res = g / np.where(ng > 1e-6, ng, np.float32(1.0)) - f
+        bx = np.einsum("nij,nij->n", gx, res)
+        by = np.einsum("nij,nij->n", gy, res)
+        step = np.stack([(ayy * bx - axy * by) / det, (axx * by - axy * bx) / det], 1)
+        d = np.clip(d - np.where(solvable[:, None], step, 0.0), -1.0, 1.0)
+    return d.astype(np.float64)
+
+
+def _lk_refine_frames(
+    img_prev: np.ndarray, img_cur: np.ndarray, pts_prev: np.ndarray, guess: np.ndarray, h: int, iterations: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel match of ``pts_prev`` (exact sub-pixel points of ``img_prev``) starting from ``guess``.
+
+    One ``cv2.calcOpticalFlowPyrLK`` call for all points (single level, window = the template,
+    bilinear interpolation of both frames, so the template sits exactly on the sub-pixel point).
+    Returns the refined points and a mask of those that converged within 1 px of the guess.
+    """
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 0.01)
+    nxt, status, _ = cv2.calcOpticalFlowPyrLK(
+        img_prev,
+        img_cur,
+        pts_prev.astype(np.float32).reshape(-1, 1, 2),
+        guess.astype(np.float32).reshape(-1, 1, 2),
+        winSize=(2 * h + 1, 2 * h + 1),
+        maxLevel=0,
+        criteria=crit,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    nxt = nxt.reshape(-1, 2).astype(np.float64)
+    ok = (status.reshape(-1) == 1) & np.all(np.isfinite(nxt), 1) & np.all(np.abs(nxt - guess) <= 1.0, 1)
+    return nxt, ok
+
+
+def match_templates(
+    templates: np.ndarray,
+    frac: np.ndarray,
+    img_cur: np.ndarray,
+    pts_pred: np.ndarray,
+    config: NCCConfig,
+    search_radius=None,
+    valid: np.ndarray | None = None,
+    img_prev: np.ndarray | None = None,
+    pts_prev: np.ndarray | None = None,
+) -> NCCResult:
+    """Match templates cut by :func:`extract_templates` in ``img_cur`` around ``pts_pred``.
+
+    ``templates`` (N, T+2, T+2) uint8 with T = 2·template_half + 1, ``frac`` (N, 2) their
+    sub-pixel offsets, ``valid`` (N,) which templates exist (False gives ``OUT_OF_IMAGE``).
+    If the frame the templates were cut from and the exact points are given (``img_prev``,
+    ``pts_prev``), the sub-pixel step runs ``cv2.calcOpticalFlowPyrLK`` on the two frames;
+    otherwise a vectorized Lucas–Kanade step on the stored templates.  This is the core of
+    :func:`match_ncc`; the track manager calls it directly for tracks that missed a frame,
+    with the templates it kept from their last observation.
+    """
+    img_cur = as_gray_u8(img_cur, "img_cur")
+    templates = np.asarray(templates)
+    h = config.template_half
+    tr = 2 * h + 3
+    if templates.ndim != 3 or templates.shape[1:] != (tr, tr) or templates.dtype != np.uint8:
+        raise InputError(
+            f"templates must be uint8 of shape (N, {tr}, {tr}) for template_half={h} "
+            f"(matched patch plus a 1-px rim), got {templates.dtype} {templates.shape}"
+        )
+    n = len(templates)
+    templates = np.ascontiguousarray(templates)
+    frac = _check_pts("frac", frac, n)
+    pred = _check_pts("pts_pred", pts_pred, n)
+    s = _search_half(config, search_radius, n)
+    valid = np.ones(n, bool) if valid is None else np.asarray(valid, bool).reshape(n)
+    if (img_prev is None) != (pts_prev is None):
+        raise InputError("img_prev and pts_prev must be given together")
+    if img_prev is not None:
+        img_prev = as_gray_u8(img_prev, "img_prev")
+        if img_prev.shape != img_cur.shape:
+            raise InputError(f"img_prev and img_cur differ in shape: {img_prev.shape} vs {img_cur.shape}")
+        pts_prev = _check_pts("pts_prev", pts_prev, n)
+
+    reason = np.zeros(n, np.int8)
+    score = np.zeros(n)
+    out_pts = pred.copy()
+    if n == 0:
+        return NCCResult(out_pts, score, np.zeros(0, bool), reason)
+    reason[~valid] = OUT_OF_IMAGE
+
+    inner = templates[:, 1:-1, 1:-1].reshape(n, -1).astype(np.float32)
+    mean = inner.mean(axis=1)
+    var = np.einsum("ni,ni->n", inner, inner) / inner.shape[1] - mean * mean
+    reason[(reason == OK) & (var < max(config.min_template_std, 1e-3) ** 2)] = FLAT_TEMPLATE
+
+    # Search window of each point: template centres in [c - s, c + s], clipped to the image.
+    H, W = img_cur.shape
+    big = 4 * max(H, W)  # a prediction this far out is simply out of the image
+    c = np.rint(np.clip(pred, -big, big)).astype(np.int64)
+    lo = np.maximum(c - s[:, None], h)
+    hi = np.minimum(c + s[:, None], np.array([W - 1 - h, H - 1 - h]))
+    reason[(reason == OK) & np.any(lo > hi, 1)] = OUT_OF_IMAGE
+    run = np.flatnonzero(reason == OK)
+    nr = len(run)
+    if nr == 0:
+        return NCCResult(out_pts, score, np.zeros(n, bool), reason)
+
+    smax = int(s[run].max())
+    m = 2 * smax + 1
+    # Score stack: cell (k, i, j) is the score of template centre origin_k + (j, i); cells not
+    # searched hold the sentinel, and the extra row m of every block is all sentinel.
+    stack = np.full((nr, m + 1, m), _EMPTY, np.float32)
+    origin = c[run] - smax
+    x0, y0 = lo[run, 0], lo[run, 1]
+    x1, y1 = hi[run, 0], hi[run, 1]
+    ox, oy = x0 - origin[:, 0], y0 - origin[:, 1]
+    sr = s[run]
+    unclipped = (x1 - x0 == 2 * sr) & (y1 - y0 == 2 * sr)
+    # Small windows are scored for all points at once in numpy (cheaper than one OpenCV call
+    # per point below ~4 px); a batch needs its common window (its largest radius) inside the image.
+    batch = np.zeros(nr, bool)
+    sb = int(min(config.batch_search_half, smax))
+    if sb >= 1:
+        cr = c[run]
+        fits = (cr[:, 0] - sb >= h) & (cr[:, 0] + sb <= W - 1 - h) & (cr[:, 1] - sb >= h) & (cr[:, 1] + sb <= H - 1 - h)
+        batch = unclipped & (sr <= sb) & fits
+        if np.count_nonzero(batch) >= _MIN_BATCH:
+            kb = np.flatnonzero(batch)
+            sb = int(sr[kb].max())
+            res = _ncc_batch(img_cur, templates[run[kb], 1:-1, 1:-1], cr[kb], sb, h)
+            rb = 2 * sb + 1
+            if np.any(sr[kb] < sb):  # searched beyond a point's own radius: hide those cells
+                ii = np.abs(np.arange(rb) - sb)
+                outside = (ii[None, :, None] > sr[kb, None, None]) | (ii[None, None, :] > sr[kb, None, None])
+                res[outside] = _EMPTY
+            o = smax - sb
+            stack[kb, o : o + rb, o : o + rb] = res
+        else:
+            batch[:] = False
+    whole = unclipped & (sr == smax)  # result fills the stack block: written in place
+    tm = cv2.matchTemplate
+    method = cv2.TM_CCOEFF_NORMED
+    tpl = templates[:, 1:-1, 1:-1]
+    loop = np.flatnonzero(~batch)
+    for k, i, ya, yb, xa, xb, inplace in zip(
+        loop.tolist(), run[loop].tolist(), (y0[loop] - h).tolist(), (y1[loop] + h + 1).tolist(),
+        (x0[loop] - h).tolist(), (x1[loop] + h + 1).tolist(), whole[loop].tolist(),
+    ):
+        if inplace:
+            tm(img_cur[ya:yb, xa:xb], tpl[i], method, stack[k, :m])
+        else:
+            stack[k, oy[k] : oy[k] + yb - ya - 2 * h, ox[k] : ox[k] + xb - xa - 2 * h] = tm(img_cur[ya:yb, xa:xb], tpl[i], method)
+
+    flat_stack = stack.reshape(nr, -1)  # cells m·m … of each row are the sentinel row
+    idx = np.argmax(flat_stack, axis=1)
+    bi, bj = np.divmod(idx, m)
+    kk = np.arange(nr)
+    best = flat_stack[kk, idx].astype(np.float64)
+    best = np.where(np.isfinite(best), best, -1.0)
+
+    # Neighbours of the peak; the sentinel marks cells outside the searched area.
+    sent = m * m
+    left = flat_stack[kk, np.where(bj > 0, idx - 1, sent)].astype(np.float64)
+    right = flat_stack[kk, np.where(bj < m - 1, idx + 1, sent)].astype(np.float64)
+    up = flat_stack[kk, np.where(bi > 0, idx - m, sent)].astype(np.float64)
+    down = flat_stack[kk, np.where(bi < m - 1, idx + m, sent)].astype(np.float64)
+    edge_l, edge_r, edge_u, edge_d = (v <= _EMPTY + 0.5 for v in (left, right, up, down))
+    leaving = (
+        (edge_l & (x0 > c[run, 0] - s[run]))
+        | (edge_r & (x1 < c[run, 0] + s[run]))
+        | (edge_u & (y0 > c[run, 1] - s[run]))
+        | (edge_d & (y1 < c[run, 1] + s[run]))
+    )
+    at_edge = edge_l | edge_r | edge_u | edge_d
+    ambiguous = _ambiguous(flat_stack, m, bi, bj, best, config)
+
+    r = np.zeros(nr, np.int8)
+    r[leaving] = OUT_OF_IMAGE
+    r[(r == OK) & (best < config.k_min)] = LOW_SCORE
+    r[(r == OK) & ambiguous] = AMBIGUOUS
+    r[(r == OK) & at_edge] = PEAK_AT_EDGE
+    reason[run] = r
+    score[run] = best
+
+    good = r == OK
+    found = np.stack([origin[:, 0] + bj, origin[:, 1] + bi], 1) + frac[run]
+    if config.subpixel and np.any(good):
+        # Parabola through the peak and its neighbours: the answer for subpixel_method
+        # "parabola" and the fallback where Lucas–Kanade fails.
+        par = np.zeros((nr, 2))
+        for axis, (a, b) in enumerate(((left, right), (up, down))):
+            den = a - 2.0 * best + b
+            sel = good & (den < -1e-12)
+            par[sel, axis] = np.clip(0.5 * (a[sel] - b[sel]) / den[sel], -0.5, 0.5)
+        g = np.flatnonzero(good)
+        refined = found[g] + par[g]
+        if config.subpixel_method == "lk":
+            if img_prev is not None:
+                lk, lk_ok = _lk_refine_frames(img_prev, img_cur, pts_prev[run[g]], found[g], h, config.lk_iterations)
+                refined[lk_ok] = lk[lk_ok]
+            else:
+                peak = np.stack([origin[g, 0] + bj[g], origin[g, 1] + bi[g]], 1)
+                refined = found[g] + _lk_refine(templates[run[g]], img_cur, peak, h, config.lk_iterations)
+        found[g] = refined
+    out_pts[run[good]] = found[good]
+    return NCCResult(out_pts, score, reason == OK, reason)
+
+
+def _ambiguous(flat_stack: np.ndarray, m: int, bi: np.ndarray, bj: np.ndarray, best: np.ndarray, config: NCCConfig) -> np.ndarray:
+    """True where a second local maximum ≥ best − margin lies ≥ min_separation from the best.
+
+    Only cells already scoring ≥ best − margin can be such a peak, and any local maximum reached
+    by climbing from one of them scores at least as much, so it suffices to test those few
+    cells for being a local maximum (3×3, ties allowed) — no dense peak map is needed.
+    """
+    nr = len(best)
+    thr = (best - config.ambiguity_margin).astype(np.float32)
+    kc, ic = np.nonzero(flat_stack >= thr[:, None])
+    ci, cj = np.divmod(ic, m)
+    far = (ci - bi[kc]) ** 2 + (cj - bj[kc]) ** 2 >= config.ambiguity_min_separation**2
+    kc, ci, cj = kc[far], ci[far], cj[far]
+    out = np.zeros(nr, bool)
+    if len(kc) == 0:
+        return out
+    v = flat_stack[kc, ci * m + cj]
+    is_max = np.ones(len(kc), bool)
+    sent = m * m
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            if di == 0 and dj == 0:
+                continue
+            ni, nj = ci + di, cj + dj
+            inside = (ni >= 0) & (ni < m) & (nj >= 0) & (nj < m)
+            is_max &= v >= flat_stack[kc, np.where(inside, ni * m + nj, sent)]
+    out[kc[is_max]] = True
+    return out
+
+
+def match_ncc(
+    img_prev: np.ndarray,
+    img_cur: np.ndarray,
+    pts_prev: np.ndarray,
+    pts_pred: np.ndarray,
+    config: NCCConfig,
+    search_radius=None,
+) -> NCCResult:
+    """Find each point of ``img_prev`` in ``img_cur`` by NCC (DESIGN.md §3.2, eq. 13–14).
+
+    Parameters
+    ----------
+    img_prev, img_cur : 2-D uint8 frames of the same shape.
+    pts_prev : (N, 2) sub-pixel points (u, v) in ``img_prev``; templates are cut around them.
+    pts_pred : (N, 2) predicted pixels in ``img_cur``; the search window is centred there.
+    config : matcher settings.
+    search_radius : scalar or (N,) px, the largest displacement from ``pts_pred`` searched
+        (rounded up, clipped to [1, ``max_search_half``]); default ``config.search_half``.
+
+    Returns
+    -------
+    :class:`NCCResult` with matched pixels, scores, accepted flags and verdicts.
+    """
+    img_prev = as_gray_u8(img_prev, "img_prev")
+    img_cur = as_gray_u8(img_cur, "img_cur")
+    if img_prev.shape != img_cur.shape:
+        raise InputError(f"img_prev and img_cur differ in shape: {img_prev.shape} vs {img_cur.shape}")
+    pts_prev = _check_pts("pts_prev", pts_prev)
+    pts_pred = _check_pts("pts_pred", pts_pred, len(pts_prev))
+    templates, frac, inside = extract_templates(img_prev, pts_prev, config.template_half)
+    return match_templates(
+        templates, frac, img_cur, pts_pred, config, search_radius, valid=inside, img_prev=img_prev, pts_prev=pts_prev
+    )

@@ -1,0 +1,264 @@
+"""Where a tracked point should appear in the next frame, from telemetry (DESIGN.md §3.2).
+
+Seed 004 notes that the known camera motion shrinks the NCC search area through the epipolar
+constraint E = [t]× R: a pixel of the previous frame can only reappear on the image of its
+viewing ray in the current camera.  With the previous camera's normalized ray m = (x, y, 1)
+(undistorted with ``CameraModel.pixels_to_normalized``), the relative rotation
+``R = R_cam_cur_cam_prev = R_world_cam_curᵀ R_world_cam_prev`` and the previous camera centre seen
+from the current camera ``t = R_world_cam_curᵀ (p_world_cam_prev − p_world_cam_cur)``, the point
+at depth Z (along the previous optical axis) is, in the current camera,
+
+    P(Z) = Z·R m + t   ∝   R m + ρ t,        ρ = 1/Z,
+
+so the inverse depth ρ ∈ [1/depth_max, 1/depth_min] sweeps the epipolar segment: ρ = 0 (infinite
+depth) is the pure-rotation image of the ray, ρ = 1/depth_min the closest expected point.  The
+segment is sampled at a few ρ (uniform in ρ, each projected with the camera's distortion, so a
+distorted curve is covered as well as a straight one); the search window is centred on the
+middle of the samples' bounding box and its radius is the farthest sample plus
+``base_radius_px`` (attitude / timing / pixel errors), capped at ``max_radius_px``.  A known
+depth (from a filter) collapses the segment to a point (± ``depth_sigma``), giving a smaller
+window.  Parts of the ray at or behind the current camera are never projected: such points get
+a status flag and the largest radius, never NaN.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable
+
+import numpy as np
+
+from companion.config import require, require_finite
+from companion.core.camera import CameraModel
+from companion.errors import InputError
+
+#: :attr:`PixelPrediction.status` codes.
+PRED_OK = 0
+PRED_CAPPED = 1  # the epipolar segment is longer than the cap allows: radius = max_radius_px
+PRED_PARTLY_BEHIND = 2  # near part of the depth range is at/behind the current camera: radius = max
+PRED_BEHIND = 3  # the whole depth range is behind the current camera: centre = previous pixel, radius = max
+
+_MIN_COS = 1e-3  # a sample needs Z > 1e-3·|P| (within ~89.9° of the optical axis) to be projected
+
+
+@dataclasses.dataclass(frozen=True)
+class PredictionConfig:
+    """The ``[prediction]`` table: the depth range expected in the scene and the window sizes."""
+
+    depth_min_m: float = 2.0  # closest expected obstacle (along the optical axis)
+    depth_max_m: float = math.inf  # farthest; inf includes the pure-rotation image (ρ = 0)
+    base_radius_px: float = 3.0  # added to the epipolar half-length (attitude, timing, pixel noise)
+    max_radius_px: float = 32.0  # cap of the search radius
+    samples: int = 5  # ρ samples along the segment (>= 2)
+    depth_sigma_k: float = 2.0  # a known depth covers depth ± k·σ
+
+    def __post_init__(self) -> None:
+        require_finite("depth_min_m", self.depth_min_m, positive=True)
+        require(
+            isinstance(self.depth_max_m, (int, float)) and not math.isnan(self.depth_max_m) and self.depth_max_m > self.depth_min_m,
+            f"depth_max_m must exceed depth_min_m (inf allowed), got {self.depth_max_m!r}",
+        )
+        require_finite("base_radius_px", self.base_radius_px, nonnegative=True)
+        require_finite("max_radius_px", self.max_radius_px, positive=True)
+        require(self.max_radius_px >= self.base_radius_px, "max_radius_px must be >= base_radius_px")
+        require(isinstance(self.samples, int) and self.samples >= 2, f"samples must be an integer >= 2, got {self.samples!r}")
+        require_finite("depth_sigma_k", self.depth_sigma_k, nonnegative=True)
+
+
+@dataclasses.dataclass
+class PixelPrediction:
+    """Per point: window centre and radius, the two ends of the epipolar segment and a status."""
+
+    uv: np.ndarray  # (N, 2) centre of the search window
+    radius: np.ndarray  # (N,) px
+    uv_far: np.ndarray  # (N, 2) image of the far end (ρ_min; the pure-rotation image if depth_max = inf)
+    uv_near: np.ndarray  # (N, 2) image of the near end (ρ_max); = uv_far where not projectable
+    status: np.ndarray  # (N,) int8, PRED_* codes
+
+
+def _rotation(name: str, R) -> np.ndarray:
+    R = np.asarray(R, dtype=float)
+    if R.shape != (3, 3):
+        raise InputError(f"{name} must have shape (3, 3), got {R.shape}")
+    if not np.all(np.isfinite(R)):
+        raise InputError(f"{name} contains NaN or inf")
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+        raise InputError(f"{name} is not a rotation matrix (Rᵀ R ≠ I)")
+    return R
+
+
+def _position(name: str, p) -> np.ndarray:
+    p = np.asarray(p, dtype=float)
+    if p.shape != (3,):
+        raise InputError(f"{name} must have shape (3,), got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise InputError(f"{name} contains NaN or inf")
+    return p
+
+
+def _per_point(name: str, a, n: int) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    if a.ndim == 0:
+        a = np.full(n, float(a))
+    if a.shape != (n,):
+        raise InputError(f"{name} must be a scalar or have shape ({n},), got {a.shape}")
+    if np.any(np.isnan(a)):
+        raise InputError(f"{name} contains NaN")
+    return a
+
+
+def predict_pixels_detailed(
+    camera: CameraModel,
+    uv_prev: np.ndarray,
+    R_world_cam_prev: np.ndarray,
+    p_world_cam_prev: np.ndarray,
+    R_world_cam_cur: np.ndarray,
+    p_world_cam_cur: np.ndarray,
+    depth_min: float,
+    depth_max: float,
+    base_radius_px: float,
+    depth: np.ndarray | None = None,
+    *,
+    depth_sigma: np.ndarray | None = None,
+    depth_sigma_k: float = 2.0,
+    max_radius_px: float = 32.0,
+    samples: int = 5,
+) -> PixelPrediction:
+    """Epipolar prediction of pixels ``uv_prev`` (N, 2) of the previous frame in the current one.
+
+    ``depth_min`` > 0 and ``depth_max`` > ``depth_min`` (may be ``inf``) bound the depth along the
+    previous optical axis.  ``depth`` (N,) optional known depths: entries > 0 are used (± k·σ with
+    ``depth_sigma``), entries ≤ 0 mean unknown (NaN is refused).  See the module docstring.
+    """
+    uv = np.asarray(uv_prev, dtype=float)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise InputError(f"uv_prev must have shape (N, 2), got {uv.shape}")
+    bad = ~np.all(np.isfinite(uv), 1)
+    if np.any(bad):
+        raise InputError(f"uv_prev contains NaN or inf (rows {np.flatnonzero(bad)[:5].tolist()})")
+    Rp = _rotation("R_world_cam_prev", R_world_cam_prev)
+    Rc = _rotation("R_world_cam_cur", R_world_cam_cur)
+    pp = _position("p_world_cam_prev", p_world_cam_prev)
+    pc = _position("p_world_cam_cur", p_world_cam_cur)
+    for name, v in (("depth_min", depth_min), ("base_radius_px", base_radius_px), ("max_radius_px", max_radius_px)):
+        if not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v) or v < 0:
+            raise InputError(f"{name} must be a finite number >= 0, got {v!r}")
+    if depth_min <= 0:
+        raise InputError(f"depth_min must be > 0, got {depth_min!r}")
+    if not isinstance(depth_max, (int, float, np.floating, np.integer)) or math.isnan(depth_max) or depth_max <= depth_min:
+        raise InputError(f"depth_max must exceed depth_min (inf allowed), got {depth_max!r}")
+    if not isinstance(samples, int) or samples < 2:
+        raise InputError(f"samples must be an integer >= 2, got {samples!r}")
+    n = len(uv)
+
+    # Inverse-depth interval of every point.
+    rho_lo = np.full(n, 0.0 if math.isinf(depth_max) else 1.0 / depth_max)
+    rho_hi = np.full(n, 1.0 / depth_min)
+    if depth is not None:
+        d = _per_point("depth", depth, n)
+        known = d > 0
+        sig = np.zeros(n) if depth_sigma is None else _per_point("depth_sigma", depth_sigma, n)
+        if np.any(sig < 0) or not np.all(np.isfinite(sig)):
+            raise InputError("depth_sigma must be finite and >= 0")
+        far = d + depth_sigma_k * sig
+        near = np.maximum(d - depth_sigma_k * sig, depth_min * 1e-3)
+        with np.errstate(divide="ignore"):
+            rho_lo = np.where(known, np.where(np.isinf(far), 0.0, 1.0 / np.where(known, far, 1.0)), rho_lo)
+            rho_hi = np.where(known, np.where(np.isinf(near), 0.0, 1.0 / np.where(known, near, 1.0)), rho_hi)
+
+    m = np.concatenate([camera.pixels_to_normalized(uv), np.ones((n, 1))], 1)  # (N, 3), Z = 1
+    R_rel = Rc.T @ Rp
+    t_rel = Rc.T @ (pp - pc)
+    s = np.linspace(0.0, 1.0, samples)
+    rho = rho_lo[:, None] + (rho_hi - rho_lo)[:, None] * s[None, :]  # (N, K), far -> near
+    q = (m @ R_rel.T)[:, None, :] + rho[:, :, None] * t_rel[None, None, :]  # (N, K, 3)
+    z = q[..., 2]
+    front = z > _MIN_COS * np.linalg.norm(q, axis=2)
+    zs = np.where(front, z, 1.0)
+    xy = q[..., :2] / zs[..., None]
+    c = camera.config
+    lim = 10.0 * (c.width + c.height)
+    px = camera.normalized_to_pixels(xy.reshape(-1, 2)).reshape(n, samples, 2)
+    px = np.clip(np.where(front[..., None], px, 0.0), -lim, lim)
+
+    any_front = np.any(front, 1)
+    all_front = np.all(front, 1)
+    hi = np.max(np.where(front[..., None], px, -lim), 1)
+    lo = np.min(np.where(front[..., None], px, lim), 1)
+    centre = np.where(any_front[:, None], 0.5 * (hi + lo), uv)
+    dist = np.linalg.norm(px - centre[:, None, :], axis=2)
+    half = np.max(np.where(front, dist, 0.0), 1)
+    radius = half + base_radius_px
+
+    status = np.zeros(n, np.int8)
+    status[radius > max_radius_px] = PRED_CAPPED
+    status[any_front & ~all_front] = PRED_PARTLY_BEHIND
+    status[~any_front] = PRED_BEHIND
+    radius = np.where(status >= PRED_PARTLY_BEHIND, max_radius_px, np.minimum(radius, max_radius_px))
+
+    first = np.argmax(front, 1)  # farthest projectable sample
+    last = samples - 1 - np.argmax(front[:, ::-1], 1)  # nearest projectable sample
+    rows = np.arange(n)
+    uv_far = np.where(any_front[:, None], px[rows, first], uv)
+    uv_near = np.where(any_front[:, None], px[rows, last], uv)
+    return PixelPrediction(uv=centre, radius=radius, uv_far=uv_far, uv_near=uv_near, status=status)
+
+
+def predict_pixels(
+    camera: CameraModel,
+    uv_prev: np.ndarray,
+    R_world_cam_prev: np.ndarray,
+    p_world_cam_prev: np.ndarray,
+    R_world_cam_cur: np.ndarray,
+    p_world_cam_cur: np.ndarray,
+    depth_min: float,
+    depth_max: float,
+    base_radius_px: float,
+    depth: np.ndarray | None = None,
+    *,
+    depth_sigma: np.ndarray | None = None,
+    max_radius_px: float = 32.0,
+    samples: int = 5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Search-window centres (N, 2) and radii (N,) for ``uv_prev`` in the current frame.
+
+    The short form of :func:`predict_pixels_detailed` (which also reports the segment ends and
+    a status per point): points behind the current camera get the previous pixel and
+    ``max_radius_px``; nothing is ever NaN.
+    """
+    p = predict_pixels_detailed(
+        camera, uv_prev, R_world_cam_prev, p_world_cam_prev, R_world_cam_cur, p_world_cam_cur,
+        depth_min, depth_max, base_radius_px, depth,
+        depth_sigma=depth_sigma, max_radius_px=max_radius_px, samples=samples,
+    )
+    return p.uv, p.radius
+
+
+def make_track_predictor(
+    camera: CameraModel,
+    config: PredictionConfig,
+    pose_prev: tuple[np.ndarray, np.ndarray],
+    pose_cur: tuple[np.ndarray, np.ndarray],
+    depth_of: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]] | None = None,
+) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """A ``predict`` callable for :meth:`companion.core.tracks.TrackManager.step`.
+
+    ``pose_prev`` / ``pose_cur`` are ``(R_world_cam, p_world_cam)`` of the previous and current
+    frames; ``depth_of(ids)`` optionally returns ``(depth, depth_sigma)`` per track id from a
+    filter (depth ≤ 0 where unknown).
+    """
+
+    def predict(uv_prev: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        depth = sigma = None
+        if depth_of is not None:
+            depth, sigma = depth_of(ids)
+        p = predict_pixels_detailed(
+            camera, uv_prev, pose_prev[0], pose_prev[1], pose_cur[0], pose_cur[1],
+            config.depth_min_m, config.depth_max_m, config.base_radius_px, depth,
+            depth_sigma=sigma, depth_sigma_k=config.depth_sigma_k,
+            max_radius_px=config.max_radius_px, samples=config.samples,
+        )
+        return p.uv, p.radius
+
+    return predict

@@ -1,0 +1,413 @@
+"""Feature tracks: Harris corners followed frame to frame by NCC (DESIGN.md §3.1–§3.2).
+
+Every frame, each live track is searched for in the new frame with :func:`~companion.core.ncc.match_ncc`
+around a predicted pixel (from telemetry through the optional ``predict`` callable, see
+:func:`companion.core.prediction.make_track_predictor`; without it, around the previous pixel).
+Tracks the matcher rejects are dropped (or, with ``max_failures`` > 1, searched again in the next
+frames with the template kept from their last observation); when fewer than
+``redetect_fraction`` × ``max_tracks`` tracks remain, new Harris corners are detected away from
+the survivors (``min_new_distance_px``) to refill up to ``max_tracks``.  The number of tracks
+never exceeds ``max_tracks``.
+
+Template source: each match uses the template cut from the **previous** frame, at the track's
+last matched position — not from the anchor frame.  Over a few frames of flight the appearance of
+a patch changes (scale grows as the drone approaches, perspective and lighting change), so a
+template from the anchor frame would soon stop correlating; renewing it every frame keeps NCC
+scores high and lets a track live as long as the point stays visible.  The price is drift: each
+match's sub-pixel error is inherited by the next template.  The sub-pixel step is therefore
+unbiased at integer shifts (Lucas–Kanade on the two frames, see :mod:`companion.core.ncc`), and
+the anchor observation (frame, time, pixel) is kept for the estimators, which need the longest
+baseline rather than the template.
+
+Storage is a fixed set of ``max_tracks`` slots held in numpy arrays (positions, scores, failure
+counts and a ring buffer of the last ``max_history`` observations per slot), so a step costs a
+handful of vectorized operations plus the matcher — no Python object per track per frame.
+:meth:`TrackManager.track` (or ``manager.tracks[id]``) builds a :class:`Track` snapshot on demand.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+from collections.abc import Iterator, Mapping
+from typing import Callable
+
+import numpy as np
+
+from companion.config import require, require_finite
+from companion.core import ncc as _ncc
+from companion.core.camera import CameraModel
+from companion.core.harris import HarrisConfig, as_gray_u8, detect_harris
+from companion.core.ncc import NCCConfig, extract_templates, match_ncc, match_templates
+from companion.errors import InputError
+
+#: Drop reasons in :attr:`TrackFrame.drop_reason`: the NCC verdicts of :mod:`companion.core.ncc`
+#: (OUT_OF_IMAGE, FLAT_TEMPLATE, LOW_SCORE, AMBIGUOUS, PEAK_AT_EDGE) plus:
+DROP_DUPLICATE = 10  # two tracks converged onto the same point: the younger one is dropped
+
+DROP_REASON_NAMES = {**_ncc.REASON_NAMES, DROP_DUPLICATE: "duplicate"}
+del DROP_REASON_NAMES[_ncc.OK]
+
+Predictor = Callable[[np.ndarray, np.ndarray], "tuple[np.ndarray, np.ndarray | float]"]
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackConfig:
+    """The ``[tracks]`` table."""
+
+    max_tracks: int = 300  # hard bound on live tracks
+    redetect_fraction: float = 0.8  # detect new corners when live tracks < fraction × max_tracks
+    max_history: int = 64  # observations kept per track (the anchor is kept separately)
+    min_new_distance_px: float = 10.0  # new corners at least this far from live tracks
+    max_failures: int = 1  # consecutive failed matches before a track is dropped (1 = at once)
+    duplicate_distance_px: float = 1.0  # two tracks closer than this: the younger is dropped
+
+    def __post_init__(self) -> None:
+        require(isinstance(self.max_tracks, int) and self.max_tracks >= 1, f"max_tracks must be an integer >= 1, got {self.max_tracks!r}")
+        require_finite("redetect_fraction", self.redetect_fraction, nonnegative=True)
+        require(self.redetect_fraction <= 1.0, f"redetect_fraction must be <= 1, got {self.redetect_fraction}")
+        require(isinstance(self.max_history, int) and self.max_history >= 2, f"max_history must be an integer >= 2, got {self.max_history!r}")
+        require_finite("min_new_distance_px", self.min_new_distance_px, nonnegative=True)
+        require(isinstance(self.max_failures, int) and self.max_failures >= 1, f"max_failures must be an integer >= 1, got {self.max_failures!r}")
+        require_finite("duplicate_distance_px", self.duplicate_distance_px, nonnegative=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class Track:
+    """Snapshot of one track (built on demand by :meth:`TrackManager.track`)."""
+
+    id: int
+    anchor_frame: int  # frame index of the first observation
+    anchor_t: float
+    anchor_uv: np.ndarray  # (2,) first observed pixel
+    observations: list[tuple[int, float, np.ndarray]]  # (frame_index, t, uv), oldest first, ≤ max_history
+    n_observations: int  # total, including those no longer in ``observations``
+    age: int  # frames since the anchor (latest processed frame index − anchor_frame)
+    last_score: float  # NCC score of the last match (1.0 at birth)
+    failures: int  # consecutive failed matches (0 while tracked)
+    alive: bool
+
+
+@dataclasses.dataclass
+class TrackFrame:
+    """What one :meth:`TrackManager.step` produced (arrays, sorted by track id)."""
+
+    frame_index: int
+    t: float
+    ids: np.ndarray  # (M,) int64, tracks observed in this frame (matched ones and new ones)
+    uv: np.ndarray  # (M, 2) their pixels
+    score: np.ndarray  # (M,) NCC score (1.0 for tracks born in this frame)
+    new_ids: np.ndarray  # (K,) int64, tracks born in this frame
+    dropped_ids: np.ndarray  # (D,) int64, tracks dropped in this frame
+    drop_reason: np.ndarray  # (D,) int8, see DROP_REASON_NAMES
+
+
+class _TrackView(Mapping):
+    """``manager.tracks``: read-only mapping id -> :class:`Track` over the live tracks."""
+
+    def __init__(self, manager: "TrackManager"):
+        self._m = manager
+
+    def __getitem__(self, track_id) -> Track:
+        return self._m.track(track_id)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._m.live_ids().tolist())
+
+    def __len__(self) -> int:
+        return self._m.n_live
+
+    def __contains__(self, track_id) -> bool:
+        return isinstance(track_id, numbers.Integral) and int(track_id) in self._m._slot_of
+
+
+class TrackManager:
+    """Harris + NCC tracker with bounded, id-stable tracks (DESIGN.md §3.1–§3.2)."""
+
+    def __init__(self, camera: CameraModel, harris: HarrisConfig, ncc: NCCConfig, config: TrackConfig):
+        require(
+            harris.border >= ncc.template_half + 1,
+            f"harris.border ({harris.border}) must be >= ncc.template_half + 1 ({ncc.template_half + 1}) "
+            "so every new corner has a full template",
+        )
+        self.camera = camera
+        self.harris = harris
+        self.ncc = ncc
+        self.config = config
+        s, hlen, tr = config.max_tracks, config.max_history, 2 * ncc.template_half + 3
+        self._id = np.full(s, -1, np.int64)
+        self._uv = np.zeros((s, 2))
+        self._last_frame = np.zeros(s, np.int64)
+        self._anchor_frame = np.zeros(s, np.int64)
+        self._anchor_t = np.zeros(s)
+        self._anchor_uv = np.zeros((s, 2))
+        self._n_obs = np.zeros(s, np.int64)
+        self._score = np.zeros(s)
+        self._fail = np.zeros(s, np.int64)
+        self._tpl = np.zeros((s, tr, tr), np.uint8)  # kept only for tracks that missed a frame
+        self._tpl_frac = np.zeros((s, 2))
+        self._tpl_ok = np.zeros(s, bool)
+        self._h_uv = np.zeros((s, hlen, 2))
+        self._h_frame = np.zeros((s, hlen), np.int64)
+        self._h_t = np.zeros((s, hlen))
+        self._slot_of: dict[int, int] = {}
+        self._next_id = 0
+        self._prev_gray: np.ndarray | None = None
+        self._prev_t: float | None = None
+        self._prev_frame: int | None = None
+        self._just_dropped: dict[int, Track] = {}
+        self._label: np.ndarray | None = None  # scratch image of the duplicate test
+        self.tracks = _TrackView(self)
+
+    # -- reading -------------------------------------------------------------------------------
+    @property
+    def n_live(self) -> int:
+        return len(self._slot_of)
+
+    def live_ids(self) -> np.ndarray:
+        """Ids of the live tracks, ascending."""
+        return np.sort(self._id[self._id >= 0])
+
+    def track(self, track_id: int) -> Track:
+        """Snapshot of a live track, or of one dropped in the latest step; KeyError otherwise."""
+        if not isinstance(track_id, numbers.Integral):
+            raise KeyError(track_id)
+        track_id = int(track_id)
+        if track_id in self._slot_of:
+            return self._snapshot(self._slot_of[track_id], alive=True)
+        if track_id in self._just_dropped:
+            return self._just_dropped[track_id]
+        raise KeyError(f"no live track with id {track_id} (it may have been dropped earlier)")
+
+    def _snapshot(self, slot: int, alive: bool) -> Track:
+        hlen = self.config.max_history
+        n = int(self._n_obs[slot])
+        k = np.arange(max(0, n - hlen), n) % hlen
+        obs = [
+            (int(f), float(t), uv.copy())
+            for f, t, uv in zip(self._h_frame[slot, k], self._h_t[slot, k], self._h_uv[slot, k])
+        ]
+        latest = self._prev_frame if self._prev_frame is not None else int(self._anchor_frame[slot])
+        return Track(
+            id=int(self._id[slot]),
+            anchor_frame=int(self._anchor_frame[slot]),
+            anchor_t=float(self._anchor_t[slot]),
+            anchor_uv=self._anchor_uv[slot].copy(),
+            observations=obs,
+            n_observations=n,
+            age=int(latest - self._anchor_frame[slot]),
+            last_score=float(self._score[slot]),
+            failures=int(self._fail[slot]),
+            alive=alive,
+        )
+
+    # -- the step ------------------------------------------------------------------------------
+    def _check_inputs(self, gray, t, frame_index) -> tuple[np.ndarray, float, int]:
+        gray = as_gray_u8(gray, "gray")
+        c = self.camera.config
+        if gray.shape != (c.height, c.width):
+            raise InputError(f"gray has shape {gray.shape}, the camera is {c.height}×{c.width} (rows × columns)")
+        if isinstance(t, bool) or not isinstance(t, numbers.Real) or not math.isfinite(float(t)):
+            raise InputError(f"t must be a finite number of seconds, got {t!r}")
+        t = float(t)
+        if self._prev_t is not None and not t > self._prev_t:
+            raise InputError(f"timestamps must be strictly increasing: t = {t!r} after {self._prev_t!r}")
+        if isinstance(frame_index, bool) or not isinstance(frame_index, numbers.Integral):
+            raise InputError(f"frame_index must be an integer, got {frame_index!r}")
+        frame_index = int(frame_index)
+        if self._prev_frame is not None and frame_index <= self._prev_frame:
+            raise InputError(f"frame_index must increase: {frame_index} after {self._prev_frame}")
+        return gray, t, frame_index
+
+    def _prediction(self, predict: Predictor | None, uv_prev: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = len(uv_prev)
+        if predict is None:
+            return uv_prev.copy(), np.full(n, float(self.ncc.search_half))
+        out = predict(uv_prev.copy(), ids.copy())
+        if not isinstance(out, tuple) or len(out) != 2:
+            raise InputError("predict must return a tuple (uv_pred (N, 2), radius (N,) or scalar)")
+        uv_pred = np.asarray(out[0], dtype=float)
+        radius = np.asarray(out[1], dtype=float)
+        if uv_pred.shape != (n, 2):
+            raise InputError(f"predict returned uv_pred of shape {uv_pred.shape}, expected ({n}, 2)")
+        if not np.all(np.isfinite(uv_pred)):
+            raise InputError("predict returned NaN or inf pixels")
+        if radius.ndim == 0:
+            radius = np.full(n, float(radius))
+        if radius.shape != (n,) or not np.all(np.isfinite(radius)) or np.any(radius < 0):
+            raise InputError(f"predict returned an invalid radius (shape {radius.shape}; must be finite, >= 0, scalar or ({n},))")
+        return uv_pred, radius
+
+    def step(self, gray: np.ndarray, t: float, frame_index: int, predict: Predictor | None = None) -> TrackFrame:
+        """Track all live tracks into ``gray``, drop failures, refill with Harris corners.
+
+        ``gray``: 2-D uint8 frame of the camera's size; ``t``: capture time in seconds, strictly
+        increasing; ``frame_index``: strictly increasing integer.  ``predict(uv_prev, ids)`` gets
+        the (N, 2) last pixels and ids of the live tracks and returns ``(uv_pred, radius)``: the
+        search-window centres in this frame and their radii (px, scalar or (N,)).
+        """
+        gray, t, frame_index = self._check_inputs(gray, t, frame_index)
+        cfg = self.config
+        hlen = cfg.max_history
+        self._just_dropped = {}
+        matched_slots = np.zeros(0, np.int64)
+        drop_slots: list[np.ndarray] = []
+        drop_codes: list[np.ndarray] = []
+
+        live = np.flatnonzero(self._id >= 0)
+        if len(live) and self._prev_gray is not None:
+            uv_prev = self._uv[live]
+            uv_pred, radius = self._prediction(predict, uv_prev, self._id[live])
+            fresh = self._last_frame[live] == self._prev_frame
+            # Tracks that already missed frames search a wider window (their motion is older).
+            radius = radius * (1 + self._fail[live])
+            pts = np.zeros((len(live), 2))
+            score = np.zeros(len(live))
+            reason = np.zeros(len(live), np.int8)
+            f = np.flatnonzero(fresh)
+            if len(f):
+                r = match_ncc(self._prev_gray, gray, uv_prev[f], uv_pred[f], self.ncc, radius[f])
+                pts[f], score[f], reason[f] = r.pts, r.score, r.reason
+            c = np.flatnonzero(~fresh)
+            if len(c):
+                sl = live[c]
+                r = match_templates(self._tpl[sl], self._tpl_frac[sl], gray, uv_pred[c], self.ncc, radius[c], valid=self._tpl_ok[sl])
+                pts[c], score[c], reason[c] = r.pts, r.score, r.reason
+            ok = reason == _ncc.OK
+
+            # Successful matches: new position, one more observation in the ring buffer.
+            s_ok = live[ok]
+            self._uv[s_ok] = pts[ok]
+            self._last_frame[s_ok] = frame_index
+            self._score[s_ok] = score[ok]
+            self._fail[s_ok] = 0
+            self._tpl_ok[s_ok] = False
+            k = self._n_obs[s_ok] % hlen
+            self._h_uv[s_ok, k] = pts[ok]
+            self._h_frame[s_ok, k] = frame_index
+            self._h_t[s_ok, k] = t
+            self._n_obs[s_ok] += 1
+
+            # Failures: drop at once when the point has left the image or the template is flat,
+            # otherwise after max_failures consecutive misses.
+            s_bad = live[~ok]
+            self._fail[s_bad] += 1
+            self._score[s_bad] = score[~ok]
+            hard = np.isin(reason[~ok], (_ncc.OUT_OF_IMAGE, _ncc.FLAT_TEMPLATE))
+            drop = hard | (self._fail[s_bad] >= cfg.max_failures)
+            drop_slots.append(s_bad[drop])
+            drop_codes.append(reason[~ok][drop])
+            # Coasting tracks that were seen in the previous frame keep that frame's template.
+            keep_fresh = ~drop & fresh[~ok]
+            if np.any(keep_fresh):
+                sk = s_bad[keep_fresh]
+                tpl, frac, inside = extract_templates(self._prev_gray, self._uv[sk], self.ncc.template_half)
+                self._tpl[sk], self._tpl_frac[sk], self._tpl_ok[sk] = tpl, frac, inside
+
+            # Duplicates: two matched tracks on the same point -> keep the older (smaller id).
+            if cfg.duplicate_distance_px > 0 and len(s_ok) > 1:
+                dup = self._duplicates(s_ok, cfg.duplicate_distance_px)
+                if len(dup):
+                    drop_slots.append(dup)
+                    drop_codes.append(np.full(len(dup), DROP_DUPLICATE, np.int8))
+                    s_ok = np.setdiff1d(s_ok, dup)
+            matched_slots = s_ok
+
+        dropped_ids = np.zeros(0, np.int64)
+        drop_reason = np.zeros(0, np.int8)
+        if drop_slots:
+            ds = np.concatenate(drop_slots)
+            drop_reason = np.concatenate(drop_codes).astype(np.int8)
+            dropped_ids = self._id[ds].copy()
+            for slot in ds.tolist():
+                snap = self._snapshot(slot, alive=False)
+                self._just_dropped[snap.id] = snap
+                del self._slot_of[snap.id]
+            self._id[ds] = -1
+            self._tpl_ok[ds] = False
+
+        # Refill with Harris corners away from the survivors.
+        new_slots = np.zeros(0, np.int64)
+        n_live = self.n_live
+        if n_live < cfg.redetect_fraction * cfg.max_tracks or self._prev_gray is None:
+            want = cfg.max_tracks - n_live
+            if want > 0:
+                survivors = self._uv[self._id >= 0]
+                pts, _ = detect_harris(
+                    gray, self.harris, exclude_pts=survivors, exclude_radius=cfg.min_new_distance_px, max_corners=want
+                )
+                if len(pts):
+                    new_slots = np.flatnonzero(self._id < 0)[: len(pts)]
+                    pts = pts[: len(new_slots)]
+                    self._birth(new_slots, pts, t, frame_index)
+
+        self._prev_gray = gray.copy()  # the caller may reuse its frame buffer
+        self._prev_t = t
+        self._prev_frame = frame_index
+
+        obs = np.concatenate([matched_slots, new_slots])
+        ids = self._id[obs]
+        order = np.argsort(ids, kind="stable")
+        obs = obs[order]
+        order_d = np.argsort(dropped_ids, kind="stable")
+        return TrackFrame(
+            frame_index=frame_index,
+            t=t,
+            ids=self._id[obs].copy(),
+            uv=self._uv[obs].copy(),
+            score=self._score[obs].copy(),
+            new_ids=np.sort(self._id[new_slots]),
+            dropped_ids=dropped_ids[order_d],
+            drop_reason=drop_reason[order_d],
+        )
+
+    def _birth(self, slots: np.ndarray, pts: np.ndarray, t: float, frame_index: int) -> None:
+        n = len(slots)
+        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        self._next_id += n
+        self._id[slots] = ids
+        self._uv[slots] = pts
+        self._last_frame[slots] = frame_index
+        self._anchor_frame[slots] = frame_index
+        self._anchor_t[slots] = t
+        self._anchor_uv[slots] = pts
+        self._n_obs[slots] = 1
+        self._score[slots] = 1.0
+        self._fail[slots] = 0
+        self._tpl_ok[slots] = False
+        self._h_uv[slots, 0] = pts
+        self._h_frame[slots, 0] = frame_index
+        self._h_t[slots, 0] = t
+        self._slot_of.update(zip(ids.tolist(), slots.tolist()))
+
+    def _duplicates(self, slots: np.ndarray, dist: float) -> np.ndarray:
+        """Slots whose track lies within ``dist`` px of an older (smaller id) matched track.
+
+        The slot numbers are written into a label image at the rounded positions; each point then
+        reads its (2r+1)² neighbourhood (r = ⌈dist⌉) — a point hidden by another on the same pixel
+        sees the other's label on its own pixel.  Candidate pairs get an exact distance check.
+        No all-pairs distance matrix, no loop over points.
+        """
+        c = self.camera.config
+        r = int(math.ceil(dist))
+        if self._label is None:
+            self._label = np.full((c.height + 2 * r, c.width + 2 * r), -1, np.int64)
+        lab = self._label
+        uv = self._uv[slots]
+        q = np.clip(np.rint(uv).astype(np.int64), 0, [c.width - 1, c.height - 1]) + r
+        idx = np.arange(len(slots))
+        lab[q[:, 1], q[:, 0]] = idx
+        off = np.arange(-r, r + 1)
+        nb = lab[q[:, 1, None, None] + off[None, :, None], q[:, 0, None, None] + off[None, None, :]].reshape(len(slots), -1)
+        lab[q[:, 1], q[:, 0]] = -1
+        i_idx = np.repeat(idx, nb.shape[1])
+        j_idx = nb.reshape(-1)
+        pair = (j_idx >= 0) & (j_idx != i_idx)
+        i_idx, j_idx = i_idx[pair], j_idx[pair]
+        # Same-pixel pairs: the overwritten point sees the survivor; add the reverse direction too.
+        i_idx, j_idx = np.concatenate([i_idx, j_idx]), np.concatenate([j_idx, i_idx])
+        close = np.linalg.norm(uv[i_idx] - uv[j_idx], axis=1) < dist
+        ids = self._id[slots]
+        younger = np.where(ids[i_idx[close]] > ids[j_idx[close]], i_idx[close], j_idx[close])
+        return np.unique(slots[younger])

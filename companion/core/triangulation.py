@@ -1,0 +1,251 @@
+"""Triangulation with explicit gates (DESIGN.md §3.3, seed 004 eq. 9–10).
+
+Two views: rays ``p`` (camera 1) and ``p'`` (camera 2) in normalized coordinates (z = 1),
+``R = R_cam1_cam2`` and ``t = C2 − C1`` expressed in camera 1.  The point satisfies
+``Z p = t + Z' R p'``; crossing with ``R p'`` gives seed 004 eq. 10
+
+    Z  = ((t × R p') · (p × R p')) / ||p × R p'||²,       P = Z p,
+
+and crossing with ``p`` gives the depth in camera 2, ``Z' = ((t × p) · (p × R p')) / ||p × R p'||²``.
+Both depths must be positive.  The problem is degenerate when the baseline vanishes (pure
+rotation) or the rays are parallel (point at infinity, or on the focus of expansion), so each
+case is gated explicitly and reported with a :class:`Reject` code; a rejected point is returned as
+zeros and never as NaN or inf.
+
+Multi-view: the midpoint solution over all rays of a track, ``X = (Σ Aᵢ)⁻¹ Σ Aᵢ Cᵢ`` with
+``Aᵢ = I − rᵢ rᵢᵀ`` (least squares on perpendicular distances), gated on its longest baseline
+and widest parallax.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+
+import numpy as np
+
+from companion.config import require, require_finite
+from companion.errors import InputError
+
+
+class Reject(enum.IntEnum):
+    """Why a triangulation was refused (0 = accepted)."""
+
+    OK = 0
+    NON_FINITE = 1
+    SHORT_BASELINE = 2
+    LOW_PARALLAX = 3
+    BEHIND_CAMERA = 4
+    TOO_FAR = 5
+    TOO_UNCERTAIN = 6
+
+
+@dataclasses.dataclass(frozen=True)
+class TriangulationConfig:
+    """Gates of the ``[triangulation]`` table."""
+
+    min_baseline_m: float = 0.3  # camera displacement below this: pure rotation, no range
+    min_parallax_deg: float = 1.0  # angle between the two rays below this: too close to infinity / FOE
+    min_depth_m: float = 0.5  # nearer than this in either camera: treated as behind / invalid
+    max_range_m: float = 1000.0  # farther than this: rejected as unmeasurable
+    max_rel_sigma: float = 0.3  # predicted range σ / range above this: too uncertain to seed a filter
+
+    def __post_init__(self) -> None:
+        require_finite("min_baseline_m", self.min_baseline_m, nonnegative=True)
+        require_finite("min_parallax_deg", self.min_parallax_deg, nonnegative=True)
+        require(self.min_parallax_deg < 90, f"min_parallax_deg must be < 90, got {self.min_parallax_deg}")
+        require_finite("min_depth_m", self.min_depth_m, positive=True)
+        require_finite("max_range_m", self.max_range_m, positive=True)
+        require(self.max_range_m > self.min_depth_m, "max_range_m must exceed min_depth_m")
+        require_finite("max_rel_sigma", self.max_rel_sigma, positive=True)
+
+
+@dataclasses.dataclass
+class TriangulationResult:
+    """Per point: position in camera 1 (or world), depth / range, their σ and the gate verdict."""
+
+    p: np.ndarray  # (N, 3) point; zeros where rejected
+    depth: np.ndarray  # (N,) Z in camera 1 (two-view) or range from the last camera (multi-view)
+    range_sigma: np.ndarray  # (N,) first-order range σ from the pixel noise; 0 where rejected
+    parallax_rad: np.ndarray  # (N,) angle between the rays used
+    reason: np.ndarray  # (N,) Reject codes
+
+    @property
+    def ok(self) -> np.ndarray:
+        return self.reason == Reject.OK
+
+
+def _check(name: str, a, shape_tail: tuple[int, ...]) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    if a.shape[a.ndim - len(shape_tail):] != shape_tail:
+        raise InputError(f"{name} must have trailing shape {shape_tail}, got {a.shape}")
+    return a
+
+
+def _homogeneous(xy: np.ndarray) -> np.ndarray:
+    return np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], -1)
+
+
+def triangulate_two_view(
+    xy1: np.ndarray,
+    xy2: np.ndarray,
+    R_cam1_cam2: np.ndarray,
+    t_cam1: np.ndarray,
+    config: TriangulationConfig,
+    sigma_xy: float = 0.0,
+) -> TriangulationResult:
+    """Seed 004 eq. 10 for N points at once.
+
+    ``xy1``, ``xy2``: (N, 2) undistorted normalized coordinates in cameras 1 and 2.
+    ``R_cam1_cam2``: (3, 3) or (N, 3, 3); ``t_cam1``: (3,) or (N, 3), C2 − C1 in camera 1.
+    ``sigma_xy``: measurement σ in normalized units (pixel σ / f) for the range σ estimate
+    ``σ_d ≈ √2 · d · σ_xy / sin(parallax)``; used by the ``max_rel_sigma`` gate when > 0.
+    """
+    xy1 = _check("xy1", xy1, (2,)).reshape(-1, 2)
+    xy2 = _check("xy2", xy2, (2,)).reshape(-1, 2)
+    if len(xy1) != len(xy2):
+        raise InputError(f"xy1 and xy2 differ in length: {len(xy1)} vs {len(xy2)}")
+    R = _check("R_cam1_cam2", R_cam1_cam2, (3, 3))
+    t = _check("t_cam1", t_cam1, (3,))
+    n = len(xy1)
+    R = np.broadcast_to(R, (n, 3, 3))
+    t = np.broadcast_to(t, (n, 3))
+    reason = np.zeros(n, dtype=np.int8)
+    finite = (
+        np.all(np.isfinite(xy1), 1) & np.all(np.isfinite(xy2), 1)
+        & np.all(np.isfinite(R), (1, 2)) & np.all(np.isfinite(t), 1)
+    )
+    reason[~finite] = Reject.NON_FINITE
+    xy1 = np.where(finite[:, None], xy1, 0.0)
+    xy2 = np.where(finite[:, None], xy2, 0.0)
+    R = np.where(finite[:, None, None], R, np.eye(3))
+    t = np.where(finite[:, None], t, 0.0)
+
+    p = _homogeneous(xy1)
+    Rp2 = np.einsum("nij,nj->ni", R, _homogeneous(xy2))
+    c = np.cross(p, Rp2)
+    c2 = np.einsum("ni,ni->n", c, c)
+    cos_par = np.einsum("ni,ni->n", p, Rp2) / (np.linalg.norm(p, axis=1) * np.linalg.norm(Rp2, axis=1))
+    parallax = np.arccos(np.clip(cos_par, -1.0, 1.0))
+    baseline = np.linalg.norm(t, axis=1)
+
+    def flag(mask, code):
+        reason[(reason == Reject.OK) & mask] = code
+
+    flag(baseline < config.min_baseline_m, Reject.SHORT_BASELINE)
+    flag(parallax < np.radians(config.min_parallax_deg), Reject.LOW_PARALLAX)
+    flag(c2 <= 1e-18, Reject.LOW_PARALLAX)
+    safe = np.where(c2 > 1e-18, c2, 1.0)
+    Z1 = np.einsum("ni,ni->n", np.cross(t, Rp2), c) / safe
+    Z2 = np.einsum("ni,ni->n", np.cross(t, p), c) / safe
+    flag((Z1 < config.min_depth_m) | (Z2 < config.min_depth_m), Reject.BEHIND_CAMERA)
+    P = Z1[:, None] * p
+    rng = np.linalg.norm(P, axis=1)
+    flag(rng > config.max_range_m, Reject.TOO_FAR)
+    sin_par = np.maximum(np.sin(parallax), 1e-12)
+    range_sigma = np.sqrt(2.0) * rng * sigma_xy / sin_par
+    if sigma_xy > 0:
+        flag(range_sigma > config.max_rel_sigma * rng, Reject.TOO_UNCERTAIN)
+    ok = reason == Reject.OK
+    return TriangulationResult(
+        p=np.where(ok[:, None], P, 0.0),
+        depth=np.where(ok, Z1, 0.0),
+        range_sigma=np.where(ok, range_sigma, 0.0),
+        parallax_rad=parallax,
+        reason=reason,
+    )
+
+
+def triangulate_poses(
+    xy_a: np.ndarray,
+    R_world_cam_a: np.ndarray,
+    p_world_cam_a: np.ndarray,
+    xy_b: np.ndarray,
+    R_world_cam_b: np.ndarray,
+    p_world_cam_b: np.ndarray,
+    config: TriangulationConfig,
+    sigma_xy: float = 0.0,
+) -> TriangulationResult:
+    """Two-view triangulation from world poses; ``p`` is returned in the world frame.
+
+    Poses may be (3,3)/(3,) shared by all points or (N,3,3)/(N,3) per point.
+    ``depth`` stays the depth along camera a's optical axis.
+    """
+    Ra = np.asarray(R_world_cam_a, float)
+    Rb = np.asarray(R_world_cam_b, float)
+    R_ab = np.swapaxes(Ra, -1, -2) @ Rb
+    t_a = np.einsum("...ji,...j->...i", Ra, np.asarray(p_world_cam_b, float) - np.asarray(p_world_cam_a, float))
+    res = triangulate_two_view(xy_a, xy_b, R_ab, t_a, config, sigma_xy)
+    ok = res.ok
+    p_world = np.einsum("...ij,...j->...i", Ra, res.p) + np.asarray(p_world_cam_a, float)
+    res.p = np.where(ok[:, None], p_world, 0.0)
+    return res
+
+
+def triangulate_multiview(
+    rays_world: np.ndarray,
+    centers_world: np.ndarray,
+    mask: np.ndarray,
+    config: TriangulationConfig,
+    sigma_xy: float = 0.0,
+) -> TriangulationResult:
+    """Midpoint least squares over whole tracks (N tracks × K views, padded with ``mask``).
+
+    ``rays_world``: (N, K, 3) viewing directions (any length); ``centers_world``: (N, K, 3) camera
+    centres; ``mask``: (N, K) which views exist.  Gates use the longest baseline and the widest
+    angle between the first and last used rays; ``depth`` is the range from the last used camera.
+    """
+    rays = _check("rays_world", rays_world, (3,))
+    C = _check("centers_world", centers_world, (3,))
+    mask = np.asarray(mask, bool)
+    if rays.ndim != 3 or rays.shape != C.shape or mask.shape != rays.shape[:2]:
+        raise InputError(f"rays {rays.shape}, centers {C.shape} and mask {mask.shape} must be (N,K,3),(N,K,3),(N,K)")
+    n, k, _ = rays.shape
+    reason = np.zeros(n, dtype=np.int8)
+    finite = np.all(np.isfinite(rays) | ~mask[..., None], (1, 2)) & np.all(np.isfinite(C) | ~mask[..., None], (1, 2))
+    reason[~finite] = Reject.NON_FINITE
+    m = mask & finite[:, None]
+    rays = np.where(m[..., None], rays, 0.0)
+    C = np.where(m[..., None], C, 0.0)
+    norms = np.linalg.norm(rays, axis=2, keepdims=True)
+    r = np.where(norms > 0, rays / np.where(norms > 0, norms, 1.0), 0.0)
+    counts = m.sum(1)
+    first = np.where(counts > 0, np.argmax(m, 1), 0)
+    last = np.where(counts > 0, k - 1 - np.argmax(m[:, ::-1], 1), 0)
+    rows = np.arange(n)
+
+    def flag(mask_, code):
+        reason[(reason == Reject.OK) & mask_] = code
+
+    flag(counts < 2, Reject.SHORT_BASELINE)
+    # longest baseline: farthest centre from the first one
+    d_first = np.linalg.norm(C - C[rows, first][:, None, :], axis=2) * m
+    baseline = d_first.max(1)
+    flag(baseline < config.min_baseline_m, Reject.SHORT_BASELINE)
+    cos_par = np.einsum("ni,ni->n", r[rows, first], r[rows, last])
+    parallax = np.arccos(np.clip(cos_par, -1.0, 1.0))
+    flag(parallax < np.radians(config.min_parallax_deg), Reject.LOW_PARALLAX)
+    A = np.eye(3) - np.einsum("nki,nkj->nkij", r, r)
+    A = A * m[..., None, None]
+    S = A.sum(1)
+    b = np.einsum("nkij,nkj->ni", A, C)
+    det = np.linalg.det(S)
+    good = np.abs(det) > 1e-12
+    flag(~good, Reject.LOW_PARALLAX)
+    S_safe = np.where(good[:, None, None], S, np.eye(3))
+    X = np.linalg.solve(S_safe, b[..., None])[..., 0]
+    depths = np.einsum("nki,nki->nk", X[:, None, :] - C, r)
+    flag(np.any((depths < config.min_depth_m) & m, 1), Reject.BEHIND_CAMERA)
+    rng = np.linalg.norm(X - C[rows, last], axis=1)
+    flag(rng > config.max_range_m, Reject.TOO_FAR)
+    range_sigma = np.sqrt(2.0) * rng * sigma_xy / np.maximum(np.sin(parallax), 1e-12)
+    if sigma_xy > 0:
+        flag(range_sigma > config.max_rel_sigma * rng, Reject.TOO_UNCERTAIN)
+    ok = reason == Reject.OK
+    return TriangulationResult(
+        p=np.where(ok[:, None], X, 0.0),
+        depth=np.where(ok, rng, 0.0),
+        range_sigma=np.where(ok, range_sigma, 0.0),
+        parallax_rad=parallax,
+        reason=reason,
+    )

@@ -1,0 +1,1 @@
+"""Thin I/O around the pure core: configuration files and camera calibration files."""

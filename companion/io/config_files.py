@@ -1,0 +1,108 @@
+"""Loading ``configs/*.toml`` into the per-module config dataclasses, and OpenCV calibrations.
+
+The companion TOML has one table per module; each maps onto that module's frozen dataclass via
+:func:`companion.config.from_mapping`, so unknown keys, wrong types and out-of-range values stop
+with a :class:`ConfigError` that names the file, the table and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from companion.config import from_mapping
+from companion.core.camera import CameraConfig
+from companion.core.ekf_anchored import AnchoredEKFConfig
+from companion.core.ekf_landmark import LandmarkEKFConfig
+from companion.core.estimator import EstimatorConfig
+from companion.core.harris import HarrisConfig
+from companion.core.ncc import NCCConfig
+from companion.core.tracks import TrackConfig
+from companion.core.triangulation import TriangulationConfig
+from companion.errors import ConfigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+
+@dataclasses.dataclass(frozen=True)
+class CompanionConfig:
+    """Every table of ``configs/companion.toml``."""
+
+    camera: CameraConfig = CameraConfig()
+    harris: HarrisConfig = HarrisConfig()
+    ncc: NCCConfig = NCCConfig()
+    tracks: TrackConfig = TrackConfig()
+    triangulation: TriangulationConfig = TriangulationConfig()
+    ekf_anchored: AnchoredEKFConfig = AnchoredEKFConfig()
+    ekf_landmark: LandmarkEKFConfig = LandmarkEKFConfig()
+    estimator: EstimatorConfig = EstimatorConfig()
+
+
+def read_toml(path: str | os.PathLike) -> dict:
+    """Parse a TOML file; a missing file or a syntax error becomes a ConfigError naming the file."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such configuration file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+
+
+def load_companion_config(path: str | os.PathLike) -> CompanionConfig:
+    """Load and validate the whole companion configuration."""
+    data = read_toml(path)
+    try:
+        return from_mapping(CompanionConfig, data, "")
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def load_opencv_calibration(path: str | os.PathLike, base: CameraConfig | None = None) -> CameraConfig:
+    """Camera intrinsics from an OpenCV calibration file (YAML/XML written by ``cv2.FileStorage``).
+
+    Reads ``camera_matrix`` and ``distortion_coefficients`` (and ``image_width`` /
+    ``image_height`` when present); the mount and anything missing come from ``base``.
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such calibration file")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        if not fs.isOpened():
+            raise ConfigError(f"{path}: OpenCV cannot read this calibration file")
+        K = fs.getNode("camera_matrix").mat()
+        D = fs.getNode("distortion_coefficients").mat()
+        w_node, h_node = fs.getNode("image_width"), fs.getNode("image_height")
+        width = int(w_node.real()) if not w_node.empty() else None
+        height = int(h_node.real()) if not h_node.empty() else None
+    finally:
+        fs.release()
+    if K is None or np.shape(K) != (3, 3):
+        raise ConfigError(f"{path}: camera_matrix missing or not 3×3")
+    if D is None:
+        raise ConfigError(f"{path}: distortion_coefficients missing")
+    D = np.asarray(D, float).reshape(-1)
+    base = base or CameraConfig()
+    kw = dict(
+        fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
+        distortion=tuple(float(v) for v in D),
+    )
+    if width:
+        kw["width"] = width
+    if height:
+        kw["height"] = height
+    try:
+        return dataclasses.replace(base, **kw)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None

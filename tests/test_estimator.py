@@ -1,0 +1,109 @@
+"""The estimator entry point: combined initialization, ranges on a synthetic flight, bad input."""
+
+import numpy as np
+import pytest
+
+from companion.core.camera import CameraConfig, CameraModel
+from companion.core.ekf_anchored import AnchoredEKFConfig
+from companion.core.ekf_landmark import LandmarkEKFConfig
+from companion.core.estimator import EstimatorConfig, RangeEstimator
+from companion.core.frames import euler_zyx_to_R
+from companion.errors import ConfigError, InputError
+
+CAM = CameraConfig()
+
+
+def flight(n_points=40, K=50, seed=0, sigma_px=0.5):
+    """A vehicle flying north at 10 m/s with gentle yaw/roll, looking at a scattered point field."""
+    rng = np.random.default_rng(seed)
+    cam = CameraModel(CAM)
+    t = np.arange(K) / 20.0
+    p_body = np.stack([10.0 * t, 0.5 * np.sin(t), -20 + 0.2 * t], 1)
+    R_body = euler_zyx_to_R(0.05 * np.sin(2 * t), 0.02 * np.cos(t), 0.1 * np.sin(0.5 * t))
+    R_wc, p_wc = cam.camera_pose(R_body, p_body)
+    pts = np.stack([rng.uniform(60, 140, n_points), rng.uniform(-30, 30, n_points), rng.uniform(-35, -5, n_points)], 1)
+    frames = []
+    for k in range(K):
+        pc = cam.world_to_camera(pts, R_wc[k], p_wc[k])
+        ok = pc[:, 2] > 1
+        uv = cam.project(np.where(ok[:, None], pc, [0, 0, 1]))
+        ok &= cam.in_image(uv)
+        ids = np.flatnonzero(ok)
+        frames.append((t[k], R_wc[k], p_wc[k], ids, uv[ids] + sigma_px * rng.standard_normal((len(ids), 2))))
+    return pts, frames
+
+
+@pytest.mark.parametrize("which", ["anchored", "landmark"])
+def test_ranges_converge_on_synthetic_flight(which):
+    pts, frames = flight()
+    est = RangeEstimator(CAM, EstimatorConfig(filter=which), ekf_anchored=AnchoredEKFConfig(sigma_px=0.5),
+                         ekf_landmark=LandmarkEKFConfig(sigma_px=0.5, sigma_v=0.01, sigma_w=1e-4))
+    for f in frames:
+        out = est.process(*f)
+    t, R, p, _, _ = frames[-1]
+    true = np.linalg.norm(pts[out.ids] - p, axis=1)
+    rel = np.abs(out.range - true) / true
+    assert len(out.ids) > 20
+    assert np.median(rel[out.converged]) < 0.05
+    assert np.mean(out.converged) > 0.5
+    # σ is honest: most errors within 3σ
+    assert np.mean(np.abs(out.range - true)[out.converged] <= 3 * out.range_sigma[out.converged]) > 0.9
+    assert np.all(np.isfinite(out.range)) and np.all(np.isfinite(out.range_sigma)) and np.all(np.isfinite(out.p_world))
+
+
+def test_combined_initialization_uses_triangulation_when_it_can():
+    pts, frames = flight(sigma_px=0.1)
+    est = RangeEstimator(CAM, EstimatorConfig(init_max_frames=40), ekf_anchored=AnchoredEKFConfig(sigma_px=0.5))
+    tri = prior = 0
+    for f in frames:
+        out = est.process(*f)
+        tri += out.n_initialized_tri
+        prior += out.n_initialized_prior
+    assert tri > 0  # the lateral baseline grows enough for the gates within 40 frames
+
+
+def test_wide_prior_after_the_window():
+    pts, frames = flight(sigma_px=0.5)
+    est = RangeEstimator(CAM, EstimatorConfig(init_max_frames=2), ekf_anchored=AnchoredEKFConfig(sigma_px=0.5))
+    out0 = est.process(*frames[0])
+    out1 = est.process(*frames[1])
+    assert out0.n_pending > 0 and len(out0.ids) == 0
+    assert out1.n_initialized_prior > 0  # 2 frames: too little baseline to triangulate
+
+
+def test_landmarks_expire_and_drop():
+    pts, frames = flight()
+    est = RangeEstimator(CAM, EstimatorConfig(init_max_frames=2, max_unseen_s=0.2))
+    for f in frames[:10]:
+        out = est.process(*f)
+    n = len(out.ids)
+    assert n > 0
+    t, R, p, ids, uv = frames[10]
+    est.drop(ids[:5])
+    out = est.process(t, R, p, ids[5:], uv[5:])
+    assert not np.any(np.isin(ids[:5], out.ids))
+    t_late = t + 1.0  # nothing seen for a second: everything expires
+    out = est.process(t_late, R, p, np.zeros(0, int), np.zeros((0, 2)))
+    assert len(out.ids) == 0 and out.n_pending == 0
+
+
+def test_bad_input_is_named():
+    est = RangeEstimator(CAM)
+    R, p = np.eye(3), np.zeros(3)
+    with pytest.raises(InputError, match="NaN or inf for track ids \\[7\\]"):
+        est.process(0.0, R, p, np.array([3, 7]), np.array([[1.0, 2.0], [np.nan, 1.0]]))
+    with pytest.raises(InputError, match="uv must have shape"):
+        est.process(0.0, R, p, np.array([1, 2]), np.zeros((3, 2)))
+    with pytest.raises(InputError, match="camera pose contains NaN"):
+        est.process(0.0, np.full((3, 3), np.nan), p, np.array([1]), np.zeros((1, 2)))
+    with pytest.raises(InputError, match="not a rotation"):
+        est.process(0.0, 2 * np.eye(3), p, np.array([1]), np.zeros((1, 2)))
+    with pytest.raises(InputError, match="duplicates"):
+        est.process(0.0, R, p, np.array([1, 1]), np.zeros((2, 2)))
+    with pytest.raises(InputError, match="integer"):
+        est.process(0.0, R, p, np.array([1.5]), np.zeros((1, 2)))
+    est.process(1.0, R, p, np.array([1]), np.array([[100.0, 100.0]]))
+    with pytest.raises(InputError, match="frame times must increase"):
+        est.process(0.5, R, p, np.array([1]), np.array([[100.0, 100.0]]))
+    with pytest.raises(ConfigError, match="filter must be one of"):
+        EstimatorConfig(filter="ukf")

@@ -1,0 +1,190 @@
+"""Track manager (DESIGN.md §3.1–§3.2): ids persist, positions follow truth, bounded, bad input."""
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.core import ncc
+from companion.core.camera import CameraConfig, CameraModel
+from companion.core.harris import HarrisConfig
+from companion.core.ncc import NCCConfig
+from companion.core.tracks import DROP_REASON_NAMES, TrackConfig, TrackManager
+from companion.errors import ConfigError, InputError
+
+W, H, SS = 320, 240, 4
+
+
+class Scene:
+    """Band-limited noise, 4× supersampled: render(shift) is the texture moved by ``shift`` px."""
+
+    def __init__(self, seed=0, margin=80):
+        rng = np.random.default_rng(seed)
+        big = rng.standard_normal(((H + 2 * margin) * SS, (W + 2 * margin) * SS)).astype(np.float32)
+        self.big = cv2.GaussianBlur(big, (0, 0), 1.2 * SS)
+        self.big /= self.big.std()
+        self.m = margin
+
+    def render(self, shift):
+        sx, sy = int(round(shift[0] * SS)), int(round(shift[1] * SS))
+        y0, x0 = self.m * SS - sy, self.m * SS - sx
+        crop = self.big[y0 : y0 + H * SS, x0 : x0 + W * SS]
+        img = cv2.resize(crop, (W, H), interpolation=cv2.INTER_AREA)
+        return np.clip(128 + 45 * img, 0, 255).round().astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return Scene()
+
+
+def camera():
+    return CameraModel(CameraConfig.from_fov(W, H, 60.0))
+
+
+def manager(max_tracks=120, **kw):
+    return TrackManager(camera(), HarrisConfig(), NCCConfig(), TrackConfig(max_tracks=max_tracks, **kw))
+
+
+def test_tracks_follow_a_translated_texture(scene):
+    steps = np.array([[0, 0], [1.25, 0.5], [1.5, -0.75], [2.0, 0.25], [0.75, 1.0], [-1.0, 0.5], [3.0, 0.0], [0.5, -2.25]])
+    shifts = np.cumsum(steps, 0)
+    tm = manager()
+    first = tm.step(scene.render(shifts[0]), 0.0, 0)
+    assert len(first.ids) == 120 and np.array_equal(first.ids, first.new_ids)
+    assert first.ids.dtype == np.int64 and np.all(first.score == 1.0)
+    start = dict(zip(first.ids.tolist(), first.uv))
+    for k in range(1, len(shifts)):
+        fr = tm.step(scene.render(shifts[k]), k / 30.0, k)
+        old = np.isin(fr.ids, first.ids)
+        assert old.sum() >= 100, "ids must persist while the points stay visible"
+        truth = np.array([start[i] for i in fr.ids[old].tolist()]) + shifts[k]
+        err = np.linalg.norm(fr.uv[old] - truth, axis=1)
+        assert err.max() < 0.3, f"frame {k}: worst track error {err.max():.3f} px"
+        assert np.all(fr.score[old] > 0.8)
+        assert tm.n_live <= 120
+    # the track's record: anchor, observations with frame index and time
+    tid = int(fr.ids[old][0])
+    tr = tm.tracks[tid]
+    assert tr.anchor_frame == 0 and tr.anchor_t == 0.0 and np.allclose(tr.anchor_uv, start[tid])
+    assert [o[0] for o in tr.observations] == list(range(len(shifts)))
+    assert np.allclose([o[1] for o in tr.observations], np.arange(len(shifts)) / 30.0)
+    assert np.allclose(tr.observations[-1][2], fr.uv[fr.ids == tid][0])
+    assert tr.age == len(shifts) - 1 and tr.n_observations == len(shifts) and tr.alive
+    again = tm.track(tid)
+    assert again.id == tid and again.n_observations == tr.n_observations
+
+
+def test_leaving_tracks_are_dropped_and_replaced(scene):
+    tm = manager(max_tracks=80, redetect_fraction=0.9)
+    fr = tm.step(scene.render((0.0, 0.0)), 0.0, 0)
+    seen = set(fr.ids.tolist())
+    gone = set()
+    reasons = []
+    for k in range(1, 13):
+        fr = tm.step(scene.render((-5.0 * k, 0.0)), float(k), k)  # texture slides left, 5 px per frame
+        assert tm.n_live <= 80 and len(fr.ids) <= 80
+        assert not (set(fr.ids.tolist()) & gone), "a dropped id came back"
+        assert set(fr.dropped_ids.tolist()) <= seen
+        assert len(fr.dropped_ids) == len(fr.drop_reason)
+        gone |= set(fr.dropped_ids.tolist())
+        reasons += fr.drop_reason.tolist()
+        seen |= set(fr.new_ids.tolist())
+        assert not (set(fr.new_ids.tolist()) & (seen - set(fr.new_ids.tolist())))  # ids are never reused
+        # every dropped track is still readable in this frame, not afterwards
+        for i in fr.dropped_ids.tolist():
+            assert not tm.track(i).alive
+    assert len(gone) >= 10, "points that slid out of the image must be dropped"
+    assert ncc.OUT_OF_IMAGE in reasons
+    assert all(r in DROP_REASON_NAMES for r in reasons)
+    assert tm.n_live >= 0.9 * 80 - 10, "dropped tracks must be replaced by new corners"
+    old_live = [i for i in tm.live_ids().tolist() if tm.track(i).anchor_frame == 0]
+    for i in old_live:  # survivors from the first frame sit in the part of the texture still visible
+        assert tm.track(i).anchor_uv[0] > 60 - 1
+    with pytest.raises(KeyError):
+        tm.track(next(iter(gone - set(fr.dropped_ids.tolist()))))
+
+
+def test_track_count_is_bounded_and_history_is_capped(scene):
+    tm = manager(max_tracks=30, max_history=4, redetect_fraction=1.0)
+    for k in range(8):
+        fr = tm.step(scene.render((0.5 * k, 0.25 * k)), 0.1 * k, 10 + k)
+        assert len(fr.ids) <= 30 and tm.n_live <= 30 and len(tm.tracks) == tm.n_live
+    tid = int(tm.live_ids()[0])
+    tr = tm.track(tid)
+    assert len(tr.observations) == 4 and tr.n_observations == 8 and tr.anchor_frame == 10
+    assert [o[0] for o in tr.observations] == [14, 15, 16, 17]
+    assert tid in tm.tracks and list(tm.tracks) == tm.live_ids().tolist()
+
+
+def test_predictor_centres_the_search(scene):
+    step = np.array([15.0, -6.0])  # far beyond the default ±8 px window
+    blind = manager(max_tracks=60)
+    guided = manager(max_tracks=60)
+    ids0 = blind.step(scene.render((0, 0)), 0.0, 0).ids
+    guided.step(scene.render((0, 0)), 0.0, 0)
+    calls = []
+
+    def predict(uv, ids):
+        calls.append((uv.shape, ids.copy()))
+        return uv + step, np.full(len(uv), 2.0)
+
+    fb = blind.step(scene.render(step), 1.0, 1)
+    fg = guided.step(scene.render(step), 1.0, 1, predict=predict)
+    assert np.isin(fg.ids, ids0).sum() > 50
+    assert np.isin(fb.ids, ids0).sum() < 10
+    assert calls and calls[0][0] == (60, 2) and np.array_equal(np.sort(calls[0][1]), np.sort(ids0))
+
+
+def test_coasting_tracks_survive_one_bad_frame(scene):
+    tm = manager(max_tracks=50, max_failures=2)
+    ids0 = tm.step(scene.render((0, 0)), 0.0, 0).ids
+    noise = np.random.default_rng(5).integers(0, 256, (H, W)).astype(np.uint8)
+    bad = tm.step(noise, 1.0, 1)  # e.g. a corrupted frame: every match fails
+    assert len(bad.dropped_ids) < 5 and tm.n_live >= 45
+    assert all(tm.track(i).failures == 1 for i in ids0.tolist() if i in tm.tracks)
+    fr = tm.step(scene.render((1.5, 0.5)), 2.0, 2)  # back: matched from the stored templates
+    back = np.isin(fr.ids, ids0)
+    assert back.sum() > 40
+    start = {}
+    for i in fr.ids[back].tolist():
+        start[i] = tm.track(i).anchor_uv
+    err = np.linalg.norm(fr.uv[back] - (np.array([start[i] for i in fr.ids[back].tolist()]) + (1.5, 0.5)), axis=1)
+    assert err.max() < 0.3
+    once = manager(max_tracks=50)  # default: dropped at the first failure
+    once.step(scene.render((0, 0)), 0.0, 0)
+    assert len(once.step(noise, 1.0, 1).dropped_ids) > 45
+
+
+def test_bad_input_names_the_problem(scene):
+    tm = manager(max_tracks=20)
+    img = scene.render((0, 0))
+    tm.step(img, 1.0, 0)
+    with pytest.raises(InputError, match="strictly increasing"):
+        tm.step(img, 1.0, 1)
+    with pytest.raises(InputError, match="strictly increasing"):
+        tm.step(img, 0.5, 1)
+    with pytest.raises(InputError, match="frame_index must increase"):
+        tm.step(img, 2.0, 0)
+    with pytest.raises(InputError, match="finite"):
+        tm.step(img, float("nan"), 1)
+    with pytest.raises(InputError, match="shape"):
+        tm.step(img[:100], 2.0, 1)
+    with pytest.raises(InputError, match="empty"):
+        tm.step(img[:0], 2.0, 1)
+    with pytest.raises(InputError, match="uint8"):
+        tm.step(img.astype(np.float32), 2.0, 1)
+    with pytest.raises(InputError, match="colour"):
+        tm.step(np.dstack([img] * 3), 2.0, 1)
+    with pytest.raises(InputError, match="NaN"):
+        tm.step(img, 2.0, 1, predict=lambda uv, ids: (uv * np.nan, 3.0))
+    with pytest.raises(InputError, match="uv_pred"):
+        tm.step(img, 2.0, 1, predict=lambda uv, ids: (uv[:1], 3.0))
+    with pytest.raises(InputError, match="radius"):
+        tm.step(img, 2.0, 1, predict=lambda uv, ids: (uv, -1.0))
+    # a rejected frame leaves the manager usable
+    fr = tm.step(img, 2.0, 1)
+    assert len(fr.ids) == 20
+    with pytest.raises(ConfigError, match="max_tracks"):
+        TrackConfig(max_tracks=0)
+    with pytest.raises(ConfigError, match="border"):
+        TrackManager(camera(), HarrisConfig(border=4), NCCConfig(), TrackConfig())
