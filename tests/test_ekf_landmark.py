@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from companion.config import from_mapping
 from companion.core import ekf_landmark as ekf
 from companion.core.ekf_landmark import (
     LandmarkEKFBank,
@@ -385,6 +386,9 @@ def test_add_remove_keep_ids_sorted_and_rows_aligned():
     res = bank.update([5, 1], [[0.5, 0.0], [0.1, 0.0]])
     assert res.ids.tolist() == [5, 1] and res.accepted.all()
     assert bank.contains([1, 3, 5]).tolist() == [True, False, True]
+    assert bank.index_of([5, 1]).tolist() == [1, 0]
+    with pytest.raises(InputError, match=r"unknown landmark ids \[3\]"):
+        bank.index_of([1, 3])
 
 
 # -- bad input ----------------------------------------------------------------------------------
@@ -455,3 +459,8 @@ def test_config_validation():
         LandmarkEKFConfig(inv_depth_min=20.0)
     with pytest.raises(ConfigError, match="fx"):
         LandmarkEKFBank(LandmarkEKFConfig(), 0.0, 500.0)
+    # it loads from a TOML table like every other module's config
+    cfg = from_mapping(LandmarkEKFConfig, {"sigma_px": 2, "gate_probability": 0.99}, "ekf_landmark")
+    assert cfg.sigma_px == 2.0 and cfg.gate_threshold == pytest.approx(chi2.ppf(0.99, 2))
+    with pytest.raises(ConfigError, match="unknown key"):
+        from_mapping(LandmarkEKFConfig, {"sigma_pix": 2}, "ekf_landmark")

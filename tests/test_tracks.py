@@ -155,6 +155,29 @@ def test_coasting_tracks_survive_one_bad_frame(scene):
     assert len(once.step(noise, 1.0, 1).dropped_ids) > 45
 
 
+def test_tracks_converging_on_one_point_keep_the_oldest(scene):
+    tm = manager(max_tracks=40)
+    ids0 = tm.step(scene.render((0, 0)), 0.0, 0).ids
+    a, b, c = (int(i) for i in ids0[:3])
+    target = tm.track(a).anchor_uv
+
+    def predict(uv, ids):  # a (bad) prediction sending tracks b and c onto track a's point
+        out = uv.copy()
+        out[np.isin(ids, [b, c])] = target
+        return out, np.where(np.isin(ids, [b, c]), 1.0, 8.0)
+
+    fr = tm.step(scene.render((0, 0)), 1.0, 1, predict=predict)
+    # b and c cannot match a's texture (low score) — unless they do, then they are duplicates of a
+    assert a in fr.ids.tolist()
+    assert b not in fr.ids.tolist() and c not in fr.ids.tolist()
+    assert set(fr.dropped_ids.tolist()) >= {b, c}
+    # direct check of the duplicate rule on two live tracks placed 0.4 px apart
+    sa, sb = tm._slot_of[a], tm._slot_of[int(fr.ids[fr.ids != a][0])]
+    tm._uv[sb] = tm._uv[sa] + 0.4
+    dup = tm._duplicates(np.array([sa, sb]), 1.0)
+    assert dup.tolist() == [sb]
+
+
 def test_bad_input_names_the_problem(scene):
     tm = manager(max_tracks=20)
     img = scene.render((0, 0))

@@ -96,7 +96,14 @@ def _camera(width: int, height: int) -> CameraModel:
     return CameraModel(CameraConfig.from_fov(width, height, 60.0))
 
 
-def time_frontend(width: int = 640, height: int = 480, n_tracks: int = 300, repeats: int = 5, frames: int = 20) -> float:
+def time_frontend(
+    width: int = 640,
+    height: int = 480,
+    n_tracks: int = 300,
+    repeats: int = 5,
+    frames: int = 20,
+    predicted_radius_px: float | None = None,
+) -> float:
     """Milliseconds per frame of :meth:`TrackManager.step` with ``n_tracks`` tracks.
 
     Each repeat builds a manager, fills it on a first frame (not timed) and times ``frames``
@@ -104,10 +111,21 @@ def time_frontend(width: int = 640, height: int = 480, n_tracks: int = 300, repe
     repeats of the mean step time.  Harris runs inside a step only when tracks must be refilled,
     so this is the steady-state (amortized) cost; :func:`frontend_timings` also reports the
     worst case of a frame that runs a full Harris detection.
+
+    ``predicted_radius_px=None``: no prediction, every track searched in the default ±8 px
+    window.  A number: a telemetry-style predictor (the known motion, as the epipolar
+    prediction of :mod:`companion.core.prediction` would give) with that search radius.
     """
     scene = TextureScene(width, height, margin=max(64, int(frames * max(MOTION_PX)) + 8))
     imgs = [scene.render((k * MOTION_PX[0], k * MOTION_PX[1])) for k in range(frames + 1)]
     cam = _camera(width, height)
+    predict = None
+    if predicted_radius_px is not None:
+        motion = np.array(MOTION_PX)
+
+        def predict(uv: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, float]:
+            return uv + motion, float(predicted_radius_px)
+
     per_frame = []
     with _one_core():
         for _ in range(max(1, repeats)):
@@ -115,22 +133,43 @@ def time_frontend(width: int = 640, height: int = 480, n_tracks: int = 300, repe
             tm.step(imgs[0], 0.0, 0)
             t0 = time.perf_counter()
             for k in range(1, frames + 1):
-                tm.step(imgs[k], k / 30.0, k)
+                tm.step(imgs[k], k / 30.0, k, predict=predict)
             per_frame.append((time.perf_counter() - t0) / frames)
     return 1e3 * float(np.median(per_frame))
 
 
+def time_ncc_predicted_per_track(n_tracks: int = 300, repeats: int = 20, radius_px: float = 3.0) -> float:
+    """Microseconds per track of :func:`match_ncc` with a telemetry-style prediction (± ``radius_px``)."""
+    scene = TextureScene(640, 480)
+    a, b = scene.render(), scene.render(MOTION_PX)
+    pts, _ = detect_harris(a, HarrisConfig(max_corners=n_tracks))
+    pred = pts + np.array(MOTION_PX)
+    cfg = NCCConfig()
+    with _one_core():
+        return 1e6 * _median_time(lambda: match_ncc(a, b, pts, pred, cfg, radius_px), repeats) / len(pts)
+
+
 def frontend_timings(repeats: int = 10) -> dict[str, float]:
-    """All front-end figures of the issue-2 timing benchmark, as a flat dict of numbers."""
+    """All front-end figures of the issue-2 timing benchmark, as a flat dict of numbers.
+
+    ``*_predicted_*`` figures use a ±3 px window around a telemetry-style prediction (the
+    intended operating mode); the others search the default ±8 px window around the previous
+    position (no telemetry).  ``harris_plus_ncc_300_*`` add a full-frame Harris detection to
+    matching 300 tracks: the worst frame, one that refills every track.
+    """
     harris_640 = time_harris(640, 480, repeats)
     harris_320 = time_harris(320, 240, repeats)
     ncc_us = time_ncc_per_track(300, repeats)
-    frontend = time_frontend(640, 480, 300, max(3, repeats // 2))
+    ncc_pred_us = time_ncc_predicted_per_track(300, repeats, 3.0)
+    n = max(3, repeats // 2)
     return {
         "harris_640x480_ms": harris_640,
         "harris_320x240_ms": harris_320,
         "ncc_per_track_us": ncc_us,
-        "ncc_300_tracks_ms": ncc_us * 300 / 1e3,
-        "frontend_640x480_300_tracks_ms": frontend,
-        "harris_plus_ncc_300_worst_case_ms": harris_640 + ncc_us * 300 / 1e3,
+        "ncc_predicted_per_track_us": ncc_pred_us,
+        "frontend_640x480_300_tracks_ms": time_frontend(640, 480, 300, n),
+        "frontend_640x480_300_tracks_predicted_ms": time_frontend(640, 480, 300, n, predicted_radius_px=3.0),
+        "frontend_320x240_300_tracks_predicted_ms": time_frontend(320, 240, 300, n, predicted_radius_px=3.0),
+        "harris_plus_ncc_300_ms": harris_640 + ncc_us * 300 / 1e3,
+        "harris_plus_ncc_300_predicted_ms": harris_640 + ncc_pred_us * 300 / 1e3,
     }

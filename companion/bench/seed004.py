@@ -76,6 +76,7 @@ def run_once(seed: int, case: CaseSpec, scenario: Seed004Scenario) -> dict:
     }
     err = {m: np.full((K, N), np.nan) for m in METHODS}
     sig = {m: np.full((K, N), np.nan) for m in ("ekf_anchored", "ekf_landmark")}
+    conv = {m: np.zeros((K, N), bool) for m in ("ekf_anchored", "ekf_landmark")}
     true_range = np.linalg.norm(pts[None] - p[:, None], axis=2)  # (K, N)
     for k in range(K):
         ids = np.flatnonzero(vis[k])
@@ -83,29 +84,37 @@ def run_once(seed: int, case: CaseSpec, scenario: Seed004Scenario) -> dict:
             out = est.process(scenario.times[k], R_tel[k], p[k], ids, uv[k, ids])
             err[name][k, out.ids] = out.range - true_range[k, out.ids]
             sig[name][k, out.ids] = out.range_sigma
-    # triangulation, vectorized over frames: longest baseline (frame 0 → k) and consecutive (k−1 → k)
+            conv[name][k, out.ids] = out.converged
+    # triangulation, vectorized over frames and points.  Longest baseline: the first frame against
+    # the last frame (≤ k) in which the point was seen; consecutive: frame k−1 against frame k.
+    # Both report the range from the camera of frame k, like the filters.
     xy = (uv - [cam.cx, cam.cy]) / [cam.fx, cam.fy]
     loose = TriangulationConfig(min_baseline_m=0.0, min_parallax_deg=0.0, min_depth_m=1e-3, max_range_m=1e9)
     sigma_xy = max(case.sigma_px, 0.25) / cam.fx
-    for name, first, cfg in (("tri_longest", np.zeros(K - 1, int), tri_cfg), ("tri_consecutive", np.arange(K - 1), loose)):
-        ks = np.arange(1, K)
-        a = np.repeat(first, N)
-        b = np.repeat(ks, N)
-        n_idx = np.tile(np.arange(N), K - 1)
-        both = vis[a, n_idx] & vis[b, n_idx]
-        res = triangulate_poses(xy[a, n_idx], R_tel[a], p[a], xy[b, n_idx], R_tel[b], p[b], cfg,
-                                sigma_xy=sigma_xy if name == "tri_longest" else 0.0)
+    frame_idx = np.arange(K)[:, None]
+    last_seen = np.maximum.accumulate(np.where(vis, frame_idx, -1), axis=0)  # (K, N)
+    first_seen = np.where(vis.any(0), np.argmax(vis, 0), -1)  # (N,)
+    k_grid, n_grid = np.meshgrid(np.arange(1, K), np.arange(N), indexing="ij")
+    k_all, n_all = k_grid.ravel(), n_grid.ravel()
+    pairs = {
+        "tri_longest": (np.broadcast_to(first_seen, (K - 1, N)).ravel(), last_seen[1:].ravel(), tri_cfg, sigma_xy),
+        "tri_consecutive": (k_all - 1, k_all, loose, 0.0),
+    }
+    for name, (a, b, cfg, sxy) in pairs.items():
+        usable = (a >= 0) & (b > a)
+        a_, b_ = np.where(usable, a, 0), np.where(usable, b, 0)
+        both = usable & vis[a_, n_all] & vis[b_, n_all]
+        res = triangulate_poses(xy[a_, n_all], R_tel[a_], p[a_], xy[b_, n_all], R_tel[b_], p[b_], cfg, sigma_xy=sxy)
         ok = both & res.ok
-        rng_est = np.linalg.norm(res.p - p[b], axis=1)
-        e = np.where(ok, rng_est - true_range[b, n_idx], np.nan)
-        err[name][1:] = e.reshape(K - 1, N)
+        rng_est = np.linalg.norm(res.p - p[k_all], axis=1)
+        err[name][1:] = np.where(ok, rng_est - true_range[k_all, n_all], np.nan).reshape(K - 1, N)
     # NEES of the anchored filter's (θ, φ, ρ) at the last frame
     ekf = estimators["ekf_anchored"].ekf
     x_true = inverse_depth_state(pts[ekf.ids], ekf.R_world_camA, ekf.p_world_camA)
     d = ekf.x[:, :3] - x_true
     d[:, 0] = (d[:, 0] + np.pi) % (2 * np.pi) - np.pi
     nees = np.einsum("ni,nij,nj->n", d, np.linalg.inv(ekf.P[:, :3, :3]), d)
-    return {"err": err, "sig": sig, "nees": nees}
+    return {"err": err, "sig": sig, "conv": conv, "nees": nees}
 
 
 def _run_case_chunk(args) -> list[dict]:
@@ -153,6 +162,8 @@ def aggregate(results: list[dict], case: CaseSpec, scenario: Seed004Scenario) ->
             e = np.stack([r["err"][m][k] for r in results])  # (runs, N)
             row[f"{m}_mean_abs_m"] = _finite_mean(np.abs(e))
             row[f"{m}_available"] = float(np.mean(np.isfinite(e)))
+        for m in ("ekf_anchored", "ekf_landmark"):
+            row[f"{m}_converged_share"] = float(np.mean(np.stack([r["conv"][m][k] for r in results])))
         row["crlb_mean_m"] = float(np.mean(crlb[k]))
         row["crlb_per_point_m"] = [float(c) for c in crlb[k]]
         out["by_frame"][str(k)] = row
@@ -170,7 +181,8 @@ def aggregate(results: list[dict], case: CaseSpec, scenario: Seed004Scenario) ->
     true_range = np.linalg.norm(scenario.points_world[None] - p[:, None], axis=2)
     conv = {}
     for m in ("ekf_anchored", "ekf_landmark"):
-        e = np.nanmean(np.abs(np.stack([r["err"][m] for r in results])), 0)  # (K, N)
+        e_all = np.abs(np.stack([r["err"][m] for r in results]))  # (runs, K, N)
+        e = np.mean(np.where(np.isfinite(e_all), e_all, np.inf), 0)  # a missing estimate counts as not converged
         within = e <= 0.1 * true_range
         frames = []
         for j in range(within.shape[1]):

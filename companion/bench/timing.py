@@ -81,10 +81,7 @@ def time_triangulation(n: int, repeats: int) -> float:
 
 def run_all(repeats: int = 50) -> dict:
     res: dict = {"repeats": repeats, "machine": f"{platform.processor() or platform.machine()}, Python {platform.python_version()}"}
-    res["harris_320x240_ms"] = frontend_timing.time_harris(320, 240, repeats)
-    res["harris_640x480_ms"] = frontend_timing.time_harris(640, 480, repeats)
-    res["ncc_per_track_us"] = frontend_timing.time_ncc_per_track(300, repeats)
-    res["frontend_640x480_300_tracks_ms"] = frontend_timing.time_frontend(640, 480, 300, repeats)
+    res.update(frontend_timing.frontend_timings(repeats))
     res["triangulation_per_point_us"] = 1e6 * time_triangulation(300, repeats) / 300
     res["scaling_n"] = list(SCALING_N)
     res["scaling_anchored_ms"] = [1e3 * time_anchored(n, repeats) for n in SCALING_N]

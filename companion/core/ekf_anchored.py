@@ -215,6 +215,11 @@ class AnchoredInverseDepthEKF:
     def __len__(self) -> int:
         return len(self.ids)
 
+    @property
+    def invalid(self) -> np.ndarray:
+        """(N,) bool: inverse depth significantly negative (a track inconsistent with a static point)."""
+        return self.x[:, 2] < -3.0 * np.sqrt(np.maximum(self.P[:, 2, 2], 0.0))
+
     # -- bookkeeping ----------------------------------------------------------------------------
     def index_of(self, ids) -> np.ndarray:
         """Row of each id; InputError naming the ids that are not in the bank."""

@@ -426,6 +426,10 @@ class LandmarkEKFBank:
         idx = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
         return self.ids[idx] == ids
 
+    def index_of(self, ids) -> np.ndarray:
+        """Row of each id in the bank's arrays; InputError naming the ids that are not in the bank."""
+        return self._rows(_ids("index_of: ids", ids), "index_of")
+
     def _rows(self, ids: np.ndarray, what: str) -> np.ndarray:
         if len(self.ids) == 0:
             if len(ids):
@@ -553,31 +557,32 @@ class LandmarkEKFBank:
         rows = self._rows(ids, "update")
         x = self.x[rows]
         P = self.P[rows]
-        r0, r1 = self.r
-        # S = P[:2,:2] + R and its closed-form inverse
-        a = P[:, 0, 0] + r0
-        b = P[:, 0, 1]
-        d = P[:, 1, 1] + r1
-        det = a * d - b * b
-        ok_det = det > 0
-        inv_det = 1.0 / np.where(ok_det, det, 1.0)
-        y0 = z[:, 0] - x[:, 0]
-        y1 = z[:, 1] - x[:, 1]
-        nis = (d * y0 * y0 - 2.0 * b * y0 * y1 + a * y1 * y1) * inv_det
-        nis = np.where(ok_det & np.isfinite(nis), nis, np.finfo(float).max)
-        # K = P Hᵀ S⁻¹ (N,3,2), written out
-        Pc0, Pc1 = P[:, :, 0], P[:, :, 1]
-        K = np.empty((m, 3, 2))
-        K[:, :, 0] = (Pc0 * d[:, None] - Pc1 * b[:, None]) * inv_det[:, None]
-        K[:, :, 1] = (Pc1 * a[:, None] - Pc0 * b[:, None]) * inv_det[:, None]
-        x_new = x + K[:, :, 0] * y0[:, None] + K[:, :, 1] * y1[:, None]
-        L = np.zeros((m, 3, 3))  # I − K H
-        L[:, :, :2] = -K
-        L[:, 0, 0] += 1.0
-        L[:, 1, 1] += 1.0
-        L[:, 2, 2] = 1.0
-        P_new = L @ P @ np.swapaxes(L, 1, 2) + (K * self.r) @ np.swapaxes(K, 1, 2)
-        P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
+        with np.errstate(over="ignore", invalid="ignore"):  # non-finite rows are rejected below
+            r0, r1 = self.r
+            # S = P[:2,:2] + R and its closed-form inverse
+            a = P[:, 0, 0] + r0
+            b = P[:, 0, 1]
+            d = P[:, 1, 1] + r1
+            det = a * d - b * b
+            ok_det = det > 0
+            inv_det = 1.0 / np.where(ok_det, det, 1.0)
+            y0 = z[:, 0] - x[:, 0]
+            y1 = z[:, 1] - x[:, 1]
+            nis = (d * y0 * y0 - 2.0 * b * y0 * y1 + a * y1 * y1) * inv_det
+            nis = np.where(ok_det & np.isfinite(nis), nis, np.finfo(float).max)
+            # K = P Hᵀ S⁻¹ (N,3,2), written out
+            Pc0, Pc1 = P[:, :, 0], P[:, :, 1]
+            K = np.empty((m, 3, 2))
+            K[:, :, 0] = (Pc0 * d[:, None] - Pc1 * b[:, None]) * inv_det[:, None]
+            K[:, :, 1] = (Pc1 * a[:, None] - Pc0 * b[:, None]) * inv_det[:, None]
+            x_new = x + K[:, :, 0] * y0[:, None] + K[:, :, 1] * y1[:, None]
+            L = np.zeros((m, 3, 3))  # I − K H
+            L[:, :, :2] = -K
+            L[:, 0, 0] += 1.0
+            L[:, 1, 1] += 1.0
+            L[:, 2, 2] = 1.0
+            P_new = L @ P @ np.swapaxes(L, 1, 2) + (K * self.r) @ np.swapaxes(K, 1, 2)
+            P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
 
         frozen = self.invalid[rows]
         reason = np.where(frozen, FROZEN, np.where(nis <= self.config.gate_threshold, ACCEPTED, GATED)).astype(np.int8)

@@ -17,7 +17,7 @@ Life of a landmark (the "combined method" of seeds 000 and 004):
 3. *filtering*: the anchored EKF (§3.4) is anchored at the first observation and replays the
    buffered observations, so no measurement is lost; the seed-000 EKF (§3.5) starts in the
    current frame and is then propagated with the camera twist between frames.
-4. a landmark unseen for ``max_unseen_s`` or flagged diverged is dropped.
+4. a landmark unseen for ``max_unseen_s``, or flagged diverged or invalid, is dropped.
 """
 
 from __future__ import annotations
@@ -320,10 +320,10 @@ class RangeEstimator:
         self._seen_ids = self.ekf.ids.copy()
 
     def _expire(self, t) -> None:
-        """Drop filtered landmarks unseen for ``max_unseen_s`` or diverged, and stale pending ones."""
+        """Drop filtered landmarks unseen for ``max_unseen_s``, diverged or invalid, and stale pending ones."""
         cfg = self.config
         if len(self.ekf):
-            gone = ((t - self.t_seen) > cfg.max_unseen_s) | self.ekf.diverged
+            gone = ((t - self.t_seen) > cfg.max_unseen_s) | self.ekf.diverged | self.ekf.invalid
             if np.any(gone):
                 self.drop(self.ekf.ids[gone])
         if len(self.pending):

@@ -11,27 +11,35 @@ computes exactly this quantity.  As seed 004 notes, the known camera motion shri
 area: the window is centred on the *predicted* pixel (``pts_pred``, from telemetry, see
 :mod:`companion.core.prediction`) and its half-size is the prediction's uncertainty radius.
 
-Every point gets a verdict (``reason``):
+Every point gets a verdict (``reason``), tested in this order:
 
-* ``OK`` — accepted;
-* ``OUT_OF_IMAGE`` — the template does not fit in the previous frame, the search window does not
-  fit in the current one, or the best match sits on a side of the window cut by the image border
-  (the point is leaving the image);
+* ``OUT_OF_IMAGE`` — the template (with its 1-px rim) does not fit in the previous frame, the
+  search window does not fit in the current one, or the best match sits on a side of the window
+  cut by the image border (the point is leaving the image);
 * ``FLAT_TEMPLATE`` — template standard deviation below ``min_template_std`` grey levels (NCC is
   undefined on a flat patch);
 * ``LOW_SCORE`` — best score below ``k_min``;
+* ``AMBIGUOUS`` — another local maximum at least ``ambiguity_min_separation`` px away scores at
+  least best − ``ambiguity_margin`` (repeated texture);
 * ``PEAK_AT_EDGE`` — the best score lies on the edge of the search window (inside the image), so
   the true peak may lie outside it and the argmax is not a verified maximum;
-* ``AMBIGUOUS`` — another local maximum at least ``ambiguity_min_separation`` px away scores at
-  least best − ``ambiguity_margin`` (repeated texture).
+* ``OK`` — accepted.
 
-Sub-pixel accuracy: the template is cut at the integer pixel nearest to the sub-pixel point, and
-the point's fractional offset inside that pixel is carried over to the match (exact for a locally
-translating patch, and no interpolation blur in the template); the integer peak is refined by a
-1-D parabola through the peak and its two neighbours on each axis (clipped to ±0.5 px).
+Sub-pixel accuracy: the template is cut at the integer pixel nearest to the sub-pixel point and
+the point's fractional offset is carried over to the match (exact for a locally translating
+patch).  The integer NCC peak is then refined by Lucas–Kanade on the two frames
+(``cv2.calcOpticalFlowPyrLK``, one level, started at the peak; ``subpixel_method = "lk"``, the
+default) or by a 1-D parabola through the peak and its neighbours on each axis (``"parabola"``,
+also the fallback where Lucas–Kanade does not converge within 1 px).  The parabola is biased by
+up to ~0.15 px even for a whole-pixel shift (the NCC peak of a finite window is not symmetric),
+and since each frame's match becomes the next frame's template, that bias would accumulate
+along a track; Lucas–Kanade is exact for whole-pixel shifts and within a few hundredths of a
+pixel otherwise.
 
-Cost: one ``cv2.matchTemplate`` per point (the only per-point Python loop); everything else —
-template extraction, argmax, second-peak test, parabola refinement — is vectorized over points.
+Cost: windows up to ``batch_search_half`` px are scored for all points at once in numpy
+(:func:`_ncc_batch`, ~2× cheaper than one OpenCV call per point at these sizes); larger windows
+take one ``cv2.matchTemplate`` per point (the only per-point Python loop).  Everything else —
+template extraction, argmax, second-peak test, sub-pixel step — is vectorized over points.
 """
 
 from __future__ import annotations

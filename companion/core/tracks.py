@@ -73,7 +73,7 @@ class TrackConfig:
         require_finite("duplicate_distance_px", self.duplicate_distance_px, nonnegative=True)
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class Track:
     """Snapshot of one track (built on demand by :meth:`TrackManager.track`)."""
 
@@ -180,7 +180,7 @@ class TrackManager:
             return self._just_dropped[track_id]
         raise KeyError(f"no live track with id {track_id} (it may have been dropped earlier)")
 
-    def _snapshot(self, slot: int, alive: bool) -> Track:
+    def _snapshot(self, slot: int, alive: bool, latest: int | None = None) -> Track:
         hlen = self.config.max_history
         n = int(self._n_obs[slot])
         k = np.arange(max(0, n - hlen), n) % hlen
@@ -188,7 +188,8 @@ class TrackManager:
             (int(f), float(t), uv.copy())
             for f, t, uv in zip(self._h_frame[slot, k], self._h_t[slot, k], self._h_uv[slot, k])
         ]
-        latest = self._prev_frame if self._prev_frame is not None else int(self._anchor_frame[slot])
+        if latest is None:
+            latest = self._prev_frame if self._prev_frame is not None else int(self._anchor_frame[slot])
         return Track(
             id=int(self._id[slot]),
             anchor_frame=int(self._anchor_frame[slot]),
@@ -321,7 +322,7 @@ class TrackManager:
             drop_reason = np.concatenate(drop_codes).astype(np.int8)
             dropped_ids = self._id[ds].copy()
             for slot in ds.tolist():
-                snap = self._snapshot(slot, alive=False)
+                snap = self._snapshot(slot, alive=False, latest=frame_index)
                 self._just_dropped[snap.id] = snap
                 del self._slot_of[snap.id]
             self._id[ds] = -1
@@ -401,10 +402,11 @@ class TrackManager:
         off = np.arange(-r, r + 1)
         nb = lab[q[:, 1, None, None] + off[None, :, None], q[:, 0, None, None] + off[None, None, :]].reshape(len(slots), -1)
         lab[q[:, 1], q[:, 0]] = -1
-        i_idx = np.repeat(idx, nb.shape[1])
-        j_idx = nb.reshape(-1)
-        pair = (j_idx >= 0) & (j_idx != i_idx)
-        i_idx, j_idx = i_idx[pair], j_idx[pair]
+        pair = (nb >= 0) & (nb != idx[:, None])
+        if not pair.any():  # the usual case: no two tracks within r px
+            return np.zeros(0, np.int64)
+        i_idx, col = np.nonzero(pair)
+        j_idx = nb[i_idx, col]
         # Same-pixel pairs: the overwritten point sees the survivor; add the reverse direction too.
         i_idx, j_idx = np.concatenate([i_idx, j_idx]), np.concatenate([j_idx, i_idx])
         close = np.linalg.norm(uv[i_idx] - uv[j_idx], axis=1) < dist

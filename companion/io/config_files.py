@@ -21,6 +21,7 @@ from companion.core.ekf_landmark import LandmarkEKFConfig
 from companion.core.estimator import EstimatorConfig
 from companion.core.harris import HarrisConfig
 from companion.core.ncc import NCCConfig
+from companion.core.prediction import PredictionConfig
 from companion.core.tracks import TrackConfig
 from companion.core.triangulation import TriangulationConfig
 from companion.errors import ConfigError
@@ -38,6 +39,7 @@ class CompanionConfig:
     camera: CameraConfig = CameraConfig()
     harris: HarrisConfig = HarrisConfig()
     ncc: NCCConfig = NCCConfig()
+    prediction: PredictionConfig = PredictionConfig()
     tracks: TrackConfig = TrackConfig()
     triangulation: TriangulationConfig = TriangulationConfig()
     ekf_anchored: AnchoredEKFConfig = AnchoredEKFConfig()
