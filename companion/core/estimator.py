@@ -9,8 +9,8 @@ Life of a landmark (the "combined method" of seeds 000 and 004):
 
 1. *pending*: its first observation is the anchor; the next observations are buffered
    (at most ``init_max_frames``).
-2. *initialization*: as soon as two-view triangulation between the anchor and the current view
-   (the longest baseline available) passes every gate, the filter starts from it, with the
+2. *initialization*: as soon as the multi-view triangulation of the buffered views (gated on
+   their longest baseline) passes every gate, the filter starts from it, with the
    triangulated σ inflated by ``tri_sigma_scale`` because the replay below reuses those pixels;
    if the gates still fail after ``init_max_frames`` frames, the filter starts from the wide
    inverse-depth prior that includes infinity.
@@ -31,7 +31,7 @@ from companion.core.camera import CameraConfig, CameraModel
 from companion.core.ekf_anchored import AnchoredEKFConfig, AnchoredInverseDepthEKF
 from companion.core.ekf_landmark import LandmarkEKFBank, LandmarkEKFConfig
 from companion.core.frames import se3_twist
-from companion.core.triangulation import Reject, TriangulationConfig, triangulate_poses
+from companion.core.triangulation import Reject, TriangulationConfig, triangulate_multiview
 from companion.errors import InputError
 
 FILTERS = ("anchored", "landmark")
@@ -204,7 +204,7 @@ class RangeEstimator:
             self.ekf.predict(np.asarray(v_cam, float), np.asarray(w_cam, float), dt)
 
         # 1. landmarks with a running filter
-        in_ekf = self.ekf.contains(ids) if len(self.ekf) else np.zeros(len(ids), bool)
+        in_ekf = self.ekf.contains(ids)
         n_rej = 0
         if np.any(in_ekf):
             res = self._update(ids[in_ekf], xy[in_ekf], R, p, t)
@@ -257,10 +257,12 @@ class RangeEstimator:
         if not np.any(fresh) or len(pend) == 0:
             return 0, 0, reasons
         rows = np.flatnonzero(fresh & (pend.count >= 2))
-        tri = triangulate_poses(
-            pend.xy[rows, 0], pend.R[rows, 0], pend.p[rows, 0], pend.xy[rows, pend.count[rows] - 1], R, p,
-            self.tri_config, sigma_xy=self.sigma_xy,
-        )
+        # multi-view triangulation over every buffered view; gates on its longest baseline
+        W1 = pend.xy.shape[1]
+        rays_cam = np.concatenate([pend.xy[rows], np.ones((len(rows), W1, 1))], 2)
+        rays_world = np.einsum("nkij,nkj->nki", pend.R[rows], rays_cam)
+        mask = np.arange(W1)[None, :] < pend.count[rows][:, None]
+        tri = triangulate_multiview(rays_world, pend.p[rows], mask, self.tri_config, sigma_xy=self.sigma_xy)
         for code in np.unique(tri.reason):
             reasons[Reject(code).name] = int(np.sum(tri.reason == code))
         ok = tri.ok
