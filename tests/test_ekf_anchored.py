@@ -141,7 +141,7 @@ def test_bad_input():
     ekf.add([1, 2], np.zeros((2, 2)), np.eye(3), np.zeros(3), 0.0, 0.01, 0.02)
     with pytest.raises(InputError, match="NaN"):
         ekf.update([1], [[np.nan, 0.0]], np.eye(3), np.ones(3), 1.0)
-    with pytest.raises(InputError, match="unknown landmark ids: \\[9\\]"):
+    with pytest.raises(InputError, match="unknown landmark ids \\[9\\]"):
         ekf.update([9], [[0.0, 0.0]], np.eye(3), np.ones(3), 1.0)
     with pytest.raises(InputError, match="xy must have shape"):
         ekf.update([1], np.zeros((2, 2)), np.eye(3), np.ones(3), 1.0)

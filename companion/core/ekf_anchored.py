@@ -51,6 +51,7 @@ import numpy as np
 
 from companion.config import require, require_finite
 from companion.core.frames import skew
+from companion.core.idbank import lookup, rows_or_raise
 from companion.errors import InputError
 
 
@@ -223,20 +224,10 @@ class AnchoredInverseDepthEKF:
     # -- bookkeeping ----------------------------------------------------------------------------
     def index_of(self, ids) -> np.ndarray:
         """Row of each id; InputError naming the ids that are not in the bank."""
-        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-        idx = np.searchsorted(self.ids, ids)
-        idx_c = np.minimum(idx, max(len(self.ids) - 1, 0))
-        found = (len(self.ids) > 0) & (self.ids[idx_c] == ids) if len(self.ids) else np.zeros(len(ids), bool)
-        if not np.all(found):
-            raise InputError(f"unknown landmark ids: {ids[~found][:10].tolist()}")
-        return idx_c
+        return rows_or_raise(self.ids, ids, "anchored EKF")
 
     def contains(self, ids) -> np.ndarray:
-        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-        if len(self.ids) == 0:
-            return np.zeros(len(ids), bool)
-        idx = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
-        return self.ids[idx] == ids
+        return lookup(self.ids, ids)[0]
 
     def add(self, ids, xy_anchor, R_world_cam, p_world_cam, t_anchor, inv_depth, inv_depth_sigma) -> None:
         """Start filters anchored at the given camera pose(s) and first observation(s).

@@ -111,6 +111,7 @@ import math
 import numpy as np
 
 from companion.config import require, require_finite
+from companion.core.idbank import lookup, rows_or_raise
 from companion.errors import InputError
 
 # -- status codes of estimates() ----------------------------------------------------------------
@@ -420,26 +421,14 @@ class LandmarkEKFBank:
 
     def contains(self, ids) -> np.ndarray:
         """(M,) bool: which ids are in the bank."""
-        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-        if len(self.ids) == 0:
-            return np.zeros(len(ids), bool)
-        idx = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
-        return self.ids[idx] == ids
+        return lookup(self.ids, ids)[0]
 
     def index_of(self, ids) -> np.ndarray:
         """Row of each id in the bank's arrays; InputError naming the ids that are not in the bank."""
         return self._rows(_ids("index_of: ids", ids), "index_of")
 
     def _rows(self, ids: np.ndarray, what: str) -> np.ndarray:
-        if len(self.ids) == 0:
-            if len(ids):
-                raise InputError(f"{what}: unknown landmark ids {ids[:10].tolist()} (the bank is empty)")
-            return np.zeros(0, np.int64)
-        idx = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
-        found = self.ids[idx] == ids
-        if not np.all(found):
-            raise InputError(f"{what}: unknown landmark ids {ids[~found][:10].tolist()}")
-        return idx
+        return rows_or_raise(self.ids, ids, what)
 
     # -- bookkeeping ----------------------------------------------------------------------------
     def add(self, ids, xy, inv_depth, inv_depth_sigma) -> None:
