@@ -59,7 +59,9 @@ def cmd_seed004(args) -> dict:
 def cmd_seed000(args) -> dict:
     from companion.bench import seed000
 
-    with _progress(args.runs, "seed-000 Monte Carlo", args.json) as tick:
+    from companion.bench.seed000 import PIXEL_SIGMAS
+
+    with _progress(args.runs * len(PIXEL_SIGMAS), "seed-000 Monte Carlo", args.json) as tick:
         return seed000.run(args.runs, progress=tick)
 
 

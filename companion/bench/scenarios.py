@@ -104,6 +104,7 @@ class Seed000Scenario:
     focal_px: float = 500.0
     sigma_px: float = 0.5
     L_values: tuple[float, ...] = (0.05, 0.12, 0.18, 0.24, 0.31)
+    initial_error_m: float = 3.0  # initial range error (paper §4)
 
     @property
     def camera(self) -> CameraConfig:

@@ -131,8 +131,8 @@ class LandmarkEKFConfig:
     """The ``[ekf_landmark]`` table (DESIGN §3.5)."""
 
     sigma_px: float = 1.0  # pixel measurement noise σ (px)
-    sigma_v: float = 0.1  # linear-velocity input noise PSD^½ (m/s/√Hz)
-    sigma_w: float = 0.002  # angular-rate input noise PSD^½ (rad/s/√Hz)
+    sigma_v: float | tuple[float, float, float] = 0.1  # linear-velocity input noise PSD^½ (m/s/√Hz), one or per camera axis
+    sigma_w: float | tuple[float, float, float] = 0.002  # angular-rate input noise PSD^½ (rad/s/√Hz), one or per camera axis
     gate_probability: float = 0.999  # χ² gate on the 2-dof innovation
     max_consecutive_rejects: int = 5  # then the landmark is flagged diverged
     converged_rel_sigma: float = 0.1  # converged when range σ / range is below this ...
@@ -146,8 +146,12 @@ class LandmarkEKFConfig:
 
     def __post_init__(self) -> None:
         require_finite("sigma_px", self.sigma_px, positive=True)
-        require_finite("sigma_v", self.sigma_v, nonnegative=True)
-        require_finite("sigma_w", self.sigma_w, nonnegative=True)
+        for name in ("sigma_v", "sigma_w"):
+            value = getattr(self, name)
+            values = value if isinstance(value, tuple) else (value,)
+            require(len(values) in (1, 3), f"{name} must be one number or three (x, y, z camera axes)")
+            for i, v in enumerate(values):
+                require_finite(f"{name}[{i}]" if isinstance(value, tuple) else name, v, nonnegative=True)
         require_finite("gate_probability", self.gate_probability)
         require(0.5 <= self.gate_probability < 1.0, f"gate_probability must be in [0.5, 1), got {self.gate_probability}")
         require(
@@ -405,7 +409,8 @@ class LandmarkEKFBank:
         #: measurement noise R = diag(r) in normalized coordinates
         self.r = np.array([(config.sigma_px / fx) ** 2, (config.sigma_px / fy) ** 2])
         #: input PSD Q = diag(σ_v² ×3, σ_ω² ×3)
-        self.Q_psd = np.array([config.sigma_v**2] * 3 + [config.sigma_w**2] * 3)
+        self.Q_psd = np.concatenate([np.broadcast_to(np.asarray(config.sigma_v, float), (3,)),
+                                     np.broadcast_to(np.asarray(config.sigma_w, float), (3,))]) ** 2
         self.ids = np.zeros(0, np.int64)
         self.x = np.zeros((0, 3))
         self.P = np.zeros((0, 3, 3))

@@ -1,0 +1,458 @@
+"""Obstacle sectors for OBSTACLE_DISTANCE / DISTANCE_SENSOR / OBSTACLE_DISTANCE_3D (DESIGN.md §5).
+
+Pure logic: 3-D points with range σ in the current body frame (FRD) in, 72 × 5° sector distances
+out.  No I/O, no globals.
+
+Geometry
+--------
+* Sector ``i`` is centred on bearing ``i · 5°`` clockwise from forward (``angle_offset = 0``,
+  ``increment = 5``) and spans ``[i·5° − 2.5°, i·5° + 2.5°)``: ArduPilot places distance ``i`` at the
+  angle ``i · increment`` and PX4 centres its 5° bins the same way.
+* Bearings and heights are taken in the *levelled* body frame (yaw kept, roll and pitch removed)
+  when the attitude is given, so a rolled or pitched vehicle still fills the horizontal sectors
+  correctly (DESIGN §5: the wiki script "ignores roll").  Without attitude the body is taken as
+  level.
+* Only points inside a vertical band around the flight path count: ``|h − d·tan γ| ≤ half height``
+  (``band_mode = "metres"``) or ``|elevation − γ| ≤ half angle`` (``"degrees"``), where ``h`` is the
+  point's height above the vehicle, ``d`` its horizontal distance and ``γ`` the flight-path angle
+  (0 when the velocity is unknown or small).
+
+Rules (DESIGN §5, issue 4)
+--------------------------
+* conservative range: ``r − k·σ`` along the ray, projected on the horizontal;
+* a sector that the camera's horizontal field of view does not touch: ``UINT16_MAX`` (unknown);
+* a sector with at least ``min_points_obstacle`` converged in-band points ranged (conservatively)
+  within ``max_distance``: the ``n``-th nearest conservative range, clamped to
+  ``[min_distance, max_distance]`` (``n = min_points_obstacle``; ArduPilot discards values below
+  ``min_distance`` and 0, so a too-near obstacle is reported *at* ``min_distance``, never dropped);
+* "clear" (``max_distance + 1``) only for a sector *entirely* inside the field of view with at
+  least ``min_points_clear`` converged in-band points ranged conservatively beyond
+  ``max_distance``, no point (converged or, by default, not) that may be nearer, and nothing else:
+  absence of features is not free space, so every other in-view sector is ``UINT16_MAX``;
+* 0 ("touching") only when the estimate itself is at or below ``touching_distance_m`` (off by
+  default: ArduPilot ignores 0).
+
+:func:`rotate_sectors` turns the sectors by the yaw change between exposure and sending (DESIGN §5:
+the autopilots stamp with arrival time), combining conservatively and never inventing "clear".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+
+import numpy as np
+
+from companion.config import require, require_finite
+from companion.core.frames import euler_zyx_to_R, mount_rotation
+from companion.errors import InputError
+
+#: OBSTACLE_DISTANCE holds 72 distances; 72 × 5° covers 360° (DESIGN §5).
+SECTOR_COUNT = 72
+#: Width of one sector, degrees (``increment`` / ``increment_f`` of OBSTACLE_DISTANCE).
+SECTOR_DEG = 5.0
+#: "Unknown" in OBSTACLE_DISTANCE / DISTANCE_SENSOR (MAVLink spec).
+UNKNOWN_CM = 65535
+
+_SAMPLES_PER_SECTOR = 5  # bearings tested per sector for the field-of-view mask (edges + inside)
+
+
+class SectorState(enum.IntEnum):
+    """What a sector claims."""
+
+    UNKNOWN = 0  # UINT16_MAX: not seen, or seen without evidence
+    OBSTACLE = 1  # a distance in [min_distance, max_distance] (or 0 = touching)
+    CLEAR = 2  # max_distance + 1: evidence of free space up to max_distance
+
+
+@dataclasses.dataclass(frozen=True)
+class SectorConfig:
+    """The ``[sectors]`` table."""
+
+    min_distance_m: float = 0.5  # nearest range reported; nearer obstacles are reported at this distance
+    max_distance_m: float = 40.0  # farthest range claimed; beyond it, with evidence, a sector is "clear" (max + 1 cm)
+    sigma_k: float = 2.0  # conservative range = estimate − k·σ
+    band_mode: str = "metres"  # vertical band around the flight path: "metres" (fixed height) or "degrees" (cone)
+    band_half_height_m: float = 1.5  # half height of the band, metres mode
+    band_half_angle_deg: float = 10.0  # half angle of the band, degrees mode
+    min_points_obstacle: int = 1  # converged in-band points a sector needs to report an obstacle (the n-th nearest is reported)
+    min_points_clear: int = 3  # converged in-band points beyond max_distance a sector needs to be "clear"
+    unconverged_veto_clear: bool = True  # a valid but unconverged point that may lie within max_distance forbids "clear"
+    touching_distance_m: float = 0.0  # estimate at or below this is sent as 0 (touching); 0 = never (ArduPilot discards 0)
+    forward_half_width_deg: float = 2.5  # DISTANCE_SENSOR forward window: sectors centred within ± this (2.5 = sector 0 only)
+    nearest_count: int = 5  # nearest obstacles (one per sector) kept for OBSTACLE_DISTANCE_3D
+    flight_path_min_speed_mps: float = 1.0  # below this speed the band is centred on the horizontal
+    flight_path_max_angle_deg: float = 30.0  # the band centre climbs or descends at most this steeply
+
+    def __post_init__(self) -> None:
+        require_finite("min_distance_m", self.min_distance_m, positive=True)
+        require_finite("max_distance_m", self.max_distance_m, positive=True)
+        require(self.max_distance_m > self.min_distance_m, "max_distance_m must exceed min_distance_m")
+        require(
+            round(self.max_distance_m * 100) + 1 < UNKNOWN_CM,
+            f"max_distance_m must be < 655.33 m (max_distance + 1 cm must stay below UINT16_MAX), got {self.max_distance_m}",
+        )
+        require_finite("sigma_k", self.sigma_k, nonnegative=True)
+        require(self.band_mode in ("metres", "degrees"), f"band_mode must be 'metres' or 'degrees', got {self.band_mode!r}")
+        require_finite("band_half_height_m", self.band_half_height_m, positive=True)
+        require_finite("band_half_angle_deg", self.band_half_angle_deg, positive=True)
+        require(self.band_half_angle_deg < 90, f"band_half_angle_deg must be < 90, got {self.band_half_angle_deg}")
+        for name in ("min_points_obstacle", "min_points_clear", "nearest_count"):
+            v = getattr(self, name)
+            require(isinstance(v, int) and not isinstance(v, bool) and v >= 1, f"{name} must be an integer >= 1, got {v!r}")
+        require(isinstance(self.unconverged_veto_clear, bool), "unconverged_veto_clear must be true or false")
+        require_finite("touching_distance_m", self.touching_distance_m, nonnegative=True)
+        require(self.touching_distance_m < self.min_distance_m, "touching_distance_m must be below min_distance_m")
+        require_finite("forward_half_width_deg", self.forward_half_width_deg, nonnegative=True)
+        require(self.forward_half_width_deg < 180, "forward_half_width_deg must be < 180")
+        require_finite("flight_path_min_speed_mps", self.flight_path_min_speed_mps, nonnegative=True)
+        require_finite("flight_path_max_angle_deg", self.flight_path_max_angle_deg, nonnegative=True)
+        require(self.flight_path_max_angle_deg < 90, "flight_path_max_angle_deg must be < 90")
+
+    @property
+    def min_distance_cm(self) -> int:
+        return int(round(self.min_distance_m * 100))
+
+    @property
+    def max_distance_cm(self) -> int:
+        return int(round(self.max_distance_m * 100))
+
+
+@dataclasses.dataclass(frozen=True)
+class ForwardRange:
+    """The forward direction for DISTANCE_SENSOR (orientation NONE)."""
+
+    state: SectorState
+    distance_m: float  # conservative range (obstacle), max_distance + 0.01 (clear) or nan (unknown)
+    sigma_m: float  # σ of the range estimate behind ``distance_m`` (nan unless obstacle)
+    estimate_m: float  # the (non-conservative) horizontal range estimate (nan unless obstacle)
+
+    @property
+    def variance_m2(self) -> float:
+        return self.sigma_m**2
+
+
+@dataclasses.dataclass(frozen=True)
+class Obstacle3D:
+    """One obstacle for OBSTACLE_DISTANCE_3D: the nearest point of one sector."""
+
+    p_body: tuple[float, float, float]  # body FRD, metres, moved to the conservative range along its ray
+    range_m: float  # conservative 3-D range, clamped up to min_distance
+    sigma_m: float  # σ of the range estimate
+    sector: int
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Sectors:
+    """Result of :func:`compute_sectors`; ``distances_cm`` is ready for OBSTACLE_DISTANCE."""
+
+    distances_cm: np.ndarray  # (72,) uint16
+    state: np.ndarray  # (72,) int8 SectorState
+    range_m: np.ndarray  # (72,) conservative horizontal range of obstacle sectors, nan elsewhere
+    sigma_m: np.ndarray  # (72,) σ of the point defining ``range_m``, nan elsewhere
+    in_view: np.ndarray  # (72,) bool: the camera sees part of the sector (at the band centre)
+    fully_in_view: np.ndarray  # (72,) bool: the camera sees all of it
+    obstacle_points: np.ndarray  # (72,) int: converged in-band points within max_distance
+    clear_points: np.ndarray  # (72,) int: converged in-band points beyond max_distance
+    forward: ForwardRange
+    nearest: tuple[Obstacle3D, ...]
+    min_distance_cm: int
+    max_distance_cm: int
+    points_used: int  # points that passed validity, convergence and the band
+    points_rejected: int  # points with NaN/inf/negative σ/zero range (bad input, ignored)
+
+    @property
+    def clear_cm(self) -> int:
+        return self.max_distance_cm + 1
+
+    @property
+    def any_valid(self) -> bool:
+        """True when at least one sector makes a claim (obstacle or clear)."""
+        return bool(np.any(self.state != SectorState.UNKNOWN))
+
+    @property
+    def nearest_m(self) -> float:
+        """Nearest conservative obstacle range over all sectors (nan if none)."""
+        r = self.range_m[np.isfinite(self.range_m)]
+        return float(r.min()) if r.size else math.nan
+
+    def rotated(self, yaw_change_rad: float) -> np.ndarray:
+        """``distances_cm`` turned by the yaw change since exposure (see :func:`rotate_sectors`)."""
+        return rotate_sectors(self.distances_cm, yaw_change_rad, self.max_distance_cm)
+
+
+def _R_level_body(roll: float, pitch: float) -> np.ndarray:
+    """Rotation from body FRD to the levelled body frame (yaw kept, roll and pitch removed)."""
+    return euler_zyx_to_R(roll, pitch, 0.0)
+
+
+def _as_R_cam_body(R_cam_body) -> np.ndarray:
+    if np.ndim(R_cam_body) == 0:  # a camera yaw offset (rad, + right) on a forward-looking mount
+        yaw = float(R_cam_body)
+        if not math.isfinite(yaw):
+            raise InputError("camera yaw offset must be finite")
+        return mount_rotation(0.0, 0.0, math.degrees(yaw))
+    R = np.asarray(R_cam_body, dtype=float)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise InputError(f"R_cam_body must be a finite 3x3 matrix or a yaw offset, got shape {R.shape}")
+    return R
+
+
+def sector_view_masks(hfov_rad: float, R_cam_body, *, roll_pitch_rad=None, flight_path_rad: float = 0.0, vfov_rad=None):
+    """Which sectors the camera sees at the band centre: ``(in_view, fully_in_view)``, each (72,) bool.
+
+    Directions along each sector (its two edges and three inner bearings) at elevation
+    ``flight_path_rad`` in the levelled frame are rotated into the camera and tested against the
+    horizontal (and, if given, vertical) field of view.
+    """
+    if not (isinstance(hfov_rad, (int, float)) and math.isfinite(hfov_rad) and 0 < hfov_rad < math.pi):
+        raise InputError(f"hfov_rad must be in (0, pi), got {hfov_rad!r}")
+    R_cb = _as_R_cam_body(R_cam_body)
+    centres = np.radians(np.arange(SECTOR_COUNT) * SECTOR_DEG)
+    offs = np.radians(np.linspace(-SECTOR_DEG / 2, SECTOR_DEG / 2, _SAMPLES_PER_SECTOR))
+    beta = centres[:, None] + offs[None, :]  # (72, S)
+    g = float(flight_path_rad)
+    d_level = np.stack([math.cos(g) * np.cos(beta), math.cos(g) * np.sin(beta), np.full(beta.shape, -math.sin(g))], -1)
+    if roll_pitch_rad is not None:
+        R_lb = _R_level_body(*roll_pitch_rad)
+        d_body = d_level @ R_lb  # R_body_level = R_level_body^T: row-vector form d @ R_lb
+    else:
+        d_body = d_level
+    d_cam = d_body @ R_cb.T
+    z = d_cam[..., 2]
+    eps = 1e-9
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inside = (z > eps) & (np.abs(d_cam[..., 0]) <= math.tan(hfov_rad / 2) * z + eps)
+        if vfov_rad is not None:
+            inside &= np.abs(d_cam[..., 1]) <= math.tan(float(vfov_rad) / 2) * z + eps
+    return inside.any(axis=1), inside.all(axis=1)
+
+
+def _flight_path_angle(config: SectorConfig, v_level) -> float:
+    if v_level is None:
+        return 0.0
+    v = np.asarray(v_level, dtype=float).reshape(3)
+    if not np.all(np.isfinite(v)):
+        return 0.0
+    speed = float(np.linalg.norm(v))
+    if speed < config.flight_path_min_speed_mps or speed == 0.0:
+        return 0.0
+    gamma = math.atan2(-v[2], math.hypot(v[0], v[1]))  # climb positive (z is down)
+    lim = math.radians(config.flight_path_max_angle_deg)
+    return max(-lim, min(lim, gamma))
+
+
+def compute_sectors(
+    p_body,
+    range_sigma,
+    converged,
+    valid,
+    hfov_rad: float,
+    R_cam_body,
+    config: SectorConfig = SectorConfig(),
+    *,
+    roll_pitch_rad: tuple[float, float] | None = None,
+    velocity_body=None,
+    vfov_rad: float | None = None,
+) -> Sectors:
+    """Sector distances from ranged points (DESIGN §5 OBSTACLE_DISTANCE rules; see module doc).
+
+    Parameters
+    ----------
+    p_body : (N, 3) points in body FRD relative to the vehicle reference point, metres.
+    range_sigma : (N,) σ of each point's range estimate, metres.
+    converged : (N,) bool, the filter's convergence flag.
+    valid : (N,) bool, the point is usable at all (not diverged, not behind the camera).
+    hfov_rad : horizontal field of view of the camera.
+    R_cam_body : 3×3 ``R_cam_body`` of the mount, or a float yaw offset (rad, + right) of a
+        forward-looking camera.
+    roll_pitch_rad : vehicle roll and pitch at exposure; sectors and band are then levelled.
+    velocity_body : vehicle velocity in body FRD at exposure (sets the band's flight-path angle).
+    vfov_rad : vertical field of view; when given the view mask also checks the band centre is
+        inside the image vertically.
+
+    Bad points (NaN/inf, negative σ, zero range) are ignored and counted, never raised on.
+    """
+    p = np.asarray(p_body, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        if p.size == 0:
+            p = p.reshape(0, 3)
+        else:
+            raise InputError(f"p_body must have shape (N, 3), got {p.shape}")
+    n = p.shape[0]
+    sig = np.asarray(range_sigma, dtype=float).reshape(-1)
+    conv = np.asarray(converged, dtype=bool).reshape(-1)
+    val = np.asarray(valid, dtype=bool).reshape(-1)
+    for name, a in (("range_sigma", sig), ("converged", conv), ("valid", val)):
+        if a.shape[0] != n:
+            raise InputError(f"{name} has {a.shape[0]} entries for {n} points")
+
+    if roll_pitch_rad is not None:
+        rp = tuple(float(a) for a in roll_pitch_rad)
+        if len(rp) != 2 or not all(math.isfinite(a) for a in rp):
+            raise InputError(f"roll_pitch_rad must be two finite angles, got {roll_pitch_rad!r}")
+        R_lb = _R_level_body(*rp)
+    else:
+        rp = None
+        R_lb = np.eye(3)
+    v_level = None if velocity_body is None else R_lb @ np.asarray(velocity_body, dtype=float).reshape(3)
+    gamma = _flight_path_angle(config, v_level)
+    in_view, fully = sector_view_masks(hfov_rad, R_cam_body, roll_pitch_rad=rp, flight_path_rad=gamma, vfov_rad=vfov_rad)
+
+    # ---- per point ---------------------------------------------------------------------------
+    finite = np.all(np.isfinite(p), axis=1) & np.isfinite(sig) & (sig >= 0)
+    r = np.linalg.norm(np.where(finite[:, None], p, 0.0), axis=1)
+    usable = finite & (r > 1e-9)
+    rejected = int(np.count_nonzero(val & ~usable))
+    usable &= val
+    p_level = np.where(usable[:, None], p, 0.0) @ R_lb.T
+    d_h = np.hypot(p_level[:, 0], p_level[:, 1])
+    height = -p_level[:, 2]
+    r_safe = np.where(usable, r, 1.0)
+    if config.band_mode == "metres":
+        in_band = np.abs(height - d_h * math.tan(gamma)) <= config.band_half_height_m
+    else:
+        elev = np.arctan2(height, d_h)
+        in_band = np.abs(elev - gamma) <= math.radians(config.band_half_angle_deg)
+    in_band &= usable
+    bearing = np.arctan2(p_level[:, 1], p_level[:, 0])
+    idx = np.mod(np.rint(np.degrees(bearing) / SECTOR_DEG).astype(np.int64), SECTOR_COUNT)
+    in_band &= in_view[idx]
+
+    r_cons = np.maximum(r - config.sigma_k * np.where(usable, sig, 0.0), 0.0)
+    d_cons = d_h * (r_cons / r_safe)  # conservative horizontal range
+    max_m = config.max_distance_m
+    near = d_cons <= max_m
+
+    obs_pts = in_band & conv & near
+    clr_pts = in_band & conv & ~near
+    veto_pts = in_band & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)
+
+    n_obs = np.bincount(idx[obs_pts], minlength=SECTOR_COUNT)
+    n_clr = np.bincount(idx[clr_pts], minlength=SECTOR_COUNT)
+    n_veto = np.bincount(idx[veto_pts], minlength=SECTOR_COUNT)
+
+    # n-th nearest conservative range per sector (vectorized: sort by (sector, range))
+    k = config.min_points_obstacle
+    sel = np.flatnonzero(obs_pts)
+    order = sel[np.lexsort((d_cons[sel], idx[sel]))]
+    starts = np.searchsorted(idx[order], np.arange(SECTOR_COUNT), side="left")
+    has_obs = n_obs >= k
+    pick = np.full(SECTOR_COUNT, -1, dtype=np.int64)
+    pick[has_obs] = order[starts[has_obs] + k - 1]
+    nearest_pick = np.full(SECTOR_COUNT, -1, dtype=np.int64)
+    nearest_pick[n_obs > 0] = order[starts[n_obs > 0]]
+
+    state = np.full(SECTOR_COUNT, SectorState.UNKNOWN, dtype=np.int8)
+    dist = np.full(SECTOR_COUNT, UNKNOWN_CM, dtype=np.int64)
+    range_m = np.full(SECTOR_COUNT, np.nan)
+    sigma_m = np.full(SECTOR_COUNT, np.nan)
+    min_cm, max_cm = config.min_distance_cm, config.max_distance_cm
+
+    obs_sec = np.flatnonzero(has_obs & in_view)
+    if obs_sec.size:
+        pts = pick[obs_sec]
+        vals = np.clip(d_cons[pts], config.min_distance_m, max_m)
+        cm = np.clip(np.rint(vals * 100).astype(np.int64), min_cm, max_cm)
+        if config.touching_distance_m > 0:
+            cm = np.where(d_h[pts] <= config.touching_distance_m, 0, cm)
+        dist[obs_sec] = cm
+        state[obs_sec] = SectorState.OBSTACLE
+        range_m[obs_sec] = vals
+        sigma_m[obs_sec] = sig[pts]
+
+    clear_sec = fully & (n_obs == 0) & (n_veto == 0) & (n_clr >= config.min_points_clear)
+    dist[clear_sec] = max_cm + 1
+    state[clear_sec] = SectorState.CLEAR
+
+    # ---- forward window (DISTANCE_SENSOR) ------------------------------------------------------
+    centres = np.arange(SECTOR_COUNT) * SECTOR_DEG
+    rel = (centres + 180.0) % 360.0 - 180.0
+    fwd = np.flatnonzero(np.abs(rel) <= config.forward_half_width_deg + 1e-9)
+    fwd_obs = fwd[state[fwd] == SectorState.OBSTACLE]
+    if fwd_obs.size:
+        j = fwd_obs[np.argmin(range_m[fwd_obs])]
+        pt = pick[j]
+        forward = ForwardRange(SectorState.OBSTACLE, float(range_m[j]), float(sig[pt]), float(d_h[pt]))
+    elif fwd.size and np.all(state[fwd] == SectorState.CLEAR):
+        forward = ForwardRange(SectorState.CLEAR, (max_cm + 1) / 100.0, math.nan, math.nan)
+    else:
+        forward = ForwardRange(SectorState.UNKNOWN, math.nan, math.nan, math.nan)
+
+    # ---- nearest obstacles, one per sector (OBSTACLE_DISTANCE_3D) -----------------------------
+    cand = np.flatnonzero((n_obs > 0) & in_view)
+    nearest: list[Obstacle3D] = []
+    if cand.size:
+        pts = nearest_pick[cand]
+        order3 = np.argsort(d_cons[pts], kind="stable")[: config.nearest_count]
+        for j in order3:
+            pt = pts[j]
+            rc = max(float(r_cons[pt]), config.min_distance_m)
+            scale = rc / float(r_safe[pt])
+            pb = p[pt] * scale
+            nearest.append(Obstacle3D((float(pb[0]), float(pb[1]), float(pb[2])), rc, float(sig[pt]), int(cand[j])))
+
+    return Sectors(
+        distances_cm=dist.astype(np.uint16),
+        state=state,
+        range_m=range_m,
+        sigma_m=sigma_m,
+        in_view=in_view,
+        fully_in_view=fully,
+        obstacle_points=n_obs,
+        clear_points=n_clr,
+        forward=forward,
+        nearest=tuple(nearest),
+        min_distance_cm=min_cm,
+        max_distance_cm=max_cm,
+        points_used=int(np.count_nonzero(in_band & conv)),
+        points_rejected=rejected,
+    )
+
+
+def unknown_sectors(config: SectorConfig = SectorConfig()) -> np.ndarray:
+    """All sectors unknown (what to send while no valid ranges are produced)."""
+    return np.full(SECTOR_COUNT, UNKNOWN_CM, dtype=np.uint16)
+
+
+def rotate_sectors(distances, yaw_change_rad: float, max_distance_cm: int, increment_deg: float = SECTOR_DEG) -> np.ndarray:
+    """Turn sector distances by the vehicle's yaw change since exposure (DESIGN §5).
+
+    ``yaw_change_rad`` = yaw now − yaw at exposure (NED yaw, + = turned right).  An obstacle seen
+    at bearing β is now at β − Δψ, so new sector ``i`` takes what old bearing ``i·inc + Δψ`` held.
+    For a fractional shift a new sector overlaps two old ones and takes, conservatively: the
+    nearest obstacle of either; else "unknown" if either is unknown; "clear" only if both are
+    clear.  Values outside the ring come from the (circular) array itself, where the camera's
+    unseen sectors already hold ``UINT16_MAX``; nothing becomes clear that was not clear before.
+    """
+    d = np.asarray(distances)
+    if d.ndim != 1 or d.size == 0:
+        raise InputError(f"distances must be a 1-D array, got shape {d.shape}")
+    d = d.astype(np.int64)
+    if not math.isfinite(yaw_change_rad):
+        return np.full(d.shape, UNKNOWN_CM, dtype=np.uint16)
+    n = d.size
+    shift = math.degrees(yaw_change_rad) / increment_deg
+    shift = (shift + n / 2) % n - n / 2  # wrap to [-n/2, n/2)
+    lo = math.floor(shift)
+    frac = shift - lo
+    a = np.roll(d, -lo)  # new[i] = old[i + lo]
+    tol = 1e-6
+    if frac < tol:
+        return a.astype(np.uint16)
+    b = np.roll(d, -(lo + 1))  # old[i + lo + 1]
+    if frac > 1 - tol:
+        return b.astype(np.uint16)
+    return _combine_conservative(a, b, max_distance_cm).astype(np.uint16)
+
+
+def _combine_conservative(a: np.ndarray, b: np.ndarray, max_distance_cm: int) -> np.ndarray:
+    a_obs = a <= max_distance_cm
+    b_obs = b <= max_distance_cm
+    out = np.full(a.shape, UNKNOWN_CM, dtype=np.int64)
+    both_clear = (a == max_distance_cm + 1) & (b == max_distance_cm + 1)
+    out[both_clear] = max_distance_cm + 1
+    obs = a_obs | b_obs
+    out[obs] = np.minimum(np.where(a_obs, a, UNKNOWN_CM), np.where(b_obs, b, UNKNOWN_CM))[obs]
+    return out

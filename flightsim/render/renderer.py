@@ -1,0 +1,729 @@
+"""Software renderer: what the companion's camera sees in a :class:`~flightsim.world.World`.
+
+Pipeline for one frame (all per-pixel work in numpy / OpenCV, no per-pixel Python loops):
+
+1. **Pinhole canvas.**  Everything is drawn into an ideal pinhole image with intrinsics ``K_c``.
+   Without lens distortion the canvas *is* the output image (``K_c = K``).  With distortion the
+   canvas is enlarged to cover every output pixel, and step 5 remaps it through a map built once
+   from the companion's own :class:`~companion.core.camera.CameraModel` (each output pixel looks
+   up the canvas at its undistorted coordinates), so distortion is exactly the companion's model.
+   Camera rays are ``m = ((u − cx)/fx, (v − cy)/fy, 1)`` in the camera frame; each world
+   component of ``R_world_cam · m`` is affine in (u, v) and is formed by broadcasting a row and a
+   column vector.  Depth along the optical axis is ``Z``; the z-buffer holds ``1/Z``.
+2. **Sky and ground.**  The sky is a smooth function of elevation (computed on a coarse grid and
+   resized: no corners).  The ground plane is a homography of its texture tile; texture level of
+   detail is trilinear: the per-pixel mip level λ = log2(texels per pixel) comes from the
+   analytic footprint of a pixel on the plane, and every level in use is warped
+   (``cv2.warpPerspective``, ``BORDER_WRAP`` for the infinite tiling) into just the band of rows it
+   serves and blended.  ``1/Z`` of a plane is affine in (u, v).  The horizon is anti-aliased.
+3. **Boxes, walls, targets** (convex polyhedra).  For a ray that hits a convex solid, the entry
+   point is on the front-facing plane with the *largest* t, so the solid's ``1/Z`` is the minimum
+   over its front-facing planes of their affine ``1/Z`` — no polygon rasterization needed.  Its
+   coverage is the silhouette (convex hull of the near-clipped, projected corners); each pixel's
+   coverage α = clamp(0.5 + signed distance to the hull in pixels) gives anti-aliased edges and
+   α ≥ 0.5 exactly where the pixel centre is inside.  Each face texture is warped with the
+   plane's homography from the mip level its footprint needs (faces spanning several levels are
+   drawn level by level under a per-pixel λ mask).
+4. **Cylinders** are intersected exactly per pixel inside their screen rectangle (ray–circle
+   quadratic, top and bottom discs), textured with ``cv2.remap``; edges anti-aliased the same way.
+   Solids are drawn far to near; the z-buffer (``1/Z`` greater wins) makes occlusion exact.
+5. **Output.**  Distortion remap (depth: ``1/Z`` bilinearly where the four neighbours agree,
+   nearest at depth edges, so no "flying pixels"), optional motion blur (sub-frames rendered at
+   poses spread over the exposure and averaged), exposure gain and Gaussian pixel noise, all
+   seeded per frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from companion.config import require, require_finite
+from companion.core.camera import CameraConfig, CameraModel
+from companion.core.frames import so3_exp
+from companion.errors import InputError
+
+_F32 = np.float32
+#: Coarse grid step (canvas pixels) for the smooth per-pixel fields (sky, ground level of detail).
+_COARSE = 8
+#: Box corners joined by the 12 edges (corner index bits: a, b, down).
+_BOX_EDGES = [(i, i ^ b) for i in range(8) for b in (1, 2, 4) if i < i ^ b]
+_EI = np.array([e[0] for e in _BOX_EDGES])
+_EJ = np.array([e[1] for e in _BOX_EDGES])
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """Camera effects and quality knobs (all default to an ideal, noise-free camera).
+
+    * ``noise_sigma`` — σ of zero-mean Gaussian pixel noise, grey levels;
+    * ``exposure_s`` — exposure time: with the camera's velocity and rate passed to
+      :meth:`Renderer.render`, the frame averages sub-frames spread over it (motion blur); at most
+      ``max_blur_subframes``, spaced so the image moves ≤ ``blur_step_px`` between them;
+    * ``gain`` — exposure gain multiplying the grey levels; ``gain_jitter`` — σ of a random
+      per-frame log-gain (auto-exposure flicker);
+    * ``seed`` — seeds noise and jitter: frame ``k`` of a renderer with seed ``s`` is identical
+      across runs;
+    * ``near_m`` — near clipping distance; ``lod_bias`` — added to texture mip levels (+ = blurrier);
+    * ``max_canvas_area`` — with distortion, the pinhole canvas is at most this multiple of the
+      output area (wider lenses get a canvas of lower resolution).
+    """
+
+    noise_sigma: float = 0.0
+    exposure_s: float = 0.0
+    max_blur_subframes: int = 8
+    blur_step_px: float = 1.0
+    gain: float = 1.0
+    gain_jitter: float = 0.0
+    seed: int = 0
+    near_m: float = 0.05
+    lod_bias: float = 0.0
+    max_canvas_area: float = 3.0
+
+    def __post_init__(self) -> None:
+        require_finite("noise_sigma", self.noise_sigma, nonnegative=True)
+        require_finite("exposure_s", self.exposure_s, nonnegative=True)
+        require(isinstance(self.max_blur_subframes, int) and 1 <= self.max_blur_subframes <= 64, f"max_blur_subframes must be an integer in [1, 64], got {self.max_blur_subframes!r}")
+        require_finite("blur_step_px", self.blur_step_px, positive=True)
+        require_finite("gain", self.gain, positive=True)
+        require_finite("gain_jitter", self.gain_jitter, nonnegative=True)
+        require(isinstance(self.seed, int) and self.seed >= 0, f"seed must be an integer >= 0, got {self.seed!r}")
+        require_finite("near_m", self.near_m, positive=True)
+        require_finite("lod_bias", self.lod_bias)
+        require_finite("max_canvas_area", self.max_canvas_area)
+        require(self.max_canvas_area >= 1.0, f"max_canvas_area must be >= 1, got {self.max_canvas_area}")
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One rendered frame: ``image`` uint8 (H, W) grey; ``depth`` float32 (H, W) metres along the
+    optical axis of the surface seen at each pixel centre (``inf`` for sky); the pose it was
+    rendered at (mid-exposure), the gain applied and the number of motion-blur sub-frames."""
+
+    image: np.ndarray
+    depth: np.ndarray
+    R_world_cam: np.ndarray
+    p_world_cam: np.ndarray
+    gain: float = 1.0
+    subframes: int = 1
+    index: int = 0
+
+
+class _Solid:
+    """Render-time data of one obstacle, precomputed as arrays (few numpy calls per frame)."""
+
+    __slots__ = ("ob", "corners", "O", "E1", "E2", "n", "quad", "texel", "mips", "two_sided", "cyl", "cyl_texel")
+
+    def __init__(self, ob, textures):
+        self.ob = ob
+        self.corners = ob.corners()
+        self.cyl = None
+        if ob.is_cylinder:
+            mips = textures.faces
+            self.cyl = (mips[(ob.index, "side")], mips[(ob.index, "top")], mips[(ob.index, "bottom")])
+            side0 = self.cyl[0][0]
+            self.cyl_texel = max(2 * math.pi * ob.radius / (side0.shape[1] - 2), 2 * ob.half[2] / side0.shape[0])
+            return
+        faces = ob.faces()
+        self.O = np.array([f[1] for f in faces])
+        self.E1 = np.array([f[2] for f in faces])
+        self.E2 = np.array([f[3] for f in faces])
+        self.n = np.array([f[4] for f in faces])
+        self.quad = np.stack([self.O, self.O + self.E1, self.O + self.E1 + self.E2, self.O + self.E2], 1)  # (F, 4, 3)
+        self.mips = [textures.faces[(ob.index, f[0])] for f in faces]
+        self.texel = np.array(
+            [max(np.linalg.norm(e1) / m[0].shape[1], np.linalg.norm(e2) / m[0].shape[0]) for e1, e2, m in zip(self.E1, self.E2, self.mips)]
+        )
+        self.two_sided = ob.kind == "target"
+
+
+class Renderer:
+    """Renders grey images and depth of ``world`` through the companion's camera model.
+
+    ``render(R_world_cam, p_world_cam)`` takes the camera pose (world NED ← camera OpenCV, and
+    the camera centre in NED), e.g. from ``CameraModel.camera_pose(R_world_body, p_world_body)``;
+    :meth:`render_body` does that step itself.
+    """
+
+    def __init__(self, world, camera_config: CameraConfig, options: RenderOptions | None = None):
+        self.world = world
+        self.camera_config = camera_config
+        self.options = options or RenderOptions()
+        self.model = CameraModel(camera_config)
+        self._tex = world.textures()
+        self._counter = 0
+        self._setup_canvas()
+        self._solids = [_Solid(ob, self._tex) for ob in world.obstacles]
+        self._corners = np.array([s.corners for s in self._solids], float).reshape(-1, 8, 3)
+        self._ground_tiles = self._tiled_ground()
+        sky = world.config.sky
+        self._sky_h, self._sky_z = float(sky.horizon_grey), float(sky.zenith_grey)
+
+    # ------------------------------------------------------------------------------ set-up
+    def _tiled_ground(self):
+        """Per ground mip level: (texture repeated reps × reps times, reps).  Warps run fastest
+        when the sampled coordinates stay inside the source image (``BORDER_WRAP`` is correct but
+        several times slower outside), so each level is repeated until it spans ≥ 1024 texels
+        (2048-texel levels twice) and the camera is placed near its middle every frame."""
+        if self._tex.ground is None:
+            return None
+        cached = getattr(self._tex, "_tiled", None)
+        if cached is None:
+            cached = []
+            for t in self._tex.ground:
+                n = t.shape[0]
+                reps = 1 if n > 2048 else max(2, -(-1024 // n))
+                cached.append((np.ascontiguousarray(np.tile(t, (reps, reps))) if reps > 1 else t, reps))
+            self._tex._tiled = cached
+        return cached
+
+    def _setup_canvas(self) -> None:
+        c = self.camera_config
+        W, H = c.width, c.height
+        self._remap = None
+        if not c.has_distortion:
+            fx, fy, cx, cy, Wc, Hc = c.fx, c.fy, c.cx, c.cy, W, H
+        else:
+            uu, vv = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+            xy = self.model.pixels_to_normalized(np.stack([uu.ravel(), vv.ravel()], 1))
+            xy = self._refine_undistortion(xy, np.stack([uu.ravel(), vv.ravel()], 1))
+            x, y = xy[:, 0].reshape(H, W), xy[:, 1].reshape(H, W)
+            margin = 2.0
+            scale = 1.0
+            for _ in range(2):
+                fx, fy = c.fx * scale, c.fy * scale
+                x0, x1 = x.min() * fx - margin, x.max() * fx + margin
+                y0, y1 = y.min() * fy - margin, y.max() * fy + margin
+                Wc, Hc = int(math.ceil(x1 - x0)) + 1, int(math.ceil(y1 - y0)) + 1
+                area = Wc * Hc / float(W * H)
+                if area <= self.options.max_canvas_area:
+                    break
+                scale *= math.sqrt(self.options.max_canvas_area / area) * 0.98
+            cx, cy = -x0, -y0
+            mx = (x * fx + cx).astype(_F32)
+            my = (y * fy + cy).astype(_F32)
+            self._remap = (
+                cv2.convertMaps(mx, my, cv2.CV_16SC2),
+                cv2.convertMaps(mx, my, cv2.CV_16SC2, nninterpolation=True),
+            )
+        self.canvas_K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        self.canvas_size = (Wc, Hc)
+        self._ub = ((np.arange(Wc) - cx) / fx).astype(_F32)[None, :]
+        self._vb = ((np.arange(Hc) - cy) / fy).astype(_F32)[:, None]
+        # coarse grid (for smooth fields), covering the canvas corners
+        self._cu = np.unique(np.r_[np.arange(0, Wc, _COARSE), Wc - 1]).astype(float)
+        self._cv = np.unique(np.r_[np.arange(0, Hc, _COARSE), Hc - 1]).astype(float)
+        self._cub = (self._cu - cx) / fx
+        self._cvb = (self._cv - cy) / fy
+        # canvas frustum in normalized coordinates (for culling)
+        self._frustum = ((-0.5 - cx) / fx, (Wc - 0.5 - cx) / fx, (-0.5 - cy) / fy, (Hc - 0.5 - cy) / fy)
+        self._f_mean = math.sqrt(fx * fy)
+
+    def _refine_undistortion(self, xy: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Newton steps on the companion's forward distortion so that distort(xy) = uv to 1e-6 px."""
+        c = self.camera_config
+        for _ in range(5):
+            f = self.model.normalized_to_pixels(xy)
+            r = f - uv
+            if np.max(np.abs(r)) < 1e-7:
+                break
+            eps = 1e-7
+            fx_ = (self.model.normalized_to_pixels(xy + [eps, 0]) - f) / eps
+            fy_ = (self.model.normalized_to_pixels(xy + [0, eps]) - f) / eps
+            det = fx_[:, 0] * fy_[:, 1] - fy_[:, 0] * fx_[:, 1]
+            ok = np.abs(det) > 1e-12 * c.fx * c.fy
+            dx = np.where(ok, (r[:, 0] * fy_[:, 1] - r[:, 1] * fy_[:, 0]) / np.where(ok, det, 1), 0)
+            dy = np.where(ok, (fx_[:, 0] * r[:, 1] - fx_[:, 1] * r[:, 0]) / np.where(ok, det, 1), 0)
+            xy = xy - np.stack([dx, dy], 1)
+        return xy
+
+    # ------------------------------------------------------------------------------ API
+    def render_body(self, R_world_body: np.ndarray, p_world_body: np.ndarray, **kw) -> Frame:
+        """Render from the vehicle pose (the camera mount and lever arm applied)."""
+        R, p = self.model.camera_pose(np.asarray(R_world_body, float), np.asarray(p_world_body, float))
+        return self.render(R, p, **kw)
+
+    def render(
+        self,
+        R_world_cam: np.ndarray,
+        p_world_cam: np.ndarray,
+        *,
+        v_world_cam: np.ndarray | None = None,
+        w_cam: np.ndarray | None = None,
+        gain: float | None = None,
+        frame_index: int | None = None,
+    ) -> Frame:
+        """Render the frame whose mid-exposure camera pose is (``R_world_cam``, ``p_world_cam``).
+
+        ``v_world_cam`` (m/s, world NED) and ``w_cam`` (rad/s, camera frame) describe the camera's
+        motion during the exposure, used for motion blur when ``options.exposure_s`` > 0.
+        ``gain`` multiplies ``options.gain`` for this frame.  ``frame_index`` selects the noise and
+        jitter draws (default: a counter of calls), so a frame can be re-rendered identically.
+        """
+        R = np.asarray(R_world_cam, float)
+        p = np.asarray(p_world_cam, float).reshape(-1)
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+            raise InputError("render: R_world_cam must be a finite 3×3 matrix")
+        if abs(np.linalg.det(R) - 1.0) > 1e-6 or np.max(np.abs(R.T @ R - np.eye(3))) > 1e-6:
+            raise InputError("render: R_world_cam is not a rotation matrix")
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise InputError("render: p_world_cam must be 3 finite numbers")
+        index = self._counter if frame_index is None else int(frame_index)
+        self._counter = index + 1
+        opt = self.options
+        img, invz = self._render_canvas(R, p)
+        n_sub = 1
+        if opt.exposure_s > 0 and (v_world_cam is not None or w_cam is not None):
+            v = np.zeros(3) if v_world_cam is None else np.asarray(v_world_cam, float).reshape(3)
+            w = np.zeros(3) if w_cam is None else np.asarray(w_cam, float).reshape(3)
+            n_sub = self._blur_subframes(v, w, invz)
+            if n_sub > 1:
+                acc = np.zeros(img.shape, _F32)
+                for k in range(n_sub):
+                    tau = opt.exposure_s * ((k + 0.5) / n_sub - 0.5)
+                    if abs(tau) < 1e-12:
+                        sub = img
+                    else:
+                        sub, _ = self._render_canvas(R @ so3_exp(w * tau), p + v * tau)
+                    acc += sub
+                acc *= 1.0 / n_sub
+                img = acc
+        image, invz = self._to_output(img, invz)
+        rng = np.random.default_rng([opt.seed, index])
+        g = opt.gain * (1.0 if gain is None else float(gain))
+        if opt.gain_jitter > 0:
+            g *= math.exp(opt.gain_jitter * rng.standard_normal())
+        if opt.noise_sigma > 0 or g != 1.0 or image.dtype != np.uint8:
+            f = image.astype(_F32) if image.dtype != _F32 else image
+            if g != 1.0:
+                f = f * _F32(g)
+            if opt.noise_sigma > 0:
+                noise = np.empty(f.shape, _F32)
+                cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
+                cv2.randn(noise, 0.0, float(opt.noise_sigma))
+                f = f + noise
+            image = cv2.add(f, 0.0, dtype=cv2.CV_8U)  # rounds and saturates to 0..255
+        with np.errstate(divide="ignore"):
+            depth = np.where(invz > 0, 1.0 / np.maximum(invz, 1e-30), np.inf).astype(_F32)
+        return Frame(image, depth, R.copy(), p.copy(), g, n_sub, index)
+
+    # ------------------------------------------------------------------------------ output
+    def _blur_subframes(self, v: np.ndarray, w: np.ndarray, invz: np.ndarray) -> int:
+        opt = self.options
+        Wc, Hc = self.canvas_size
+        f = self._f_mean
+        half_diag = 0.5 * math.hypot(Wc, Hc)
+        rot_px = (math.hypot(w[0], w[1]) * f * (1 + (half_diag / f) ** 2) + abs(w[2]) * half_diag) * opt.exposure_s
+        near_inv = float(np.max(invz[:: _COARSE // 2, :: _COARSE // 2])) if invz.size else 0.0
+        trans_px = float(np.linalg.norm(v)) * opt.exposure_s * f * near_inv * (1 + half_diag / f)
+        return int(min(opt.max_blur_subframes, max(1, math.ceil((rot_px + trans_px) / opt.blur_step_px))))
+
+    def _to_output(self, img: np.ndarray, invz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self._remap is None:
+            return img, invz
+        (m1, m2), (n1, n2) = self._remap
+        out = cv2.remap(img, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        lin = cv2.remap(invz, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        near = cv2.remap(invz, n1, n2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+        # at a depth edge bilinear 1/Z mixes two surfaces: keep the nearest sample there
+        edge = np.abs(lin - near) > _F32(1e-3) * np.maximum(near, lin)
+        return out, np.where(edge, near, lin)
+
+    # ------------------------------------------------------------------------------ canvas
+    def _render_canvas(self, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Wc, Hc = self.canvas_size
+        ub, vb = self._ub, self._vb
+        # world components of the camera ray m = (x̄, ȳ, 1): affine in pixels
+        rows = [(_F32(R[k, 0]) * ub + _F32(R[k, 2])) for k in range(3)]
+        cols = [_F32(R[k, 1]) * vb for k in range(3)]
+        img = self._sky(R)
+        invz = np.zeros((Hc, Wc), _F32)
+        if self.world.ground_z is not None and p[2] < self.world.ground_z:
+            self._draw_ground(R, p, rows, cols, img, invz)
+        self._draw_solids(R, p, img, invz)
+        return img, invz
+
+    def _sky(self, R: np.ndarray) -> np.ndarray:
+        Wc, Hc = self.canvas_size
+        d = R[:, 0, None, None] * self._cub[None, None, :] + R[:, 1, None, None] * self._cvb[None, :, None] + R[:, 2, None, None]
+        s = np.abs(d[2]) / np.sqrt(np.sum(d * d, axis=0))
+        sky = (self._sky_h + (self._sky_z - self._sky_h) * s).astype(_F32)
+        return cv2.resize(cv2.add(sky, 0.0, dtype=cv2.CV_8U), (Wc, Hc), interpolation=cv2.INTER_LINEAR)
+
+    def _draw_ground(self, R, p, rows, cols, img, invz) -> None:
+        Wc, Hc = self.canvas_size
+        zg = self.world.ground_z
+        h = zg - p[2]  # camera height above the ground (> 0)
+        Kc = self.canvas_K
+        fx, fy = Kc[0, 0], Kc[1, 1]
+        gD = math.hypot(R[2, 0] / fx, R[2, 1] / fy)  # change of the ray's down component per pixel
+        # coarse fields: ray down component and level of detail
+        cub, cvb = self._cub[None, :], self._cvb[:, None]
+        dN = R[0, 0] * cub + R[0, 1] * cvb + R[0, 2]
+        dE = R[1, 0] * cub + R[1, 1] * cvb + R[1, 2]
+        dD = R[2, 0] * cub + R[2, 1] * cvb + R[2, 2]
+        ground_c = dD > -0.5 * gD - 1e-12
+        if not np.any(ground_c):
+            return
+        # pixel footprint on the plane: |∂X/∂u|, |∂X/∂v| with X = p + (h/dD)·d
+        with np.errstate(divide="ignore", invalid="ignore"):
+            Z = h / np.maximum(dD, 1e-9)
+            fp = []
+            for j, f in ((0, fx), (1, fy)):
+                dd = R[:, j] / f
+                gn = Z * (dd[0] - dN * dd[2] / np.maximum(dD, 1e-9))
+                ge = Z * (dd[1] - dE * dd[2] / np.maximum(dD, 1e-9))
+                fp.append(np.hypot(gn, ge))
+            foot = np.maximum(fp[0], fp[1])
+        tex = self._tex.ground
+        top = len(tex) - 1
+        s0 = self._tex.ground_texel_m
+        lam_c = np.clip(np.log2(np.maximum(foot, 1e-9) / s0) + self.options.lod_bias, 0.0, top)
+        lam_c = np.where(ground_c & np.isfinite(lam_c), lam_c, top).astype(_F32)
+        # ground region on the canvas (rows/cols where coverage > 0): from the coarse grid, padded
+        rr = np.nonzero(ground_c.any(axis=1))[0]
+        cc = np.nonzero(ground_c.any(axis=0))[0]
+        y0 = int(self._cv[max(rr[0] - 1, 0)])
+        y1 = int(self._cv[min(rr[-1] + 1, len(self._cv) - 1)]) + 1
+        x0 = int(self._cu[max(cc[0] - 1, 0)])
+        x1 = int(self._cu[min(cc[-1] + 1, len(self._cu) - 1)]) + 1
+        Hr, Wr = y1 - y0, x1 - x0
+        lam = cv2.resize(lam_c, (Wc, Hc), interpolation=cv2.INTER_LINEAR)[y0:y1, x0:x1]
+        dD_f = rows[2][:, x0:x1] + cols[2][y0:y1]
+        alpha = np.clip(dD_f * _F32(1.0 / gD) + _F32(0.5), 0.0, 1.0) if gD > 1e-12 else (dD_f > 0).astype(_F32)
+        acc = np.zeros((Hr, Wr), _F32)
+        tile_m = s0 * tex[0].shape[0]
+        A = Kc @ R.T
+        k3 = np.ones((3, 3), np.uint8)
+        lam_hi = cv2.dilate(lam_c, k3)  # level range over each coarse cell's neighbourhood
+        lam_lo = cv2.erode(lam_c, k3)
+        lmin = int(math.floor(float(lam.min())))
+        lmax = int(math.ceil(float(lam.max())))
+        for L in range(lmin, lmax + 1):
+            # canvas rows/cols where this level has weight: coarse points whose neighbourhood
+            # spans levels within (L − 1, L + 1) (so every pixel in between is included)
+            band = (lam_hi > L - 1.0) & (lam_lo < L + 1.0) & ground_c
+            if not band.any():
+                continue
+            br = np.nonzero(band.any(axis=1))[0]
+            bc = np.nonzero(band.any(axis=0))[0]
+            ya = max(int(self._cv[br[0]]), y0)
+            yb = min(int(self._cv[br[-1]]) + 1, y1)
+            xa = max(int(self._cu[bc[0]]), x0)
+            xb = min(int(self._cu[bc[-1]]) + 1, x1)
+            if ya >= yb or xa >= xb:
+                continue
+            sl = (slice(ya - y0, yb - y0), slice(xa - x0, xb - x0))
+            w = np.maximum(_F32(1.0) - np.abs(lam[sl] - _F32(L)), _F32(0.0))
+            t, reps = self._ground_tiles[L]
+            if tex[L].shape[0] <= 4:  # a few texels per period: only the mean grey is left
+                acc[sl] += w * _F32(tex[L].mean())
+                continue
+            s = tile_m / tex[L].shape[0]
+            # tile origin (a multiple of the period) that puts the camera near the middle of t
+            N0 = round(p[0] / tile_m - 0.5 * reps) * tile_m
+            E0 = round(p[1] / tile_m - 0.5 * reps) * tile_m
+            M = np.array([[0.0, s, N0 + 0.5 * s - p[0]], [s, 0.0, E0 + 0.5 * s - p[1]], [0.0, 0.0, h]])
+            Hm = np.array([[1, 0, -xa], [0, 1, -ya], [0, 0, 1.0]]) @ A @ M
+            warped = cv2.warpPerspective(t, Hm, (xb - xa, yb - ya), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+            acc[sl] += w * warped
+        # blend ground over sky with the horizon coverage; 1/Z of the plane where the centre sees it
+        region = img[y0:y1, x0:x1]
+        sky = region.astype(_F32)
+        region[...] = cv2.add(sky + alpha * (acc - sky), 0.0, dtype=cv2.CV_8U)
+        invz[y0:y1, x0:x1] = np.where(alpha >= 0.5, np.maximum(dD_f * _F32(1.0 / h), 0.0), 0.0)
+
+    # ------------------------------------------------------------------------------ solids
+    def _draw_solids(self, R, p, img, invz) -> None:
+        if not self._solids:
+            return
+        near = self.options.near_m
+        cam = np.einsum("mki,ij->mkj", self._corners - p, R)  # (M, 8, 3) camera frame
+        X, Y, Z = cam[..., 0], cam[..., 1], cam[..., 2]
+        xl, xr, yt, yb = self._frustum
+        out = (
+            np.all(Z < near, axis=1)
+            | np.all(X < xl * Z, axis=1)
+            | np.all(X > xr * Z, axis=1)
+            | np.all(Y < yt * Z, axis=1)
+            | np.all(Y > yb * Z, axis=1)
+        )
+        vis = np.nonzero(~out)[0]
+        if len(vis) == 0:
+            return
+        dist = self.world.signed_distances(p)[vis]
+        for k in vis[np.argsort(-dist)]:  # far to near: edges blend over what lies behind
+            s = self._solids[k]
+            if s.cyl is not None:
+                self._draw_cylinder(s, R, p, cam[k], img, invz)
+            else:
+                self._draw_polyhedron(s, R, p, cam[k], img, invz)
+
+    def _hull(self, cam8: np.ndarray) -> np.ndarray | None:
+        """Projected silhouette (convex hull, canvas pixels, positive area) of a convex solid
+        given its 8 box corners in the camera frame, clipped at the near plane."""
+        near = self.options.near_m
+        Z = cam8[:, 2]
+        if Z.min() >= near:
+            P = cam8
+        else:
+            front = Z >= near
+            zi, zj = Z[_EI], Z[_EJ]
+            cross = (zi >= near) != (zj >= near)
+            t = (near - zi[cross]) / (zj[cross] - zi[cross])
+            a, b = cam8[_EI[cross]], cam8[_EJ[cross]]
+            P = np.concatenate([cam8[front], a + t[:, None] * (b - a)], 0)
+            if len(P) < 3:
+                return None
+        K = self.canvas_K
+        uv = P[:, :2] / P[:, 2:3] * (K[0, 0], K[1, 1]) + (K[0, 2], K[1, 2])
+        np.clip(uv, -1e7, 1e7, out=uv)
+        uv32 = uv.astype(np.float32)
+        idx = cv2.convexHull(uv32, returnPoints=False)
+        if idx is None or len(idx) < 3:
+            return None
+        idx = idx.reshape(-1)
+        area = cv2.contourArea(uv32[idx], oriented=True)
+        if abs(area) < 1e-4:
+            return None
+        hull = uv[idx]
+        return hull[::-1] if area < 0 else hull
+
+    def _roi(self, hull: np.ndarray, pad: int = 2):
+        Wc, Hc = self.canvas_size
+        lo = np.floor(hull.min(axis=0))
+        hi = np.ceil(hull.max(axis=0))
+        x0, y0 = max(int(lo[0]) - pad, 0), max(int(lo[1]) - pad, 0)
+        x1, y1 = min(int(hi[0]) + pad + 1, Wc), min(int(hi[1]) + pad + 1, Hc)
+        if x0 >= x1 or y0 >= y1:
+            return None
+        return x0, x1, y0, y1
+
+    @staticmethod
+    def _coverage(hull: np.ndarray, x0, x1, y0, y1) -> np.ndarray:
+        """α = clamp(0.5 + signed distance in pixels to the convex polygon ``hull``), on the ROI.
+
+        ``hull`` has positive shoelace area in pixel axes; its interior lies where
+        cross(e, q − a) > 0 for every edge a → b = a + e."""
+        e = np.roll(hull, -1, axis=0) - hull
+        L = np.hypot(e[:, 0], e[:, 1])
+        keep = L > 1e-9
+        e, a, L = e[keep], hull[keep], L[keep]
+        u = np.arange(x0, x1, dtype=float)
+        v = np.arange(y0, y1, dtype=float)
+        rows = ((-e[:, 1:2] * (u - a[:, 0:1]) + e[:, 0:1] * (-a[:, 1:2])) / L[:, None]).astype(_F32)  # (n, w)
+        cols = ((e[:, 0:1] * v) / L[:, None]).astype(_F32)  # (n, h)
+        if (x1 - x0) * (y1 - y0) * len(L) <= 60000:
+            m = np.min(rows[:, None, :] + cols[:, :, None], axis=0)
+        else:
+            m = rows[0][None, :] + cols[0][:, None]
+            for i in range(1, len(L)):
+                np.minimum(m, rows[i][None, :] + cols[i][:, None], out=m)
+        m += _F32(0.5)
+        return np.clip(m, 0.0, 1.0, out=m)
+
+    def _draw_polyhedron(self, s: _Solid, R, p, cam8, img, invz) -> None:
+        hull = self._hull(cam8)
+        if hull is None:
+            return
+        roi = self._roi(hull)
+        if roi is None:
+            return
+        x0, x1, y0, y1 = roi
+        ub, vb = self._ub[:, x0:x1], self._vb[y0:y1]
+        side = np.einsum("ij,ij->i", s.n, p - s.O)  # > 0: the camera is outside this face
+        if s.two_sided:
+            if abs(side[0]) < 1e-9:
+                return  # a flat target seen exactly edge-on
+            sign = np.sign(side)
+            front = np.array([0])
+        else:
+            front = np.nonzero(side > 1e-9)[0]
+            if len(front) == 0:
+                return
+            sign = np.ones(len(side))
+        n_c = (s.n[front] * sign[front, None]) @ R  # outward normals in the camera frame
+        dist = -np.abs(side[front])  # n_c · X on the plane (< 0: camera outside)
+        # 1/Z of each plane: (n_c · m) / dist, affine in pixels
+        coef = (n_c / dist[:, None]).astype(_F32)
+        rows = coef[:, 0:1] * ub + coef[:, 2:3]  # (k, w)
+        cols = coef[:, 1:2] * vb.T  # (k, h)
+        invs = [rows[i][None, :] + cols[i][:, None] for i in range(len(front))]
+        if len(invs) == 1:
+            layer_inv = invs[0]
+        else:  # the farther plane is the entry point of a convex solid
+            layer_inv = np.minimum(invs[0], invs[1])
+            for f in invs[2:]:
+                np.minimum(layer_inv, f, out=layer_inv)
+        alpha = self._coverage(hull, x0, x1, y0, y1)
+        zbuf = invz[y0:y1, x0:x1]
+        zpass = (alpha > 0) & (layer_inv > zbuf) & (layer_inv > 0)
+        if not zpass.any():
+            return
+        layer = np.empty(layer_inv.shape, np.uint8)
+        # texture level at the (near-clamped) face corners: λ = log2(range / (f · texel · cos θ))
+        Cc = (s.quad[front] - p) @ R  # (k, 4, 3)
+        np.maximum(Cc[..., 2], self.options.near_m, out=Cc[..., 2])
+        rng = np.sqrt(np.sum(Cc * Cc, axis=2))
+        cos = np.abs(np.einsum("kcj,kj->kc", Cc, n_c)) / rng
+        lam = np.log2(rng / (self._f_mean * s.texel[front, None] * np.maximum(cos, 1e-3))) + self.options.lod_bias
+        lam_lo, lam_hi = np.rint(lam.min(axis=1)), np.rint(lam.max(axis=1))
+        G = np.einsum("ji,kjc->kic", R, np.stack([s.E1[front], s.E2[front], s.O[front] - p], 2))  # R^T [E1 E2 O−p]
+        Kc = self.canvas_K
+        for i, f in enumerate(front):
+            sel = zpass if len(front) == 1 else (zpass & (invs[i] == layer_inv))
+            ra = sel.any(axis=1)
+            if not ra.any():
+                continue
+            ca = sel.any(axis=0)
+            rws, cls = np.nonzero(ra)[0], np.nonzero(ca)[0]
+            fy0, fy1, fx0, fx1 = rws[0], rws[-1] + 1, cls[0], cls[-1] + 1
+            sub_sel = sel[fy0:fy1, fx0:fx1]
+            mips = s.mips[f]
+            top = len(mips) - 1
+            lo_l, hi_l = int(min(max(lam_lo[i], 0), top)), int(min(max(lam_hi[i], 0), top))
+            if lo_l == hi_l:
+                plan = [(lo_l, None)]
+            else:
+                # per-pixel level: λ = log2(q / (f s |dist|)) with q = |m|² Z²; level L where
+                # λ rounds to L, i.e. q in [2^(L−½), 2^(L+½)) · f s |dist| / 2^bias
+                iz = np.maximum(invs[i][fy0:fy1, fx0:fx1], _F32(1e-12))
+                q = (ub[:, fx0:fx1] ** 2 + vb[fy0:fy1] ** 2 + _F32(1.0)) / (iz * iz)
+                k = self._f_mean * s.texel[f] * abs(dist[i]) / 2.0**self.options.lod_bias
+                plan = []
+                for L in range(lo_l, hi_l + 1):
+                    m = None
+                    if L > lo_l:
+                        m = q >= _F32(k * 2.0 ** (L - 0.5))
+                    if L < hi_l:
+                        m2 = q < _F32(k * 2.0 ** (L + 0.5))
+                        m = m2 if m is None else (m & m2)
+                    plan.append((L, m))
+            for L, lmask in plan:
+                if lmask is None:
+                    msk = sub_sel
+                    ly0, ly1, lx0, lx1 = 0, fy1 - fy0, 0, fx1 - fx0
+                else:
+                    msk = sub_sel & lmask
+                    ra2 = msk.any(axis=1)
+                    if not ra2.any():
+                        continue
+                    r_, c_ = np.nonzero(ra2)[0], np.nonzero(msk.any(axis=0))[0]
+                    ly0, ly1, lx0, lx1 = r_[0], r_[-1] + 1, c_[0], c_[-1] + 1
+                t = mips[L]
+                th, tw = t.shape
+                g1, g2 = G[i, :, 0] / tw, G[i, :, 1] / th
+                Hm = Kc @ np.column_stack([g1, g2, G[i, :, 2] + 0.5 * (g1 + g2)])
+                ox, oy = x0 + fx0 + lx0, y0 + fy0 + ly0
+                Hm[0] -= ox * Hm[2]
+                Hm[1] -= oy * Hm[2]
+                warped = cv2.warpPerspective(t, Hm, (int(lx1 - lx0), int(ly1 - ly0)), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                dst = layer[fy0 + ly0 : fy0 + ly1, fx0 + lx0 : fx0 + lx1]
+                cv2.copyTo(warped, msk[ly0:ly1, lx0:lx1].view(np.uint8), dst)
+        self._composite(img, invz, x0, x1, y0, y1, layer, layer_inv, alpha, zpass)
+
+    @staticmethod
+    def _composite(img, invz, x0, x1, y0, y1, layer, layer_inv, alpha, zpass) -> None:
+        """Write a solid's layer over the canvas: opaque inside, α-blended on its edge pixels;
+        its 1/Z goes into the z-buffer where the pixel centre is inside (α ≥ ½)."""
+        dst = img[y0:y1, x0:x1]
+        zbuf = invz[y0:y1, x0:x1]
+        inner = alpha >= 1.0
+        cv2.copyTo(layer, (zpass & inner).view(np.uint8), dst)
+        edge = zpass & ~inner
+        d = dst.astype(_F32)
+        blend = cv2.add(d + alpha * (layer.astype(_F32) - d), 0.0, dtype=cv2.CV_8U)
+        cv2.copyTo(blend, edge.view(np.uint8), dst)
+        cv2.copyTo(layer_inv, (zpass & (alpha >= 0.5)).view(np.uint8), zbuf)
+
+    def _draw_cylinder(self, s: _Solid, R, p, cam8, img, invz) -> None:
+        ob = s.ob
+        hull = self._hull(cam8)  # of the bounding square prism: bounds the silhouette
+        if hull is None:
+            return
+        roi = self._roi(hull)
+        if roi is None:
+            return
+        x0, x1, y0, y1 = roi
+        near = self.options.near_m
+        ub, vb = self._ub[:, x0:x1], self._vb[y0:y1]
+        r = float(ob.radius)
+        z_top, z_base = ob.z_top, ob.z_base
+        on, oe, pD = p[0] - ob.centre[0], p[1] - ob.centre[1], p[2]
+        C = on * on + oe * oe - r * r
+        if C <= 0 and z_top <= pD <= z_base:
+            return  # camera inside the solid
+        f = self._f_mean
+        dN = (_F32(R[0, 0]) * ub + _F32(R[0, 2])) + _F32(R[0, 1]) * vb
+        dE = (_F32(R[1, 0]) * ub + _F32(R[1, 2])) + _F32(R[1, 1]) * vb
+        dD = (_F32(R[2, 0]) * ub + _F32(R[2, 2])) + _F32(R[2, 1]) * vb
+        cap_key = "top" if pD < z_top else ("bottom" if pD > z_base else None)
+        # side: horizontal ray–circle; coverage from the ray's distance to the axis and the height
+        # of the hit, in pixels ≈ metres · f / depth (exact sign: α ≥ ½ iff the centre ray hits)
+        if C > 0:
+            A = np.maximum(dN * dN + dE * dE, _F32(1e-12))
+            Bh = _F32(on) * dN + _F32(oe) * dE
+            tstar = -Bh / A
+            perp2 = np.maximum(_F32(C + r * r) + Bh * tstar, _F32(0.0))  # squared ray–axis distance
+            t_side = tstar - np.sqrt(np.maximum(_F32(r * r) - perp2, _F32(0.0)) / A)
+            t_pos = np.maximum(t_side, _F32(near))
+            scale = _F32(f) / t_pos
+            z_side = _F32(pD) + t_side * dD
+            a_side = np.minimum((_F32(r) - np.sqrt(perp2)) * scale, (z_side - _F32(z_top)) * scale)
+            np.minimum(a_side, (_F32(z_base) - z_side) * scale, out=a_side)
+            a_side += _F32(0.5)
+            np.clip(a_side, 0.0, 1.0, out=a_side)
+            a_side[t_side <= near] = 0.0
+        else:
+            a_side = np.zeros(dN.shape, _F32)
+            t_side = z_side = None
+        alpha, t_hit, use_cap = a_side, t_side, None
+        if cap_key is not None:
+            z_cap = z_top if cap_key == "top" else z_base
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t_cap = _F32(z_cap - pD) / dD
+            ok = t_cap > near  # false for NaN / rays away from the cap plane
+            t_cap[~ok] = np.inf
+            tc = np.where(ok, t_cap, _F32(0.0))
+            cn = _F32(on) + tc * dN
+            ce = _F32(oe) + tc * dE
+            a_cap = (_F32(r) - np.sqrt(cn * cn + ce * ce)) * (_F32(f) / np.maximum(tc, _F32(near))) + _F32(0.5)
+            np.clip(a_cap, 0.0, 1.0, out=a_cap)
+            a_cap[~ok] = 0.0
+            use_cap = a_cap > a_side
+            alpha = np.maximum(a_side, a_cap)
+            t_hit = t_cap if t_side is None else np.where(use_cap, t_cap, t_side)
+        zbuf = invz[y0:y1, x0:x1]
+        with np.errstate(divide="ignore"):
+            inv = _F32(1.0) / np.maximum(t_hit, _F32(near))
+        zpass = (alpha > 0) & (inv > zbuf)
+        if not zpass.any():
+            return
+        layer = np.zeros(inv.shape, np.uint8)
+        side_m, top_m, bot_m = s.cyl
+        covered = (zpass & (alpha >= 0.5)).view(np.uint8)
+        zmean = cv2.mean(t_hit, mask=covered)[0] if covered.any() else cv2.mean(t_hit, mask=zpass.view(np.uint8))[0]
+        lam = math.log2(max(zmean, 1e-6) / (f * s.cyl_texel)) + self.options.lod_bias
+        side_sel = zpass if use_cap is None else (zpass & ~use_cap)
+        if t_side is not None and side_sel.any():
+            L = int(np.clip(round(lam), 0, len(side_m) - 1))
+            t = side_m[L]
+            th, tw = t.shape[0], t.shape[1] - 2
+            theta = np.arctan2(_F32(oe) + t_side * dE, _F32(on) + t_side * dN)  # from north, clockwise
+            mx = ((theta * _F32(1.0 / (2 * math.pi))) % _F32(1.0)) * _F32(tw) + _F32(0.5)  # +1 pad − ½
+            my = (z_side - _F32(z_top)) * _F32(th / (z_base - z_top)) - _F32(0.5)
+            cv2.copyTo(cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), side_sel.view(np.uint8), layer)
+        if use_cap is not None:
+            cap_sel = zpass & use_cap
+            if cap_sel.any():
+                cap = top_m if cap_key == "top" else bot_m
+                L = int(np.clip(round(lam), 0, len(cap) - 1))
+                t = cap[L]
+                th, tw = t.shape
+                mx = (ce + _F32(r)) * _F32(tw / (2 * r)) - _F32(0.5)
+                my = (cn + _F32(r)) * _F32(th / (2 * r)) - _F32(0.5)
+                cv2.copyTo(cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), cap_sel.view(np.uint8), layer)
+        self._composite(img, invz, x0, x1, y0, y1, layer, inv, alpha, zpass)
