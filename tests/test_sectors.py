@@ -1,0 +1,226 @@
+"""Obstacle sectors (DESIGN §5): hand-computed geometry for every OBSTACLE_DISTANCE rule."""
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.core.frames import euler_zyx_to_R
+from companion.core.sectors import (
+    SECTOR_COUNT,
+    UNKNOWN_CM,
+    SectorConfig,
+    SectorState,
+    compute_sectors,
+    rotate_sectors,
+    sector_view_masks,
+)
+from companion.errors import ConfigError, InputError
+
+HFOV = math.radians(60.0)
+CFG = SectorConfig()  # min 0.5 m, max 40 m, k = 2, band ±1.5 m, 1 point per obstacle, 3 per clear
+CLEAR = CFG.max_distance_cm + 1
+
+
+def run(points, sigma=0.5, converged=True, valid=True, cam=0.0, config=CFG, **kw):
+    p = np.asarray(points, float).reshape(-1, 3)
+    n = len(p)
+    sig = np.broadcast_to(np.asarray(sigma, float), (n,)).copy()
+    conv = np.broadcast_to(np.asarray(converged, bool), (n,)).copy()
+    val = np.broadcast_to(np.asarray(valid, bool), (n,)).copy()
+    return compute_sectors(p, sig, conv, val, HFOV, cam, config, **kw)
+
+
+def wall(x=10.0, bearings_deg=range(-20, 21)):
+    b = np.radians(np.asarray(list(bearings_deg), float))
+    return np.stack([np.full(b.shape, x), x * np.tan(b), np.zeros(b.shape)], 1)
+
+
+def test_fov_mask_forward_60deg():
+    in_view, full = sector_view_masks(HFOV, 0.0)
+    # sectors centred at −30…30° touch the 60° field of view; −25…25° lie entirely inside it
+    assert np.flatnonzero(in_view).tolist() == [0, 1, 2, 3, 4, 5, 6, 66, 67, 68, 69, 70, 71]
+    assert np.flatnonzero(full).tolist() == [0, 1, 2, 3, 4, 5, 67, 68, 69, 70, 71]
+
+
+def test_no_points_is_unknown_never_clear():
+    s = run(np.zeros((0, 3)))
+    assert s.distances_cm.dtype == np.uint16 and s.distances_cm.shape == (SECTOR_COUNT,)
+    assert np.all(s.distances_cm == UNKNOWN_CM)
+    assert np.all(s.state == SectorState.UNKNOWN)
+    assert not s.any_valid
+    assert s.forward.state == SectorState.UNKNOWN
+
+
+def test_wall_gives_conservative_centimetres():
+    s = run(wall(10.0), sigma=0.5)
+    # on the horizontal (z = 0) the conservative range is r − 2·0.5 = r − 1 m, nearest point per sector
+    assert s.distances_cm[0] == 900  # bearing 0°: r = 10
+    assert s.distances_cm[1] == round((10 / math.cos(math.radians(3)) - 1) * 100)  # nearest bearing 3°
+    assert s.distances_cm[71] == s.distances_cm[1]  # symmetric
+    assert s.distances_cm[4] == round((10 / math.cos(math.radians(18)) - 1) * 100)  # bearings 18…20°
+    assert s.distances_cm[5] == UNKNOWN_CM and s.distances_cm[67] == UNKNOWN_CM  # in view, no evidence
+    assert np.all(s.distances_cm[6:66] == UNKNOWN_CM)  # not seen
+    assert s.forward.state == SectorState.OBSTACLE
+    assert s.forward.distance_m == pytest.approx(9.0) and s.forward.sigma_m == pytest.approx(0.5)
+    assert s.forward.estimate_m == pytest.approx(10.0)
+    assert s.nearest[0].sector == 0 and s.nearest[0].range_m == pytest.approx(9.0)
+    assert s.nearest[0].p_body == pytest.approx((9.0, 0.0, 0.0))
+    assert len(s.nearest) == CFG.nearest_count
+    assert s.nearest_m == pytest.approx(9.0)
+
+
+def test_far_points_claim_clear_only_with_enough_evidence():
+    far = wall(100.0, [-1, 0, 1])
+    s = run(far, sigma=1.0)  # conservative 98 m > 40 m
+    assert s.distances_cm[0] == CLEAR and s.state[0] == SectorState.CLEAR
+    assert s.forward.state == SectorState.CLEAR
+    assert np.all(np.delete(s.distances_cm, 0) == UNKNOWN_CM)
+    # two points are not enough evidence (min_points_clear = 3)
+    s2 = run(far[:2], sigma=1.0)
+    assert s2.distances_cm[0] == UNKNOWN_CM
+    # a far point whose σ makes it possibly near is not evidence of free space: 50 − 2·10 = 30 m
+    s3 = run(wall(50.0, [-1, 0, 1]), sigma=10.0)
+    assert s3.distances_cm[0] == 3000
+
+
+def test_one_near_point_among_far_ones_wins():
+    pts = np.vstack([wall(100.0, [-2, -1, 0, 1, 2]), [[8.0, 0.0, 0.0]]])
+    s = run(pts, sigma=0.5)
+    assert s.distances_cm[0] == 700
+    assert s.state[0] == SectorState.OBSTACLE
+
+
+def test_unconverged_near_point_vetoes_clear_but_claims_nothing():
+    pts = np.vstack([wall(100.0, [-1, 0, 1]), [[20.0, 0.0, 0.0]]])
+    s = run(pts, sigma=[1, 1, 1, 5.0], converged=[True, True, True, False])
+    assert s.distances_cm[0] == UNKNOWN_CM
+    cfg = SectorConfig(unconverged_veto_clear=False)
+    assert run(pts, sigma=[1, 1, 1, 5.0], converged=[True, True, True, False], config=cfg).distances_cm[0] == cfg.max_distance_cm + 1
+
+
+def test_points_outside_the_band_are_ignored():
+    above = [[10.0, 0.0, -3.0], [10.0, 0.0, 2.0]]  # 3 m above, 2 m below: outside ±1.5 m
+    assert np.all(run(above).distances_cm == UNKNOWN_CM)
+    inside = [[10.0, 0.0, -1.0]]
+    r = math.sqrt(101.0)
+    assert run(inside).distances_cm[0] == round(10.0 * (r - 1.0) / r * 100)
+    # degrees mode: ±10° cone — 3 m above at 10 m (16.7°) is out, at 20 m (8.5°) is in
+    deg = SectorConfig(band_mode="degrees", band_half_angle_deg=10.0)
+    assert run([[10.0, 0.0, -3.0]], config=deg).distances_cm[0] == UNKNOWN_CM
+    assert run([[20.0, 0.0, -3.0]], config=deg).distances_cm[0] != UNKNOWN_CM
+
+
+def test_invalid_and_garbage_points_are_ignored_and_counted():
+    pts = [[10.0, 0.0, 0.0], [np.nan, 0, 0], [5.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    s = run(pts, sigma=[0.5, 0.5, np.inf, 0.5], valid=[True, True, True, True])
+    assert s.distances_cm[0] == 900
+    assert s.points_rejected == 3
+    s2 = run([[5.0, 0, 0]], valid=False)
+    assert s2.distances_cm[0] == UNKNOWN_CM and s2.points_rejected == 0
+    with pytest.raises(InputError):
+        compute_sectors(np.zeros((3, 2)), np.zeros(3), np.ones(3, bool), np.ones(3, bool), HFOV, 0.0)
+    with pytest.raises(InputError):
+        compute_sectors(np.zeros((3, 3)), np.zeros(2), np.ones(3, bool), np.ones(3, bool), HFOV, 0.0)
+
+
+def test_fov_masking_and_camera_yaw_offset():
+    p = [[10 * math.cos(math.radians(60)), 10 * math.sin(math.radians(60)), 0.0]]  # bearing 60° (sector 12)
+    assert run(p).distances_cm[12] == UNKNOWN_CM  # outside a forward 60° camera
+    s = run(p, cam=math.radians(60))  # camera turned 60° right
+    assert s.distances_cm[12] == 900
+    assert s.in_view[12] and not s.in_view[0]
+    # the same through an explicit R_cam_body
+    from companion.core.frames import mount_rotation
+
+    assert run(p, cam=mount_rotation(0, 0, 60)).distances_cm[12] == 900
+    # a sector only partly in view can hold an obstacle, but never "clear"
+    edge = wall(10.0, [29])
+    assert run(edge).distances_cm[6] != UNKNOWN_CM
+    assert run(wall(100.0, [28, 29, 29.5]), sigma=1.0).distances_cm[6] == UNKNOWN_CM
+
+
+def test_near_obstacles_are_clamped_not_dropped():
+    s = run([[0.6, 0.0, 0.0]], sigma=0.2)  # conservative 0.2 m < min 0.5 m
+    assert s.distances_cm[0] == CFG.min_distance_cm
+    s = run([[0.6, 0.0, 0.0]], sigma=5.0)  # conservative below zero
+    assert s.distances_cm[0] == CFG.min_distance_cm  # never 0: ArduPilot discards 0
+    touch = SectorConfig(touching_distance_m=0.3)
+    assert run([[0.2, 0.0, 0.0]], sigma=0.01, config=touch).distances_cm[0] == 0
+    # an obstacle just inside max_distance is reported at most max_distance
+    assert run([[40.5, 0.0, 0.0]], sigma=0.5).distances_cm[0] == 3950
+    assert run([[41.0, 0.0, 0.0]], sigma=0.5).distances_cm[0] == CFG.max_distance_cm  # exactly at max: an obstacle
+    assert run([[41.0, 0.0, 0.0]], sigma=0.4, config=SectorConfig(min_points_clear=1)).distances_cm[0] == CLEAR
+
+
+def test_min_points_obstacle_reports_nth_nearest():
+    cfg = SectorConfig(min_points_obstacle=2)
+    pts = [[8.0, 0.0, 0.0], [12.0, 0.0, 0.0], [15.0, 0.0, 0.0]]
+    assert run(pts, config=cfg).distances_cm[0] == 1100  # second nearest: 12 − 1
+    assert run(pts[:1], config=cfg).distances_cm[0] == UNKNOWN_CM  # one point: no claim, and no clear either
+
+
+def test_attitude_levels_the_sectors():
+    # nose 20° up: a level obstacle 10 m ahead appears 3.4 m "below" the body x axis
+    R_lb = euler_zyx_to_R(0.0, math.radians(20), 0.0)
+    p_body = R_lb.T @ np.array([10.0, 0.0, 0.0])
+    assert run([p_body]).distances_cm[0] == UNKNOWN_CM  # taken as level: outside the band
+    assert run([p_body], roll_pitch_rad=(0.0, math.radians(20))).distances_cm[0] == 900
+    # rolled 30° right: a point 20° right, level, is still in sector 4 after levelling
+    R_lb = euler_zyx_to_R(math.radians(30), 0.0, 0.0)
+    p_level = np.array([10 * math.cos(math.radians(20)), 10 * math.sin(math.radians(20)), 0.0])
+    s = run([R_lb.T @ p_level], roll_pitch_rad=(math.radians(30), 0.0))
+    assert s.distances_cm[4] == 900
+
+
+def test_band_follows_the_flight_path():
+    gamma = math.radians(10)
+    p = [[20.0, 0.0, -20.0 * math.tan(gamma)]]  # on a 10° climb line, 3.5 m above
+    assert run(p).distances_cm[0] == UNKNOWN_CM
+    v = [10 * math.cos(gamma), 0.0, -10 * math.sin(gamma)]
+    s = run(p, velocity_body=v)
+    r = math.hypot(20.0, 20.0 * math.tan(gamma))
+    assert s.distances_cm[0] == round(20.0 * (r - 1.0) / r * 100)
+    assert run(p, velocity_body=[0.1, 0, -0.5]).distances_cm[0] == UNKNOWN_CM  # too slow: level band
+
+
+def test_rotation_by_yaw_change():
+    d = np.full(SECTOR_COUNT, UNKNOWN_CM, np.uint16)
+    d[0] = 900
+    r = rotate_sectors(d, math.radians(10), CFG.max_distance_cm)  # turned right 10°: obstacle now at −10°
+    assert r[70] == 900 and np.count_nonzero(r != UNKNOWN_CM) == 1
+    r = rotate_sectors(d, math.radians(-15), CFG.max_distance_cm)
+    assert r[3] == 900
+    r = rotate_sectors(d, math.radians(2.5), CFG.max_distance_cm)  # half a sector: both neighbours keep it
+    assert r[0] == 900 and r[71] == 900 and np.count_nonzero(r != UNKNOWN_CM) == 2
+    assert np.array_equal(rotate_sectors(d, 0.0, CFG.max_distance_cm), d)
+    assert np.all(rotate_sectors(d, math.nan, CFG.max_distance_cm) == UNKNOWN_CM)
+
+
+def test_rotation_never_invents_clear():
+    d = np.full(SECTOR_COUNT, UNKNOWN_CM, np.uint16)
+    d[0:3] = CLEAR
+    d[3] = 1500
+    r = rotate_sectors(d, math.radians(2.5), CFG.max_distance_cm)
+    assert r[0] == CLEAR and r[1] == CLEAR  # both overlapped sectors clear
+    assert r[2] == 1500  # clear + obstacle → the obstacle
+    assert r[71] == UNKNOWN_CM  # unknown + clear → unknown
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        d = rng.choice([UNKNOWN_CM, CLEAR, 500, 2000], size=SECTOR_COUNT).astype(np.uint16)
+        yaw = rng.uniform(-math.pi, math.pi)
+        r = rotate_sectors(d, yaw, CFG.max_distance_cm)
+        assert np.count_nonzero(r == CLEAR) <= np.count_nonzero(d == CLEAR)
+        # every obstacle distance still present (nothing near is lost) unless it merged with a nearer one
+        assert (r[r <= CFG.max_distance_cm].min(initial=UNKNOWN_CM) == d[d <= CFG.max_distance_cm].min(initial=UNKNOWN_CM))
+
+
+def test_sectors_rotated_helper_and_config_validation():
+    s = run(wall(10.0, [0]))
+    assert s.rotated(math.radians(5))[71] == 900
+    with pytest.raises(ConfigError):
+        SectorConfig(min_distance_m=5, max_distance_m=4)
+    with pytest.raises(ConfigError):
+        SectorConfig(max_distance_m=700)  # max + 1 cm would collide with UINT16_MAX
+    with pytest.raises(ConfigError):
+        SectorConfig(band_mode="feet")
