@@ -23,7 +23,11 @@ from companion.core.harris import HarrisConfig
 from companion.core.ncc import NCCConfig
 from companion.core.prediction import PredictionConfig
 from companion.core.tracks import TrackConfig
+from companion.core.sectors import SectorConfig
 from companion.core.triangulation import TriangulationConfig
+from companion.mavlink.link import LinkConfig
+from companion.mavlink.messages import OutputConfig
+from companion.telemetry import TelemetryConfig
 from companion.errors import ConfigError
 
 if sys.version_info >= (3, 11):
@@ -45,6 +49,10 @@ class CompanionConfig:
     ekf_anchored: AnchoredEKFConfig = AnchoredEKFConfig()
     ekf_landmark: LandmarkEKFConfig = LandmarkEKFConfig()
     estimator: EstimatorConfig = EstimatorConfig()
+    sectors: SectorConfig = SectorConfig()
+    telemetry: TelemetryConfig = TelemetryConfig()
+    outputs: OutputConfig = OutputConfig()
+    link: LinkConfig = LinkConfig()
 
 
 def read_toml(path: str | os.PathLike) -> dict:

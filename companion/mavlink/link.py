@@ -49,18 +49,14 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from companion.mavlink.dialect import COMP_ID_OBSTACLE_AVOIDANCE, UINT16_MAX, mavlink, mavutil  # noqa: F401 (first)
+from companion.mavlink.dialect import mavlink, mavutil  # first: MAVLink 2 + ardupilotmega
 from companion.config import require, require_finite
-from companion.errors import CompanionError, ConfigError
+from companion.errors import ConfigError
 from companion.mavlink import messages as msgs
 from companion.mavlink.timesync import TimesyncConfig, TimesyncEstimator, handle_timesync, timesync_request
 from companion.telemetry import AddResult, TelemetryBuffer
 
 log = logging.getLogger(__name__)
-
-
-class LinkError(CompanionError):
-    """The link could not be set up (bad connection string, unreadable key file)."""
 
 
 # ---------------------------------------------------------------------- configuration ----------
@@ -324,6 +320,7 @@ class LinkStatus:
     clock_source: str | None  # "timesync", "arrival" or None
     clock_offset_s: float | None  # t_companion − t_autopilot
     timesync_rtt_s: float  # best round trip in the TIMESYNC window
+    telemetry_age_s: float  # seconds since the newest ATTITUDE sample (inf if none or no clock)
     signing: bool
     system_status: int  # what our HEARTBEAT says
     counters: dict[str, int]
@@ -416,7 +413,8 @@ class MavLink:
         self._system_status = mavlink.MAV_STATE_STANDBY
         self._hb_limiter = msgs.RateLimiter(config.heartbeat_hz)
         self._last_open_try = -math.inf
-        self._reopenable = not conn_str.startswith(("udp", "mcast"))
+        # serial and tcp are reopened while the vehicle is silent; a UDP socket only if it fails
+        self._reopenable = conn_str.startswith("tcp:") or ":" not in conn_str
         self._mavlink1_warned = False
         self.global_position = None  # last GLOBAL_POSITION_INT from the vehicle (message object)
         self._conn = None
@@ -429,6 +427,12 @@ class MavLink:
         src = self._sysid or self.config.provisional_system_id
         try:
             conn = self._factory(self.conn_str, self.config.baud, src, self.config.component_id)
+        except ImportError as exc:  # serial connections need pyserial: a setup error, not a flaky link
+            if first:
+                raise ConfigError(f"MAVLink connection {self.conn_str!r} needs a missing module: {exc} "
+                                  "(serial links need pyserial: pip install pyserial)") from None
+            conn = None
+            self.counters["open_failures"] += 1
         except ValueError as exc:  # pymavlink's verdict on a malformed connection string
             if first:
                 raise ConfigError(f"MAVLink connection {self.conn_str!r}: {exc}") from None
@@ -449,6 +453,7 @@ class MavLink:
             conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=self._refuse_unsigned,
                                link_id=self.config.signing_link_id)
         self._conn = conn
+        self._reopenable = isinstance(conn, (mavutil.mavserial, mavutil.mavtcp))
         if not first:
             self.counters["reconnects"] += 1
             log.info("reopened %s", self.conn_str)
@@ -841,7 +846,8 @@ class MavLink:
 
     def autopilot_time_usec(self, t_companion: float) -> int | None:
         """Companion time mapped onto the autopilot's boot clock, µs (None before TIMESYNC)."""
-        t = self.timesync.companion_to_autopilot(t_companion)
+        with self._lock:
+            t = self.timesync.companion_to_autopilot(t_companion)
         return None if t is None or t < 0 else int(round(t * 1e6))
 
     def autopilot_time_boot_ms(self, t_companion: float) -> int | None:
@@ -866,6 +872,7 @@ class MavLink:
                 clock_source=self.timesync.source,
                 clock_offset_s=self.timesync.offset_s,
                 timesync_rtt_s=self.timesync.best_rtt_s,
+                telemetry_age_s=self.telemetry.age(now),
                 signing=self._signing_key is not None,
                 system_status=self._system_status,
                 counters=counters,

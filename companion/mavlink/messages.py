@@ -83,8 +83,10 @@ class OutputConfig:
 class RateLimiter:
     """At most ``rate_hz`` events per second on the caller's clock (0 = never, inf = always).
 
-    ``ready(now)`` consumes a slot.  A 10 % period tolerance keeps a 10 Hz output on every third
-    frame of a jittery 30 fps camera instead of slipping to every fourth.
+    ``ready(now)`` consumes a slot.  Slots lie on a fixed grid of the nominal period and a call up
+    to 10 % of a period early still takes the next slot, so a 10 Hz output lands on every third
+    frame of a jittery 30 fps camera (instead of slipping to every fourth) while the long-run rate
+    never exceeds ``rate_hz``.  After a pause the grid restarts (no burst of catch-up sends).
     """
 
     TOLERANCE = 0.1
@@ -94,17 +96,23 @@ class RateLimiter:
             raise MessageError(f"rate_hz must be a number >= 0, got {rate_hz!r}")
         self.rate_hz = float(rate_hz)
         self.period = math.inf if rate_hz == 0 else 1.0 / rate_hz
+        self._next: float | None = None
         self._last: float | None = None
 
     def ready(self, now: float) -> bool:
         if self.rate_hz == 0:
             return False
-        if self._last is None or now - self._last >= self.period * (1 - self.TOLERANCE) or now < self._last:
-            self._last = now
-            return True
-        return False
+        early = self.TOLERANCE * self.period
+        if self._next is None or (self._last is not None and now < self._last):  # first call, or clock went back
+            self._next = now
+        if now < self._next - early:
+            return False
+        self._last = now
+        self._next = max(self._next + self.period, now + self.period - early)
+        return True
 
     def reset(self) -> None:
+        self._next = None
         self._last = None
 
 

@@ -153,7 +153,7 @@ class TimesyncEstimator:
     # ------------------------------------------------------------------ requests -------------
     def request_due(self, now: float) -> bool:
         period = self.config.interval_s if self.converged else self.config.fast_interval_s
-        return self._last_request_t is None or now - self._last_request_t >= period
+        return self._last_request_t is None or now - self._last_request_t >= period - 1e-9
 
     def make_request(self, now: float) -> tuple[int, int]:
         """(tc1, ts1) of a new request sent at ``now`` (companion clock, s)."""

@@ -25,12 +25,17 @@ Pipeline for one frame (all per-pixel work in numpy / OpenCV, no per-pixel Pytho
    plane's homography from the mip level its footprint needs (faces spanning several levels are
    drawn level by level under a per-pixel λ mask).
 4. **Cylinders** are intersected exactly per pixel inside their screen rectangle (ray–circle
-   quadratic, top and bottom discs), textured with ``cv2.remap``; edges anti-aliased the same way.
-   Solids are drawn far to near; the z-buffer (``1/Z`` greater wins) makes occlusion exact.
-5. **Output.**  Distortion remap (depth: ``1/Z`` bilinearly where the four neighbours agree,
-   nearest at depth edges, so no "flying pixels"), optional motion blur (sub-frames rendered at
-   poses spread over the exposure and averaged), exposure gain and Gaussian pixel noise, all
-   seeded per frame.
+   quadratic, top and bottom discs) and textured with ``cv2.remap`` (one mip level per cylinder,
+   from its mean depth).  Edge coverage comes from the ray's distance to the axis and the hit's
+   height, turned into pixels as metres · f / depth (approximate width, exact α ≥ ½ rule).
+   Solids are drawn far to near; the z-buffer (``1/Z`` greater wins) makes occlusion exact, and
+   the depth of a pixel is that of the surface its centre ray hits.
+5. **Output.**  With distortion the depth is remapped as ``1/Z`` bilinearly where the four canvas
+   neighbours show the same surface (exact inside a plane, at OpenCV's 1/32-px remap positions)
+   and from the nearest canvas sample across silhouettes (no "flying pixels"; there the depth is
+   that of a point within ½ canvas pixel).  Then optional motion blur (sub-frames rendered at
+   poses spread over the exposure and averaged), exposure gain and Gaussian pixel noise, seeded
+   per frame.
 """
 
 from __future__ import annotations
@@ -158,6 +163,18 @@ class Renderer:
         self._setup_canvas()
         self._solids = [_Solid(ob, self._tex) for ob in world.obstacles]
         self._corners = np.array([s.corners for s in self._solids], float).reshape(-1, 8, 3)
+        # every planar face of every box/wall/target, stacked: per-frame face maths is one batch
+        poly = [s for s in self._solids if s.cyl is None]
+        self._face_slice = {}
+        k = 0
+        for s in poly:
+            self._face_slice[s.ob.index] = (k, k + len(s.O))
+            k += len(s.O)
+        cat = lambda name: np.concatenate([getattr(s, name) for s in poly], 0) if poly else np.zeros((0, 3))  # noqa: E731
+        self._fO, self._fE1, self._fE2, self._fn = cat("O"), cat("E1"), cat("E2"), cat("n")
+        self._fquad = np.concatenate([s.quad for s in poly], 0) if poly else np.zeros((0, 4, 3))
+        self._ftexel = np.concatenate([s.texel for s in poly]) if poly else np.zeros(0)
+        self._ftwo = np.concatenate([np.full(len(s.O), s.two_sided) for s in poly]) if poly else np.zeros(0, bool)
         self._ground_tiles = self._tiled_ground()
         sky = world.config.sky
         self._sky_h, self._sky_z = float(sky.horizon_grey), float(sky.zenith_grey)
@@ -221,6 +238,8 @@ class Renderer:
         # canvas frustum in normalized coordinates (for culling)
         self._frustum = ((-0.5 - cx) / fx, (Wc - 0.5 - cx) / fx, (-0.5 - cy) / fy, (Hc - 0.5 - cy) / fy)
         self._f_mean = math.sqrt(fx * fy)
+        self._uf = np.arange(Wc, dtype=float)
+        self._vf = np.arange(Hc, dtype=float)
 
     def _refine_undistortion(self, xy: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Newton steps on the companion's forward distortion so that distort(xy) = uv to 1e-6 px."""
@@ -274,7 +293,7 @@ class Renderer:
         index = self._counter if frame_index is None else int(frame_index)
         self._counter = index + 1
         opt = self.options
-        img, invz = self._render_canvas(R, p)
+        img, invz, ids = self._render_canvas(R, p)
         n_sub = 1
         if opt.exposure_s > 0 and (v_world_cam is not None or w_cam is not None):
             v = np.zeros(3) if v_world_cam is None else np.asarray(v_world_cam, float).reshape(3)
@@ -287,12 +306,12 @@ class Renderer:
                     if abs(tau) < 1e-12:
                         sub = img
                     else:
-                        sub, _ = self._render_canvas(R @ so3_exp(w * tau), p + v * tau)
+                        sub = self._render_canvas(R @ so3_exp(w * tau), p + v * tau)[0]
                     acc += sub
                 acc *= 1.0 / n_sub
                 img = acc
-        image, invz = self._to_output(img, invz)
-        rng = np.random.default_rng([opt.seed, index])
+        image, invz = self._to_output(img, invz, ids)
+        rng = np.random.default_rng([opt.seed, index]) if (opt.gain_jitter > 0 or opt.noise_sigma > 0) else None
         g = opt.gain * (1.0 if gain is None else float(gain))
         if opt.gain_jitter > 0:
             g *= math.exp(opt.gain_jitter * rng.standard_normal())
@@ -307,7 +326,7 @@ class Renderer:
                 f = f + noise
             image = cv2.add(f, 0.0, dtype=cv2.CV_8U)  # rounds and saturates to 0..255
         with np.errstate(divide="ignore"):
-            depth = np.where(invz > 0, 1.0 / np.maximum(invz, 1e-30), np.inf).astype(_F32)
+            depth = _F32(1.0) / invz  # the z-buffer is >= 0: sky (0) becomes inf
         return Frame(image, depth, R.copy(), p.copy(), g, n_sub, index)
 
     # ------------------------------------------------------------------------------ output
@@ -321,16 +340,19 @@ class Renderer:
         trans_px = float(np.linalg.norm(v)) * opt.exposure_s * f * near_inv * (1 + half_diag / f)
         return int(min(opt.max_blur_subframes, max(1, math.ceil((rot_px + trans_px) / opt.blur_step_px))))
 
-    def _to_output(self, img: np.ndarray, invz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _to_output(self, img: np.ndarray, invz: np.ndarray, ids: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         if self._remap is None:
             return img, invz
         (m1, m2), (n1, n2) = self._remap
-        out = cv2.remap(img, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        lin = cv2.remap(invz, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        near = cv2.remap(invz, n1, n2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
-        # at a depth edge bilinear 1/Z mixes two surfaces: keep the nearest sample there
-        edge = np.abs(lin - near) > _F32(1e-3) * np.maximum(near, lin)
-        return out, np.where(edge, near, lin)
+        rm = lambda a, m, n, how: cv2.remap(a, m, n, how, borderMode=cv2.BORDER_REPLICATE)  # noqa: E731
+        out = rm(img, m1, m2, cv2.INTER_LINEAR)
+        lin = rm(invz, m1, m2, cv2.INTER_LINEAR)
+        near = rm(invz, n1, n2, cv2.INTER_NEAREST)
+        # 1/Z interpolates exactly within a plane, but across a silhouette bilinear 1/Z would mix
+        # two surfaces: where the four canvas neighbours do not all show the same surface (the
+        # interpolated surface id differs from the nearest one), keep the nearest sample
+        same = rm(ids, m1, m2, cv2.INTER_LINEAR) == rm(ids, n1, n2, cv2.INTER_NEAREST)
+        return out, np.where(same, lin, near)
 
     # ------------------------------------------------------------------------------ canvas
     def _render_canvas(self, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -341,17 +363,19 @@ class Renderer:
         cols = [_F32(R[k, 1]) * vb for k in range(3)]
         img = self._sky(R)
         invz = np.zeros((Hc, Wc), _F32)
+        # surface ids (0 sky, 1 ground, 2 + obstacle index), only needed to remap depth
+        self._ids = np.zeros((Hc, Wc), _F32) if self._remap is not None else None
         if self.world.ground_z is not None and p[2] < self.world.ground_z:
             self._draw_ground(R, p, rows, cols, img, invz)
         self._draw_solids(R, p, img, invz)
-        return img, invz
+        return img, invz, self._ids
 
     def _sky(self, R: np.ndarray) -> np.ndarray:
         Wc, Hc = self.canvas_size
         d = R[:, 0, None, None] * self._cub[None, None, :] + R[:, 1, None, None] * self._cvb[None, :, None] + R[:, 2, None, None]
         s = np.abs(d[2]) / np.sqrt(np.sum(d * d, axis=0))
         sky = (self._sky_h + (self._sky_z - self._sky_h) * s).astype(_F32)
-        return cv2.resize(cv2.add(sky, 0.0, dtype=cv2.CV_8U), (Wc, Hc), interpolation=cv2.INTER_LINEAR)
+        return cv2.add(cv2.resize(sky, (Wc, Hc), interpolation=cv2.INTER_LINEAR), 0.0, dtype=cv2.CV_8U)
 
     def _draw_ground(self, R, p, rows, cols, img, invz) -> None:
         Wc, Hc = self.canvas_size
@@ -397,25 +421,18 @@ class Renderer:
         acc = np.zeros((Hr, Wr), _F32)
         tile_m = s0 * tex[0].shape[0]
         A = Kc @ R.T
-        k3 = np.ones((3, 3), np.uint8)
-        lam_hi = cv2.dilate(lam_c, k3)  # level range over each coarse cell's neighbourhood
-        lam_lo = cv2.erode(lam_c, k3)
-        lmin = int(math.floor(float(lam.min())))
-        lmax = int(math.ceil(float(lam.max())))
+        # rows / columns of the ground region where each level has weight (λ within L ± 1)
+        r_lo, r_hi = lam.min(axis=1), lam.max(axis=1)
+        c_lo, c_hi = lam.min(axis=0), lam.max(axis=0)
+        lmin = int(math.floor(float(r_lo.min())))
+        lmax = int(math.ceil(float(r_hi.max())))
         for L in range(lmin, lmax + 1):
-            # canvas rows/cols where this level has weight: coarse points whose neighbourhood
-            # spans levels within (L − 1, L + 1) (so every pixel in between is included)
-            band = (lam_hi > L - 1.0) & (lam_lo < L + 1.0) & ground_c
-            if not band.any():
+            rr_ = np.nonzero((r_hi > L - 1.0) & (r_lo < L + 1.0))[0]
+            cc_ = np.nonzero((c_hi > L - 1.0) & (c_lo < L + 1.0))[0]
+            if len(rr_) == 0 or len(cc_) == 0:
                 continue
-            br = np.nonzero(band.any(axis=1))[0]
-            bc = np.nonzero(band.any(axis=0))[0]
-            ya = max(int(self._cv[br[0]]), y0)
-            yb = min(int(self._cv[br[-1]]) + 1, y1)
-            xa = max(int(self._cu[bc[0]]), x0)
-            xb = min(int(self._cu[bc[-1]]) + 1, x1)
-            if ya >= yb or xa >= xb:
-                continue
+            ya, yb = y0 + int(rr_[0]), y0 + int(rr_[-1]) + 1
+            xa, xb = x0 + int(cc_[0]), x0 + int(cc_[-1]) + 1
             sl = (slice(ya - y0, yb - y0), slice(xa - x0, xb - x0))
             w = np.maximum(_F32(1.0) - np.abs(lam[sl] - _F32(L)), _F32(0.0))
             t, reps = self._ground_tiles[L]
@@ -434,7 +451,9 @@ class Renderer:
         region = img[y0:y1, x0:x1]
         sky = region.astype(_F32)
         region[...] = cv2.add(sky + alpha * (acc - sky), 0.0, dtype=cv2.CV_8U)
-        invz[y0:y1, x0:x1] = np.where(alpha >= 0.5, np.maximum(dD_f * _F32(1.0 / h), 0.0), 0.0)
+        invz[y0:y1, x0:x1] = np.where(alpha >= 0.5, np.abs(dD_f * _F32(1.0 / h)), _F32(0.0))  # abs: no −0 (1/−0 = −inf)
+        if self._ids is not None:
+            self._ids[y0:y1, x0:x1] = (alpha >= 0.5).astype(_F32)
 
     # ------------------------------------------------------------------------------ solids
     def _draw_solids(self, R, p, img, invz) -> None:
@@ -454,21 +473,46 @@ class Renderer:
         vis = np.nonzero(~out)[0]
         if len(vis) == 0:
             return
+        K = self.canvas_K
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = cam[..., :2] / cam[..., 2:3] * (K[0, 0], K[1, 1]) + (K[0, 2], K[1, 2])
+        faces = self._face_batch(R, p) if len(self._fO) else None
         dist = self.world.signed_distances(p)[vis]
         for k in vis[np.argsort(-dist)]:  # far to near: edges blend over what lies behind
             s = self._solids[k]
             if s.cyl is not None:
-                self._draw_cylinder(s, R, p, cam[k], img, invz)
+                self._draw_cylinder(s, R, p, cam[k], img, invz, uv[k])
             else:
-                self._draw_polyhedron(s, R, p, cam[k], img, invz)
+                self._draw_polyhedron(s, R, p, cam[k], img, invz, uv[k], faces)
 
-    def _hull(self, cam8: np.ndarray) -> np.ndarray | None:
+    def _face_batch(self, R, p):
+        """Per-frame quantities of all planar faces at once: which side the camera is on, the
+        plane's 1/Z coefficients, mip levels at its corners and R^T [E1 E2 O − p]."""
+        side = np.einsum("ij,ij->i", self._fn, p - self._fO)  # > 0: camera outside the face
+        sign = np.where(self._ftwo & (side < 0), -1.0, 1.0)  # two-sided faces turn to the camera
+        n_c = (self._fn * sign[:, None]) @ R
+        dist = -np.abs(side)  # n_c · X on the plane (< 0: camera outside)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            coef = (n_c / dist[:, None]).astype(_F32)
+        Cc = (self._fquad - p) @ R  # (F, 4, 3)
+        np.maximum(Cc[..., 2], self.options.near_m, out=Cc[..., 2])
+        rng = np.sqrt(np.sum(Cc * Cc, axis=2))
+        cos = np.abs(np.einsum("kcj,kj->kc", Cc, n_c)) / rng
+        lam = np.log2(rng / (self._f_mean * self._ftexel[:, None] * np.maximum(cos, 1e-3))) + self.options.lod_bias
+        lam_lo, lam_hi = np.rint(lam.min(axis=1)), np.rint(lam.max(axis=1))
+        G = np.einsum("ji,kjc->kic", R, np.stack([self._fE1, self._fE2, self._fO - p], 2))
+        front = (side > 1e-9) | (self._ftwo & (np.abs(side) >= 1e-9))
+        return front, coef, dist, lam_lo, lam_hi, G
+
+    def _hull(self, cam8: np.ndarray, uv8: np.ndarray | None = None) -> np.ndarray | None:
         """Projected silhouette (convex hull, canvas pixels, positive area) of a convex solid
-        given its 8 box corners in the camera frame, clipped at the near plane."""
+        given its 8 box corners in the camera frame (and their pixels), clipped at the near plane."""
         near = self.options.near_m
         Z = cam8[:, 2]
         if Z.min() >= near:
             P = cam8
+            if uv8 is not None:
+                return self._hull_uv(uv8.copy())
         else:
             front = Z >= near
             zi, zj = Z[_EI], Z[_EJ]
@@ -479,7 +523,10 @@ class Renderer:
             if len(P) < 3:
                 return None
         K = self.canvas_K
-        uv = P[:, :2] / P[:, 2:3] * (K[0, 0], K[1, 1]) + (K[0, 2], K[1, 2])
+        return self._hull_uv(P[:, :2] / P[:, 2:3] * (K[0, 0], K[1, 1]) + (K[0, 2], K[1, 2]))
+
+    @staticmethod
+    def _hull_uv(uv: np.ndarray) -> np.ndarray | None:
         np.clip(uv, -1e7, 1e7, out=uv)
         uv32 = uv.astype(np.float32)
         idx = cv2.convexHull(uv32, returnPoints=False)
@@ -502,31 +549,28 @@ class Renderer:
             return None
         return x0, x1, y0, y1
 
-    @staticmethod
-    def _coverage(hull: np.ndarray, x0, x1, y0, y1) -> np.ndarray:
+    def _coverage(self, hull: np.ndarray, x0, x1, y0, y1) -> np.ndarray:
         """α = clamp(0.5 + signed distance in pixels to the convex polygon ``hull``), on the ROI.
 
-        ``hull`` has positive shoelace area in pixel axes; its interior lies where
+        ``hull`` (distinct vertices, positive shoelace area in pixel axes) has its interior where
         cross(e, q − a) > 0 for every edge a → b = a + e."""
-        e = np.roll(hull, -1, axis=0) - hull
-        L = np.hypot(e[:, 0], e[:, 1])
-        keep = L > 1e-9
-        e, a, L = e[keep], hull[keep], L[keep]
-        u = np.arange(x0, x1, dtype=float)
-        v = np.arange(y0, y1, dtype=float)
-        rows = ((-e[:, 1:2] * (u - a[:, 0:1]) + e[:, 0:1] * (-a[:, 1:2])) / L[:, None]).astype(_F32)  # (n, w)
-        cols = ((e[:, 0:1] * v) / L[:, None]).astype(_F32)  # (n, h)
-        if (x1 - x0) * (y1 - y0) * len(L) <= 60000:
+        e = np.concatenate([hull[1:], hull[:1]]) - hull
+        inv_len = 1.0 / np.hypot(e[:, 0], e[:, 1])
+        ex, ey = e[:, 0:1] * inv_len[:, None], e[:, 1:2] * inv_len[:, None]
+        rows = (ey * (hull[:, 0:1] - self._uf[x0:x1]) - ex * hull[:, 1:2]).astype(_F32)  # (n, w)
+        cols = (ex * self._vf[y0:y1]).astype(_F32)  # (n, h)
+        if (x1 - x0) * (y1 - y0) * len(e) <= 60000:
             m = np.min(rows[:, None, :] + cols[:, :, None], axis=0)
         else:
             m = rows[0][None, :] + cols[0][:, None]
-            for i in range(1, len(L)):
+            for i in range(1, len(e)):
                 np.minimum(m, rows[i][None, :] + cols[i][:, None], out=m)
         m += _F32(0.5)
-        return np.clip(m, 0.0, 1.0, out=m)
+        np.minimum(m, _F32(1.0), out=m)
+        return np.maximum(m, _F32(0.0), out=m)
 
-    def _draw_polyhedron(self, s: _Solid, R, p, cam8, img, invz) -> None:
-        hull = self._hull(cam8)
+    def _draw_polyhedron(self, s: _Solid, R, p, cam8, img, invz, uv8, faces) -> None:
+        hull = self._hull(cam8, uv8)
         if hull is None:
             return
         roi = self._roi(hull)
@@ -534,21 +578,15 @@ class Renderer:
             return
         x0, x1, y0, y1 = roi
         ub, vb = self._ub[:, x0:x1], self._vb[y0:y1]
-        side = np.einsum("ij,ij->i", s.n, p - s.O)  # > 0: the camera is outside this face
-        if s.two_sided:
-            if abs(side[0]) < 1e-9:
-                return  # a flat target seen exactly edge-on
-            sign = np.sign(side)
-            front = np.array([0])
-        else:
-            front = np.nonzero(side > 1e-9)[0]
-            if len(front) == 0:
-                return
-            sign = np.ones(len(side))
-        n_c = (s.n[front] * sign[front, None]) @ R  # outward normals in the camera frame
-        dist = -np.abs(side[front])  # n_c · X on the plane (< 0: camera outside)
+        f0, f1 = self._face_slice[s.ob.index]
+        b_front, b_coef, b_dist, b_lo, b_hi, b_G = faces
+        front = np.nonzero(b_front[f0:f1])[0]
+        if len(front) == 0:
+            return
+        gi = front + f0  # indices into the frame's face batch
+        dist = b_dist[gi]
         # 1/Z of each plane: (n_c · m) / dist, affine in pixels
-        coef = (n_c / dist[:, None]).astype(_F32)
+        coef = b_coef[gi]
         rows = coef[:, 0:1] * ub + coef[:, 2:3]  # (k, w)
         cols = coef[:, 1:2] * vb.T  # (k, h)
         invs = [rows[i][None, :] + cols[i][:, None] for i in range(len(front))]
@@ -560,27 +598,19 @@ class Renderer:
                 np.minimum(layer_inv, f, out=layer_inv)
         alpha = self._coverage(hull, x0, x1, y0, y1)
         zbuf = invz[y0:y1, x0:x1]
-        zpass = (alpha > 0) & (layer_inv > zbuf) & (layer_inv > 0)
+        zpass = layer_inv > zbuf  # the z-buffer is >= 0, so this also drops planes behind the camera
         if not zpass.any():
             return
         layer = np.empty(layer_inv.shape, np.uint8)
-        # texture level at the (near-clamped) face corners: λ = log2(range / (f · texel · cos θ))
-        Cc = (s.quad[front] - p) @ R  # (k, 4, 3)
-        np.maximum(Cc[..., 2], self.options.near_m, out=Cc[..., 2])
-        rng = np.sqrt(np.sum(Cc * Cc, axis=2))
-        cos = np.abs(np.einsum("kcj,kj->kc", Cc, n_c)) / rng
-        lam = np.log2(rng / (self._f_mean * s.texel[front, None] * np.maximum(cos, 1e-3))) + self.options.lod_bias
-        lam_lo, lam_hi = np.rint(lam.min(axis=1)), np.rint(lam.max(axis=1))
-        G = np.einsum("ji,kjc->kic", R, np.stack([s.E1[front], s.E2[front], s.O[front] - p], 2))  # R^T [E1 E2 O−p]
+        # texture levels at the (near-clamped) face corners: λ = log2(range / (f · texel · cos θ))
+        lam_lo, lam_hi, G = b_lo[gi], b_hi[gi], b_G[gi]
         Kc = self.canvas_K
         for i, f in enumerate(front):
             sel = zpass if len(front) == 1 else (zpass & (invs[i] == layer_inv))
-            ra = sel.any(axis=1)
-            if not ra.any():
+            bx, by, bw, bh = cv2.boundingRect(sel.view(np.uint8))
+            if bw == 0:
                 continue
-            ca = sel.any(axis=0)
-            rws, cls = np.nonzero(ra)[0], np.nonzero(ca)[0]
-            fy0, fy1, fx0, fx1 = rws[0], rws[-1] + 1, cls[0], cls[-1] + 1
+            fy0, fy1, fx0, fx1 = by, by + bh, bx, bx + bw
             sub_sel = sel[fy0:fy1, fx0:fx1]
             mips = s.mips[f]
             top = len(mips) - 1
@@ -608,40 +638,39 @@ class Renderer:
                     ly0, ly1, lx0, lx1 = 0, fy1 - fy0, 0, fx1 - fx0
                 else:
                     msk = sub_sel & lmask
-                    ra2 = msk.any(axis=1)
-                    if not ra2.any():
+                    bx, by, bw, bh = cv2.boundingRect(msk.view(np.uint8))
+                    if bw == 0:
                         continue
-                    r_, c_ = np.nonzero(ra2)[0], np.nonzero(msk.any(axis=0))[0]
-                    ly0, ly1, lx0, lx1 = r_[0], r_[-1] + 1, c_[0], c_[-1] + 1
+                    ly0, ly1, lx0, lx1 = by, by + bh, bx, bx + bw
                 t = mips[L]
                 th, tw = t.shape
-                g1, g2 = G[i, :, 0] / tw, G[i, :, 1] / th
-                Hm = Kc @ np.column_stack([g1, g2, G[i, :, 2] + 0.5 * (g1 + g2)])
-                ox, oy = x0 + fx0 + lx0, y0 + fy0 + ly0
-                Hm[0] -= ox * Hm[2]
-                Hm[1] -= oy * Hm[2]
+                # texel (j, i) of this level ↦ O + (j + ½) E1/tw + (i + ½) E2/th ↦ ROI pixel
+                Hm = Kc @ (G[i] * (1.0 / tw, 1.0 / th, 1.0))
+                Hm[:, 2] += 0.5 * (Hm[:, 0] + Hm[:, 1])
+                Hm[0] -= (x0 + fx0 + lx0) * Hm[2]
+                Hm[1] -= (y0 + fy0 + ly0) * Hm[2]
                 warped = cv2.warpPerspective(t, Hm, (int(lx1 - lx0), int(ly1 - ly0)), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                 dst = layer[fy0 + ly0 : fy0 + ly1, fx0 + lx0 : fx0 + lx1]
                 cv2.copyTo(warped, msk[ly0:ly1, lx0:lx1].view(np.uint8), dst)
-        self._composite(img, invz, x0, x1, y0, y1, layer, layer_inv, alpha, zpass)
+        self._composite(img, invz, x0, x1, y0, y1, layer, layer_inv, alpha, zpass, s.ob.index)
 
-    @staticmethod
-    def _composite(img, invz, x0, x1, y0, y1, layer, layer_inv, alpha, zpass) -> None:
+    def _composite(self, img, invz, x0, x1, y0, y1, layer, layer_inv, alpha, zpass, index: int) -> None:
         """Write a solid's layer over the canvas: opaque inside, α-blended on its edge pixels;
         its 1/Z goes into the z-buffer where the pixel centre is inside (α ≥ ½)."""
         dst = img[y0:y1, x0:x1]
         zbuf = invz[y0:y1, x0:x1]
-        inner = alpha >= 1.0
-        cv2.copyTo(layer, (zpass & inner).view(np.uint8), dst)
-        edge = zpass & ~inner
+        # dst ← dst + α (layer − dst) where the solid is in front (α = 1 inside: a plain copy)
         d = dst.astype(_F32)
         blend = cv2.add(d + alpha * (layer.astype(_F32) - d), 0.0, dtype=cv2.CV_8U)
-        cv2.copyTo(blend, edge.view(np.uint8), dst)
-        cv2.copyTo(layer_inv, (zpass & (alpha >= 0.5)).view(np.uint8), zbuf)
+        cv2.copyTo(blend, zpass.view(np.uint8), dst)
+        zw = (zpass & (alpha >= 0.5)).view(np.uint8)
+        cv2.copyTo(layer_inv, zw, zbuf)
+        if self._ids is not None:
+            cv2.copyTo(np.full(zw.shape, index + 2, _F32), zw, self._ids[y0:y1, x0:x1])
 
-    def _draw_cylinder(self, s: _Solid, R, p, cam8, img, invz) -> None:
+    def _draw_cylinder(self, s: _Solid, R, p, cam8, img, invz, uv8=None) -> None:
         ob = s.ob
-        hull = self._hull(cam8)  # of the bounding square prism: bounds the silhouette
+        hull = self._hull(cam8, uv8)  # of the bounding square prism: bounds the silhouette
         if hull is None:
             return
         roi = self._roi(hull)
@@ -702,20 +731,23 @@ class Renderer:
         zpass = (alpha > 0) & (inv > zbuf)
         if not zpass.any():
             return
-        layer = np.zeros(inv.shape, np.uint8)
+        layer = np.empty(inv.shape, np.uint8)
         side_m, top_m, bot_m = s.cyl
         covered = (zpass & (alpha >= 0.5)).view(np.uint8)
         zmean = cv2.mean(t_hit, mask=covered)[0] if covered.any() else cv2.mean(t_hit, mask=zpass.view(np.uint8))[0]
         lam = math.log2(max(zmean, 1e-6) / (f * s.cyl_texel)) + self.options.lod_bias
         side_sel = zpass if use_cap is None else (zpass & ~use_cap)
-        if t_side is not None and side_sel.any():
+        bx, by, bw, bh = cv2.boundingRect(side_sel.view(np.uint8)) if t_side is not None else (0, 0, 0, 0)
+        if bw > 0:
             L = int(np.clip(round(lam), 0, len(side_m) - 1))
             t = side_m[L]
             th, tw = t.shape[0], t.shape[1] - 2
-            theta = np.arctan2(_F32(oe) + t_side * dE, _F32(on) + t_side * dN)  # from north, clockwise
+            b = (slice(by, by + bh), slice(bx, bx + bw))
+            ts = t_side[b]
+            theta = np.arctan2(_F32(oe) + ts * dE[b], _F32(on) + ts * dN[b])  # from north, clockwise
             mx = ((theta * _F32(1.0 / (2 * math.pi))) % _F32(1.0)) * _F32(tw) + _F32(0.5)  # +1 pad − ½
-            my = (z_side - _F32(z_top)) * _F32(th / (z_base - z_top)) - _F32(0.5)
-            cv2.copyTo(cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), side_sel.view(np.uint8), layer)
+            my = (z_side[b] - _F32(z_top)) * _F32(th / (z_base - z_top)) - _F32(0.5)
+            cv2.copyTo(cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), side_sel[b].view(np.uint8), layer[b])
         if use_cap is not None:
             cap_sel = zpass & use_cap
             if cap_sel.any():
@@ -726,4 +758,4 @@ class Renderer:
                 mx = (ce + _F32(r)) * _F32(tw / (2 * r)) - _F32(0.5)
                 my = (cn + _F32(r)) * _F32(th / (2 * r)) - _F32(0.5)
                 cv2.copyTo(cv2.remap(t, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), cap_sel.view(np.uint8), layer)
-        self._composite(img, invz, x0, x1, y0, y1, layer, inv, alpha, zpass)
+        self._composite(img, invz, x0, x1, y0, y1, layer, inv, alpha, zpass, ob.index)

@@ -173,11 +173,12 @@ def fields_texture(rng, n: int, texel_m: float, *, mean: float = 110.0, contrast
             _rect(x, 0, pos, n, pos + wdt, v, True)
         else:
             _rect(x, pos, 0, pos + wdt, n, v, True)
-    n_bush = int(min(4000, (ext / 6.0) ** 2))
+    n_bush = int(min(3000, (ext / 9.0) ** 2))
     for _ in range(n_bush):
         s = max(1, int(round(rng.uniform(0.8, 4.0) / texel_m)))
+        s2 = max(1, int(round(s * rng.uniform(0.6, 1.6))))
         cx, cy = int(rng.integers(0, n)), int(rng.integers(0, n))
-        _rect(x, cx, cy, cx + s, cy + s, rng.uniform(-0.1, 0.2), True)
+        _rect(x, cx, cy, cx + s, cy + s2, rng.uniform(-0.1, 0.45), True)
     return _to_grey(x, mean, contrast, std=42.0)
 
 
@@ -204,6 +205,8 @@ class WorldTextures:
     ground: list[np.ndarray] | None
     ground_texel_m: float
     faces: dict[tuple[int, str], list[np.ndarray]] = field(default_factory=dict)
+    #: render-time cache: ground levels repeated for fast warping (filled by the renderer)
+    _tiled: list | None = None
 
 
 def _face_texture(rng, obstacle, h: int, w: int, texel: float, key: str, wrap: bool = False) -> np.ndarray:

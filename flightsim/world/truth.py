@@ -22,6 +22,7 @@ companion's camera model, distortion and mount included).  Sectors with nothing 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -51,6 +52,7 @@ def _yaw(R_world_body: np.ndarray) -> float:
     return math.atan2(R[1, 0], R[0, 0])
 
 
+@functools.lru_cache(maxsize=16)
 def _image_border_normalized(config: CameraConfig, samples: int = 64) -> np.ndarray:
     """Undistorted normalized coordinates of the image outline (pixel-area edges), a polygon."""
     w, h = config.width, config.height
