@@ -1,0 +1,134 @@
+"""Scenario files: ``configs/scenarios/*.toml`` (issue 3).
+
+A scenario names everything a flight needs, one table per part, each filled into the frozen config
+dataclass of its module (unknown or misspelt keys stop with an error naming them):
+
+* ``[scenario]`` — name, duration, the one random seed, the world file, frame rate, recording clock;
+* ``[vehicle]`` — :class:`flightsim.dynamics.DynamicsConfig` (aircraft, start, route, atmosphere);
+* ``[camera]`` — :class:`companion.core.camera.CameraConfig`, the companion's own camera table;
+* ``[render]`` — :class:`flightsim.render.RenderOptions` (pixel noise, blur, exposure);
+* ``[telemetry]`` — :class:`flightsim.telemetry.TelemetryConfig` (rates, noise, latency).
+
+The ``[scenario] seed`` seeds everything (turbulence, gyro bias, GPS noise, pixel noise); the
+tables may not carry seeds of their own, so one number reproduces a flight.  Every check that
+can fail before take-off runs in :func:`load_scenario`: TOML keys, the aircraft, a start inside or
+too close to an obstacle, a camera that sees nothing but sky.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from companion.config import from_mapping, require, require_finite
+from companion.core.camera import CameraConfig, CameraModel
+from companion.core.frames import euler_zyx_to_R
+from companion.errors import ConfigError
+from flightsim.dynamics import DynamicsConfig
+from flightsim.render import RenderOptions
+from flightsim.telemetry import TelemetryConfig
+from flightsim.world import World, check_camera_sees_something, load_world
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+EPOCH_2026 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
+
+
+@dataclasses.dataclass(frozen=True)
+class ScenarioMeta:
+    """The ``[scenario]`` table."""
+
+    name: str = "scenario"  # label used in files and reports
+    world: str = ""  # world TOML, relative to the scenario file (required)
+    duration_s: float = 10.0  # flight time simulated, s
+    seed: int = 0  # seeds every random process of the flight
+    fps: float = 30.0  # camera frame rate, frames/s
+    epoch_s: float = EPOCH_2026  # recording clock (Unix seconds) at simulation time 0
+    sector_max_distance_m: float = 40.0  # farthest range of the sector truth (OBSTACLE_DISTANCE max), m
+    video_quality: int = 95  # MJPG quality of video.avi (1–100)
+
+    def __post_init__(self) -> None:
+        require(bool(self.world), "world must name a world TOML file")
+        require_finite("duration_s", self.duration_s, positive=True)
+        require(self.duration_s <= 3600, f"duration_s must be <= 3600, got {self.duration_s}")
+        require(isinstance(self.seed, int) and self.seed >= 0, f"seed must be an integer >= 0, got {self.seed!r}")
+        require_finite("fps", self.fps, positive=True)
+        require(self.fps <= 240, f"fps must be <= 240, got {self.fps}")
+        require_finite("epoch_s", self.epoch_s, nonnegative=True)
+        require_finite("sector_max_distance_m", self.sector_max_distance_m, positive=True)
+        require(isinstance(self.video_quality, int) and 1 <= self.video_quality <= 100, "video_quality must be in 1..100")
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """A loaded, validated scenario and its world."""
+
+    path: Path
+    meta: ScenarioMeta
+    vehicle: DynamicsConfig
+    camera: CameraConfig
+    render: RenderOptions
+    telemetry: TelemetryConfig
+    world: World
+
+    @property
+    def telemetry_seed(self) -> int:
+        return self.meta.seed * 3 + 2
+
+
+_TABLES = {"scenario": ScenarioMeta, "vehicle": DynamicsConfig, "camera": CameraConfig,
+           "render": RenderOptions, "telemetry": TelemetryConfig}
+
+
+def start_pose(vehicle: DynamicsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(R_world_body, p_ned) at take-off: level, on the start heading."""
+    R = euler_zyx_to_R(0.0, 0.0, math.radians(vehicle.start_heading_deg))
+    return R, np.asarray(vehicle.start_ned_m, float)
+
+
+def load_scenario(path: str | os.PathLike, seed: int | None = None) -> Scenario:
+    """Read, validate and pre-flight-check a scenario; ``seed`` overrides ``[scenario] seed``."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such scenario file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    unknown = sorted(set(data) - set(_TABLES))
+    if unknown:
+        raise ConfigError(f"{path}: unknown table(s) {', '.join(map(repr, unknown))}; known: {', '.join(_TABLES)}")
+    for table in ("vehicle", "render"):
+        if "seed" in data.get(table, {}):
+            raise ConfigError(f"{path}: [{table}] seed is not allowed: [scenario] seed seeds the whole flight")
+    try:
+        meta = from_mapping(ScenarioMeta, data.get("scenario"), "scenario")
+        if seed is not None:
+            meta = dataclasses.replace(meta, seed=int(seed))
+        vehicle = from_mapping(DynamicsConfig, data.get("vehicle"), "vehicle")
+        vehicle = dataclasses.replace(vehicle, seed=meta.seed * 3)
+        camera = from_mapping(CameraConfig, data.get("camera"), "camera")
+        render = from_mapping(RenderOptions, data.get("render"), "render")
+        render = dataclasses.replace(render, seed=meta.seed * 3 + 1)
+        telemetry = from_mapping(TelemetryConfig, data.get("telemetry"), "telemetry")
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    world_path = (path.parent / meta.world).resolve()
+    if not world_path.is_file():
+        raise ConfigError(f"{path}: [scenario] world = {meta.world!r}: no such file ({world_path})")
+    world = load_world(world_path)
+    # pre-flight checks: the start must be clear and the camera must see something
+    R_wb, p0 = start_pose(vehicle)
+    world.check_start_clear(p0, what=f"{path.name}: start position")
+    R_wc, p_wc = CameraModel(camera).camera_pose(R_wb, p0)
+    check_camera_sees_something(world, camera, R_wc, p_wc, what=f"{path.name}: camera at the start")
+    return Scenario(path, meta, vehicle, camera, render, telemetry, world)
