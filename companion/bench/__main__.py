@@ -4,7 +4,7 @@ Subcommands:
   seed004   seed-004 scenario, Monte Carlo over pixel noise (and the gyro model)
   seed000   seed-000 scenario, relative range error against L = V·T/D0
   timing    per-stage timings on one core
-  all       all three; with --write FILE, rewrite docs/BENCHMARKS.md with figures and commands
+  all       all of these plus the simulator's speed; with --write FILE, rewrite docs/BENCHMARKS.md
 """
 
 from __future__ import annotations
@@ -109,7 +109,10 @@ def main(argv=None) -> int:
         res = cmd_timing(args)
         print(json.dumps(report.timing_json(res)) if args.json else report.timing_markdown(res))
     else:
-        res = {"seed004": cmd_seed004(args), "seed000": cmd_seed000(args), "timing": cmd_timing(args)}
+        from companion.bench import flightsim_bench
+
+        res = {"seed004": cmd_seed004(args), "seed000": cmd_seed000(args), "timing": cmd_timing(args),
+               "flightsim": flightsim_bench.run_all()}
         if args.json:
             print(json.dumps(res))
         else:

@@ -173,4 +173,14 @@ def full_markdown(res: dict, runs: int, repeats: int) -> str:
         "",
         timing_markdown(res["timing"]),
         "",
+        "## Simulator (flightsim)",
+        "",
+        flightsim_markdown(res["flightsim"]),
+        "",
     ])
+
+
+def flightsim_markdown(res: dict) -> str:
+    from companion.bench.flightsim_bench import markdown
+
+    return markdown(res)
