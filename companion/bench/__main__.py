@@ -109,10 +109,10 @@ def main(argv=None) -> int:
         res = cmd_timing(args)
         print(json.dumps(report.timing_json(res)) if args.json else report.timing_markdown(res))
     else:
-        from companion.bench import flightsim_bench
+        from companion.bench import flightsim_bench, latency
 
         res = {"seed004": cmd_seed004(args), "seed000": cmd_seed000(args), "timing": cmd_timing(args),
-               "flightsim": flightsim_bench.run_all()}
+               "latency": latency.run_all(), "flightsim": flightsim_bench.run_all()}
         if args.json:
             print(json.dumps(res))
         else:

@@ -173,11 +173,21 @@ def full_markdown(res: dict, runs: int, repeats: int) -> str:
         "",
         timing_markdown(res["timing"]),
         "",
+        "## Companion pipeline latency",
+        "",
+        latency_markdown(res["latency"]),
+        "",
         "## Simulator (flightsim)",
         "",
         flightsim_markdown(res["flightsim"]),
         "",
     ])
+
+
+def latency_markdown(res: dict) -> str:
+    from companion.bench.latency import markdown
+
+    return markdown(res)
 
 
 def flightsim_markdown(res: dict) -> str:

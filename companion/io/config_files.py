@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.config import from_mapping
+from companion.camera_sources import CameraSourceConfig
 from companion.core.camera import CameraConfig
 from companion.core.ekf_anchored import AnchoredEKFConfig
 from companion.core.ekf_landmark import LandmarkEKFConfig
@@ -27,6 +28,7 @@ from companion.core.sectors import SectorConfig
 from companion.core.triangulation import TriangulationConfig
 from companion.mavlink.link import LinkConfig
 from companion.mavlink.messages import OutputConfig
+from companion.pipeline import PipelineConfig
 from companion.telemetry import TelemetryConfig
 from companion.errors import ConfigError
 
@@ -53,6 +55,8 @@ class CompanionConfig:
     telemetry: TelemetryConfig = TelemetryConfig()
     outputs: OutputConfig = OutputConfig()
     link: LinkConfig = LinkConfig()
+    camera_source: CameraSourceConfig = CameraSourceConfig()
+    pipeline: PipelineConfig = PipelineConfig()
 
 
 def read_toml(path: str | os.PathLike) -> dict:

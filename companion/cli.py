@@ -1,0 +1,325 @@
+"""``companion`` command line: ``run`` (the live process) and ``replay`` (a recorded flight offline).
+
+Exit codes: 0 = done (including a clean stop by Ctrl-C / SIGTERM), 2 = usage or configuration
+error (the message names the argument, file, table or key), 1 = runtime failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import math
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from companion.errors import CompanionError, ConfigError
+
+log = logging.getLogger("companion")
+
+EXIT_OK, EXIT_RUNTIME, EXIT_USAGE = 0, 1, 2
+
+_DESCRIPTION = """\
+Monocular obstacle ranging for a drone companion computer.
+
+Reads the autopilot's telemetry over MAVLink and frames from one camera, tracks Harris corners
+with NCC, ranges them by triangulation and an inverse-depth EKF, and publishes obstacle sectors
+to the autopilot as OBSTACLE_DISTANCE (72 × 5°, body FRD) and DISTANCE_SENSOR (forward), plus
+diagnostics and STATUSTEXT; HEARTBEAT is ACTIVE only while valid ranges are produced.
+"""
+
+_RUN_EPILOG = """\
+connection strings (pymavlink):
+  /dev/ttyAMA0 (baud from [link] baud, or /dev/ttyAMA0,921600), udpin:0.0.0.0:14550,
+  udpout:192.168.1.10:14550, tcp:127.0.0.1:5760
+camera sources:
+  0 (device index), /dev/video0, rtsp://host/stream, http://host/stream.mjpg, video.avi,
+  sim://127.0.0.1:5600 (the simulator's frame transport)
+
+examples:
+  companion run --mavlink /dev/ttyAMA0,921600 --camera 0 --config configs/companion.toml
+  companion run --mavlink udpin:0.0.0.0:14550 --camera sim://127.0.0.1:5600 --gcs udpout:10.0.0.2:14550
+"""
+
+_REPLAY_EPILOG = """\
+The output tlog holds what the companion would have sent to the autopilot, from the vehicle's
+system id and component 196, each message stamped on the recording's clock when it would have
+left (frame capture + wait for telemetry + measured processing time).
+
+example:
+  companion replay --tlog out/telemetry.tlog --video out/video.avi --frames out/frames.csv \\
+      --out out/ranges.tlog --config configs/companion.toml --plot out/ranges.png
+"""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that names the command in errors and exits 2 (usage)."""
+
+    def error(self, message):  # pragma: no cover - exercised through main()
+        self.print_usage(sys.stderr)
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="companion", description=_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=_version())
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+
+    r = sub.add_parser("run", help="run the companion process (live MAVLink link and camera)",
+                       description="Run the companion: range obstacles from the camera and publish them to the autopilot.",
+                       epilog=_RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    r.add_argument("--mavlink", required=True, metavar="CONN", help="autopilot connection (pymavlink connection string)")
+    r.add_argument("--camera", required=True, metavar="SRC",
+                   help="camera: device index, /dev/videoN, RTSP/HTTP URL, video file or sim://HOST:PORT")
+    _common(r)
+    r.add_argument("--gcs", metavar="CONN", help="extra ground-station output with its own rate limits ([outputs] gcs_*)")
+    r.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: run until Ctrl-C / SIGTERM)")
+    r.set_defaults(func=cmd_run)
+
+    q = sub.add_parser("replay", help="run the same pipeline offline on a recorded flight",
+                       description="Replay a recorded flight (tlog + video + frames.csv) through the pipeline and write "
+                                   "what would have been sent as a MAVLink 2 tlog.",
+                       epilog=_REPLAY_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    q.add_argument("--tlog", required=True, help="the flight's telemetry.tlog (MAVLink 2)")
+    q.add_argument("--video", required=True, help="the flight's video (e.g. video.avi, MJPG)")
+    q.add_argument("--frames", required=True, help="frames.csv: 'index,t_s' per frame, capture time on the tlog's clock")
+    q.add_argument("--out", required=True, help="output tlog (ranges.tlog)")
+    _common(q)
+    q.add_argument("--camera-config", metavar="TOML",
+                   help="a TOML whose [camera] table replaces the config's (default: camera.toml next to the video, if present)")
+    q.add_argument("--plot", metavar="PNG", help="plot of the ranges over time (default: the --out path with .png)")
+    q.add_argument("--no-plot", action="store_true", help="do not draw the plot")
+    q.add_argument("--truth", metavar="NPZ", help="flightsim truth.npz drawn on the plot (default: truth.npz next to the video, "
+                                                  "if present)")
+    q.add_argument("--fixed-processing-ms", type=float, metavar="MS",
+                   help="stamp messages with this processing time instead of the measured one (deterministic output)")
+    q.add_argument("--telemetry-latency-ms", type=float, default=0.0, metavar="MS",
+                   help="transport delay of the logged telemetry, removed from the clock mapping (default 0)")
+    q.add_argument("--quiet", action="store_true", help="no progress bar")
+    q.set_defaults(func=cmd_replay)
+    return p
+
+
+def _common(sp) -> None:
+    sp.add_argument("--config", metavar="TOML", help="companion configuration (e.g. configs/companion.toml); default: built-in values")
+    sp.add_argument("--calibration", metavar="YAML", help="OpenCV calibration file (camera_matrix, distortion_coefficients); "
+                                                          "replaces the intrinsics of [camera]")
+    sp.add_argument("--log-level", default="INFO", type=str.upper,
+                    choices=("DEBUG", "INFO", "WARNING", "ERROR"), help="log verbosity (default INFO)")
+
+
+def _version() -> str:
+    from companion import __version__
+
+    return f"companion {__version__}"
+
+
+# ---------------------------------------------------------------------- configuration ----------
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    companion: object  # CompanionConfig
+    camera_source: object  # CameraSourceConfig
+    pipeline: object  # PipelineConfig
+
+
+def load_config(path: str | None, calibration: str | None = None, camera_config: str | None = None) -> RunConfig:
+    """The whole :class:`CompanionConfig` from ``path`` (defaults when None), with the camera
+    replaced by a flightsim ``camera.toml`` and/or an OpenCV calibration file when given."""
+    from companion.config import from_mapping
+    from companion.io.config_files import CompanionConfig, load_opencv_calibration, read_toml
+
+    data = read_toml(path) if path else {}
+    try:
+        cfg = from_mapping(CompanionConfig, data, "")
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}" if path else str(exc)) from None
+    if camera_config:
+        cam_data = read_toml(camera_config)
+        if "camera" not in cam_data:
+            raise ConfigError(f"{camera_config}: no [camera] table")
+        from companion.core.camera import CameraConfig
+
+        try:
+            cam = from_mapping(CameraConfig, cam_data["camera"], "camera")
+        except ConfigError as exc:
+            raise ConfigError(f"{camera_config}: {exc}") from None
+        cfg = dataclasses.replace(cfg, camera=cam)
+    if calibration:
+        cfg = dataclasses.replace(cfg, camera=load_opencv_calibration(calibration, cfg.camera))
+    return RunConfig(cfg, cfg.camera_source, cfg.pipeline)
+
+
+def check_connection_string(option: str, conn: str) -> None:
+    """Catch malformed UDP/TCP connection strings up front (a missing serial device is retried instead)."""
+    low = conn.lower()
+    if low.startswith(("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")):
+        parts = conn.split(":")
+        if len(parts) != 3 or not parts[1]:
+            raise ConfigError(f"{option} {conn!r}: expected KIND:HOST:PORT, e.g. udpin:0.0.0.0:14550")
+        try:
+            port = int(parts[2])
+        except ValueError:
+            raise ConfigError(f"{option} {conn!r}: port {parts[2]!r} is not a number") from None
+        if not 0 <= port <= 65535 or (port == 0 and not low.startswith("udpin:")):
+            raise ConfigError(f"{option} {conn!r}: port {port} out of range")
+
+
+def _setup_logging(level: str) -> None:
+    logging.basicConfig(level=getattr(logging, level), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s", datefmt="%H:%M:%S")
+
+
+# ---------------------------------------------------------------------- run --------------------
+def cmd_run(args) -> int:
+    from companion.mavlink.dialect import mavlink  # noqa: F401  (first: MAVLink 2)
+    from companion.camera_sources import open_source
+    from companion.mavlink.link import MavLink
+    from companion.pipeline import Companion
+    from companion.telemetry import TelemetryBuffer
+
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
+    check_connection_string("--mavlink", args.mavlink)
+    if args.gcs:
+        check_connection_string("--gcs", args.gcs)
+    rc = load_config(args.config, args.calibration)
+    cfg = rc.companion
+    cam = cfg.camera
+    log.info("camera %d×%d, fx %.1f fy %.1f, filter %s, outputs: OBSTACLE_DISTANCE %.0f Hz to the autopilot%s",
+             cam.width, cam.height, cam.fx, cam.fy, cfg.estimator.filter, cfg.outputs.autopilot_obstacle_distance_hz,
+             f", {cfg.outputs.gcs_obstacle_distance_hz:.0f} Hz to the ground station" if args.gcs else "")
+    link = gcs = source = None
+    stop = threading.Event()
+
+    def _stop(signum, _frame):
+        log.info("%s received: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        link = MavLink(args.mavlink, cfg.link, telemetry=TelemetryBuffer(cfg.telemetry))
+        if args.gcs:
+            gcs = MavLink(args.gcs, cfg.link, role="gcs")
+        source = open_source(args.camera, cam.width, cam.height, rc.camera_source, clock_map=link.telemetry.to_companion)
+        companion = Companion(cfg, source, link, gcs, rc.pipeline, camera=cam)
+        companion.run(stop, duration=args.duration)
+        log.info("stopped: %s", dict(companion.counters))
+        return EXIT_OK
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        for thing in (source, link, gcs):
+            if thing is not None:
+                try:
+                    thing.close()
+                except Exception:
+                    pass
+
+
+# ---------------------------------------------------------------------- replay ------------------
+class _Progress:
+    def __init__(self, enabled: bool, label: str):
+        self.enabled = enabled
+        self.label = label
+        self._p = None
+        self._task = None
+
+    def __enter__(self):
+        if self.enabled:
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self._p = Progress(TextColumn(self.label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True)
+            self._p.start()
+        return self
+
+    def __call__(self, done: int, total: int) -> None:
+        if self._p is None:
+            return
+        if self._task is None:
+            self._task = self._p.add_task(self.label, total=total)
+        self._p.update(self._task, completed=done)
+
+    def __exit__(self, *exc):
+        if self._p is not None:
+            self._p.stop()
+        return False
+
+
+def cmd_replay(args) -> int:
+    from companion.replay import replay
+
+    for name in ("tlog", "video", "frames"):
+        if not Path(getattr(args, name)).is_file():
+            raise ConfigError(f"--{name} {getattr(args, name)}: no such file")
+    out = Path(args.out)
+    if not out.parent.exists():
+        raise ConfigError(f"--out {out}: directory {out.parent} does not exist")
+    if args.fixed_processing_ms is not None and not (math.isfinite(args.fixed_processing_ms) and args.fixed_processing_ms >= 0):
+        raise ConfigError(f"--fixed-processing-ms must be >= 0, got {args.fixed_processing_ms}")
+    if not (math.isfinite(args.telemetry_latency_ms) and 0 <= args.telemetry_latency_ms < 1000):
+        raise ConfigError(f"--telemetry-latency-ms must be in [0, 1000), got {args.telemetry_latency_ms}")
+    cam_cfg = args.camera_config
+    if cam_cfg is None:
+        beside = Path(args.video).with_name("camera.toml")
+        if beside.is_file() and not args.calibration:
+            cam_cfg = str(beside)
+            log.info("using the camera of %s (next to the video); --camera-config overrides", beside)
+    if args.no_plot:
+        args.plot = None
+    elif args.plot is None:
+        args.plot = str(out.with_suffix(".png"))
+    truth = args.truth
+    if truth is None and args.plot:
+        beside = Path(args.video).with_name("truth.npz")
+        truth = str(beside) if beside.is_file() else None
+    elif truth is not None and not Path(truth).is_file():
+        raise ConfigError(f"--truth {truth}: no such file")
+    rc = load_config(args.config, args.calibration, cam_cfg)
+    cam = rc.companion.camera
+    log.info("replaying %s with a %d×%d camera (fx %.1f), %s EKF", args.video, cam.width, cam.height, cam.fx,
+             rc.companion.estimator.filter)
+    show = not args.quiet and sys.stderr.isatty()
+    with _Progress(show, "replay") as bar:
+        s = replay(args.tlog, args.video, args.frames, out, rc.companion, camera=cam, pipeline=rc.pipeline, plot=args.plot,
+                   fixed_processing_s=None if args.fixed_processing_ms is None else args.fixed_processing_ms / 1000.0,
+                   telemetry_latency_s=args.telemetry_latency_ms / 1000.0, progress=bar, truth=truth)
+    fails = ", ".join(f"{k}: {v}" for k, v in sorted(s.failed.items())) or "none"
+    print(f"replayed {s.frames} frames ({s.recording_s:.1f} s of flight) in {s.wall_s:.1f} s: {s.processed} with valid sectors, "
+          f"{s.stale} stale, {s.superseded} superseded; without ranges: {fails}")
+    if s.rejected:
+        print(f"rejected video frames: {s.rejected}")
+    print(f"latency capture → send: p50 {s.latency_p50_ms:.1f} ms, p99 {s.latency_p99_ms:.1f} ms; first valid sector after "
+          + (f"{s.first_valid_s:.2f} s" if s.first_valid_s is not None else "never"))
+    print(f"wrote {sum(s.messages.values())} messages to {s.out} as system {s.system_id}: "
+          + ", ".join(f"{k} {v}" for k, v in sorted(s.messages.items())))
+    if s.plot:
+        print(f"plot: {s.plot}")
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------- entry point -------------
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)  # exits 2 on usage errors
+    _setup_logging(args.log_level)
+    try:
+        return args.func(args)
+    except ConfigError as exc:
+        print(f"companion {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        log.info("interrupted")
+        return EXIT_OK
+    except CompanionError as exc:
+        log.error("%s", exc)
+        return EXIT_RUNTIME
+    except Exception as exc:  # a bug: say so, with the traceback in the log
+        log.exception("companion %s failed: %r", args.command, exc)
+        return EXIT_RUNTIME
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,573 @@
+"""The per-frame pipeline, the reporter and the live Companion against a loopback vehicle (issue 4).
+
+The vehicle is a separate pymavlink connection (its own parser) playing the autopilot of a
+:class:`~companion.bench.latency.SyntheticFlight`: HEARTBEAT at 1 Hz from component 1, ATTITUDE
+at 50 Hz and LOCAL_POSITION_NED at 20 Hz on its own boot clock, TIMESYNC replies, COMMAND_ACKs.
+Frames of the same flight are rendered at 30 fps and handed to the companion through an in-memory
+source.  Everything runs on one simulated clock stepped in 5 ms (loopback UDP delivers at once),
+so the tests are deterministic; every message the companion sends is decoded by the vehicle's
+parser and checked against DESIGN §5.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import socket
+
+import numpy as np
+import pytest
+
+from companion.mavlink.dialect import UINT16_MAX, mavlink, mavutil  # noqa: I001 (first: MAVLink 2)
+from companion.bench.latency import SyntheticFlight, feed_telemetry
+from companion.camera_sources import Frame, FrameSource
+from companion.core.camera import CameraConfig
+from companion.io.config_files import CompanionConfig
+from companion.mavlink.link import MavLink
+from companion.mavlink.timesync import NS
+from companion.pipeline import Companion, FrameResult, HealthState, Pipeline, PipelineConfig, Reporter
+from companion.telemetry import TelemetryBuffer
+
+DT = 0.005
+FPS = 30.0
+BOOT = 400.0  # the vehicle booted at companion time 400 s
+T0 = 1000.0  # flight time 0 on the companion clock
+SYSID = 7
+CAM = CameraConfig.from_fov(320, 240, 60.0)
+
+
+def free_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def small_config(**over) -> CompanionConfig:
+    base = CompanionConfig()
+    cfg = dataclasses.replace(
+        base, camera=CAM,
+        tracks=dataclasses.replace(base.tracks, max_tracks=120),
+        harris=dataclasses.replace(base.harris, max_corners=120),
+    )
+    return dataclasses.replace(cfg, **over)
+
+
+class Clock:
+    def __init__(self, t: float):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class ListSource(FrameSource):
+    """In-memory camera: the test pushes frames (validated like any source)."""
+
+    kind = "test"
+
+    def __init__(self, width=CAM.width, height=CAM.height):
+        super().__init__("test-camera", width, height)
+        self._set_connected(True)
+
+    def push(self, index: int, t: float, img) -> None:
+        f = self._accept(index, t, img)
+        if f is not None:
+            self._publish(f)
+
+
+class LoopbackVehicle:
+    """The autopilot of a SyntheticFlight over loopback UDP (see module docstring)."""
+
+    def __init__(self, port: int, flight: SyntheticFlight, sysid: int = SYSID, boot: float = BOOT, t0: float = T0):
+        self.port, self.flight, self.sysid = port, flight, sysid
+        self.boot, self.t0 = boot, t0  # clock time at the vehicle's boot / at flight time 0
+        self.conn = self._open()
+        self.rx: list = []  # (t, message)
+        self.heartbeats = True
+        self.streaming = True
+        self.next = {"hb": -math.inf, "att": -math.inf, "pos": -math.inf}
+        self.rates = {"att": 50.0, "pos": 20.0}
+
+    def _open(self):
+        return mavutil.mavlink_connection(f"udpout:127.0.0.1:{self.port}", source_system=self.sysid, source_component=1)
+
+    def reconnect(self) -> None:
+        """A new socket (new source port), as after a radio or router restart."""
+        self.conn.close()
+        self.conn = self._open()
+
+    def received(self, name: str, since: float = -math.inf) -> list:
+        return [m for t, m in self.rx if m.get_type() == name and t >= since]
+
+    def received_t(self, name: str, since: float = -math.inf) -> list:
+        return [(t, m) for t, m in self.rx if m.get_type() == name and t >= since]
+
+    def send(self, msg) -> None:
+        self.conn.mav.send(msg)
+
+    def step(self, t: float) -> None:
+        while True:
+            data = self.conn.recv()
+            if not data:
+                break
+            for m in self.conn.mav.parse_buffer(data) or []:
+                self.rx.append((t, m))
+                self._handle(m, t)
+        boot_ms = int(round((t - self.boot) * 1000))
+        ft = t - self.t0
+        if self.heartbeats and t >= self.next["hb"]:
+            self.next["hb"] = t + 1.0
+            self.send(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, 0,
+                                                        mavlink.MAV_STATE_ACTIVE, 3))
+        if not self.streaming:
+            return
+        if t + 1e-9 >= self.next["att"]:
+            self.next["att"] = max(self.next["att"] + 1 / self.rates["att"], t + 0.5 / self.rates["att"])
+            self.send(mavlink.MAVLink_attitude_message(boot_ms, *self.flight.attitude_fields(ft)))
+        if t + 1e-9 >= self.next["pos"]:
+            self.next["pos"] = max(self.next["pos"] + 1 / self.rates["pos"], t + 0.5 / self.rates["pos"])
+            self.send(mavlink.MAVLink_local_position_ned_message(boot_ms, *self.flight.local_position_fields(ft)))
+
+    def _handle(self, m, t: float) -> None:
+        typ = m.get_type()
+        if typ == "COMMAND_LONG" and m.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            self.send(mavlink.MAVLink_command_ack_message(m.command, mavlink.MAV_RESULT_ACCEPTED, 0, 0,
+                                                          m.get_srcSystem(), m.get_srcComponent()))
+            key = {30: "att", 32: "pos"}.get(int(m.param1))
+            if key and m.param2 > 0:
+                self.rates[key] = 1e6 / m.param2
+        elif typ == "TIMESYNC" and m.tc1 == 0:
+            self.send(mavlink.MAVLink_timesync_message(int((t - self.boot) * NS), m.ts1))
+
+
+class Rig:
+    """Companion + loopback vehicle + in-memory camera on one simulated clock."""
+
+    def __init__(self, flight: SyntheticFlight | None = None, config: CompanionConfig | None = None,
+                 pipeline: PipelineConfig = PipelineConfig(), gcs: str | None = None):
+        self.flight = flight or SyntheticFlight(camera=CAM, wall_north_m=15.0, velocity_ned=(1.0, 3.0, 0.0))
+        self.config = config or small_config()
+        self.clock = Clock(T0 - 0.5)
+        port = free_port()
+        self.link = MavLink(f"udpin:127.0.0.1:{port}", self.config.link, clock=self.clock,
+                            telemetry=TelemetryBuffer(self.config.telemetry))
+        self.gcs = MavLink(gcs, self.config.link, clock=self.clock, role="gcs") if gcs else None
+        self.vehicle = LoopbackVehicle(port, self.flight)
+        self.source = ListSource()
+        self.companion = Companion(self.config, self.source, self.link, self.gcs, pipeline, clock=self.clock)
+        self.camera_on = True
+        self.next_frame = 0
+        self.frame_hook = None  # optional: (index, t, gray) -> image to push instead
+
+    @property
+    def t(self) -> float:
+        return self.clock.t
+
+    def run(self, seconds: float) -> None:
+        for _ in range(int(round(seconds / DT))):
+            self.clock.t += DT
+            t = self.clock.t
+            self.vehicle.step(t)
+            while T0 + self.next_frame / FPS <= t + 1e-9:
+                tc = T0 + self.next_frame / FPS
+                if self.camera_on:
+                    img = self.flight.render(tc - T0)
+                    if self.frame_hook is not None:
+                        img = self.frame_hook(self.next_frame, tc, img)
+                    self.source.push(self.next_frame, tc, img)
+                self.next_frame += 1
+            self.companion.step()
+
+    def close(self) -> None:
+        self.companion.close()
+        self.vehicle.conn.close()
+
+
+@pytest.fixture
+def rig():
+    made = []
+
+    def factory(*a, **kw):
+        r = Rig(*a, **kw)
+        made.append(r)
+        return r
+
+    yield factory
+    for r in made:
+        r.close()
+
+
+def valid_cm(d) -> np.ndarray:
+    d = np.asarray(d)
+    return d[(d != UINT16_MAX)]
+
+
+def check_obstacle_distance_fields(m, config: CompanionConfig) -> None:
+    assert m.get_srcSystem() == SYSID and m.get_srcComponent() == 196
+    assert len(m.distances) == 72
+    assert m.increment == 5 and m.increment_f == 5.0 and m.angle_offset == 0.0
+    assert m.frame == mavlink.MAV_FRAME_BODY_FRD
+    assert m.min_distance == config.sectors.min_distance_cm and m.max_distance == config.sectors.max_distance_cm
+    d = np.asarray(m.distances)
+    assert not np.any(d == 0)  # 0 is "touching", never filler
+    ok = (d == UINT16_MAX) | ((d >= m.min_distance) & (d <= m.max_distance + 1))
+    assert ok.all(), d
+
+
+def statustexts(vehicle, since=-math.inf) -> list[str]:
+    return [m.text for m in vehicle.received("STATUSTEXT", since)]
+
+
+# ---------------------------------------------------------------------- end to end, live -------
+def test_wall_ahead_gives_forward_ranges_with_correct_fields(rig):
+    r = rig()
+    r.run(3.0)
+    v, cfg = r.vehicle, r.config
+    ods = v.received_t("OBSTACLE_DISTANCE")
+    assert ods, "no OBSTACLE_DISTANCE"
+    for _, m in ods:
+        check_obstacle_distance_fields(m, cfg)
+    # rate: 10–20 Hz once running
+    late = [t for t, _ in ods if t >= T0 + 1.0]
+    rate = (len(late) - 1) / (late[-1] - late[0])
+    assert 10.0 <= rate <= 20.0, rate
+    # after convergence: finite, sensible ranges in the forward sectors, unknown outside the view, never "clear"
+    t_end = r.t
+    truth = r.flight.wall_distance(t_end - T0)
+    last = [m for t, m in ods if t >= t_end - 0.5]
+    for m in last:
+        d = np.asarray(m.distances)
+        assert not np.any(d == m.max_distance + 1), "claimed clear in front of a wall"
+        fwd = [d[i] for i in (70, 71, 0, 1, 2)]
+        assert all(x != UINT16_MAX for x in fwd), fwd
+        assert d[0] / 100 == pytest.approx(truth, rel=0.2) and d[0] / 100 <= truth * 1.05
+        assert all(d[i] == UINT16_MAX for i in range(8, 65)), "sectors outside the 60° view must be unknown"
+    # forward DISTANCE_SENSOR with its covariance
+    dss = [m for t, m in v.received_t("DISTANCE_SENSOR") if t >= t_end - 0.5]
+    assert dss
+    for m in dss:
+        assert m.get_srcComponent() == 196 and m.orientation == mavlink.MAV_SENSOR_ROTATION_NONE
+        assert m.current_distance / 100 == pytest.approx(truth, rel=0.2)
+        assert 2 <= m.signal_quality <= 100  # covariance: cm² in a uint8, 255 when σ > 16 cm (as here)
+    # heartbeat ACTIVE while producing, typed as an onboard controller
+    hbs = v.received_t("HEARTBEAT")
+    assert all(m.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER and m.autopilot == mavlink.MAV_AUTOPILOT_INVALID
+               and m.get_srcComponent() == 196 for _, m in hbs)
+    assert hbs[-1][1].system_status == mavlink.MAV_STATE_ACTIVE
+    assert "Ranging active" in statustexts(v)
+    # diagnostics at <= 1 Hz per name
+    nv = v.received_t("NAMED_VALUE_FLOAT")
+    names = {m.name for _, m in nv}
+    assert {"MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS"} <= names
+    for name in names:
+        ts = [t for t, m in nv if m.name == name]
+        assert all(b - a >= 0.9 for a, b in zip(ts, ts[1:])), (name, ts)
+    fps = [m.value for t, m in nv if m.name == "MR_FPS" and t > T0 + 2.0]
+    assert fps and fps[-1] == pytest.approx(30.0, abs=3.0)
+    assert r.companion.counters["frames_processed"] >= 74  # 76 frames in 2.5 s of flight
+
+
+def test_no_texture_is_unknown_never_clear(rig):
+    flat = SyntheticFlight(camera=CAM, wall_north_m=15.0, velocity_ned=(1.0, 3.0, 0.0), textured=False)
+    r = rig(flat)
+    r.run(2.0)
+    ods = r.vehicle.received("OBSTACLE_DISTANCE")
+    assert len(ods) > 10
+    for m in ods:
+        check_obstacle_distance_fields(m, r.config)
+        assert all(x == UINT16_MAX for x in m.distances), "no features must read as unknown, not clear"
+    for m in r.vehicle.received("DISTANCE_SENSOR"):
+        assert m.current_distance == UINT16_MAX and m.signal_quality == 1
+    hbs = r.vehicle.received("HEARTBEAT")
+    assert hbs[-1].system_status == mavlink.MAV_STATE_STANDBY
+    assert r.companion.reporter.health.state == HealthState.NO_RANGES
+    assert any("no converged features" in s for s in statustexts(r.vehicle))
+
+
+def test_telemetry_stops_then_returns(rig):
+    r = rig()
+    r.run(2.0)
+    assert r.companion.reporter.health.state == HealthState.ACTIVE
+    t_stop = r.t
+    r.vehicle.streaming = False  # HEARTBEATs continue: the link is up, the telemetry is not
+    r.run(2.0)
+    v = r.vehicle
+    # within 0.5 s no sector is published as valid any more
+    for t, m in v.received_t("OBSTACLE_DISTANCE", since=t_stop + 0.5):
+        assert all(x == UINT16_MAX for x in m.distances), t - t_stop
+    for t, m in v.received_t("DISTANCE_SENSOR", since=t_stop + 0.5):
+        assert m.current_distance == UINT16_MAX
+    # ... and it keeps saying so (explicit unknown at the normal rate, not silence)
+    assert len(v.received("OBSTACLE_DISTANCE", since=t_stop + 0.5)) >= 15
+    hb = v.received_t("HEARTBEAT", since=t_stop + 0.5)
+    assert hb and all(m.system_status != mavlink.MAV_STATE_ACTIVE for _, m in hb)
+    texts = statustexts(v, since=t_stop)
+    assert any(s.startswith("Ranging invalid") and ("stale" in s or "telemetry" in s) for s in texts), texts
+    # recovery
+    t_back = r.t
+    v.streaming = True
+    r.run(2.5)
+    valid = [m for m in v.received("OBSTACLE_DISTANCE", since=t_back) if any(x != UINT16_MAX for x in m.distances)]
+    assert valid, "no valid ranges after the telemetry returned"
+    assert "Ranging active" in statustexts(v, since=t_back)
+    assert v.received("HEARTBEAT", since=t_back)[-1].system_status == mavlink.MAV_STATE_ACTIVE
+
+
+def test_camera_stops_then_returns(rig):
+    r = rig()
+    r.run(2.0)
+    assert r.companion.reporter.health.state == HealthState.ACTIVE
+    t_stop = r.t
+    r.camera_on = False
+    r.run(1.5)
+    v = r.vehicle
+    assert r.companion.reporter.health.state == HealthState.FAULT
+    assert r.companion.reporter.health.reason == "camera lost"
+    for t, m in v.received_t("OBSTACLE_DISTANCE", since=t_stop + 0.5):
+        assert all(x == UINT16_MAX for x in m.distances)
+    assert any("camera lost" in s for s in statustexts(v, since=t_stop))
+    assert all(m.system_status == mavlink.MAV_STATE_CRITICAL for m in v.received("HEARTBEAT", since=t_stop + 0.6))
+    t_back = r.t
+    r.camera_on = True
+    r.run(2.0)
+    assert r.companion.reporter.health.state == HealthState.ACTIVE
+    valid = [m for m in v.received("OBSTACLE_DISTANCE", since=t_back) if any(x != UINT16_MAX for x in m.distances)]
+    assert valid
+    # the gap restarted tracks and filters: no range measured before the gap survives it
+    assert r.companion.pipeline.counters["restart_gap"] >= 1
+
+
+def test_link_drops_then_returns(rig):
+    r = rig()
+    r.run(2.0)
+    t_drop = r.t
+    v = r.vehicle
+    v.heartbeats = v.streaming = False
+    r.run(4.0)  # > link_timeout_s = 3 s
+    assert not r.link.connected
+    assert r.companion.reporter.health.state == HealthState.FAULT
+    # the silent vehicle still listens: everything it got after 0.5 s is unknown
+    for t, m in v.received_t("OBSTACLE_DISTANCE", since=t_drop + 0.5):
+        assert all(x == UINT16_MAX for x in m.distances)
+    t_back = r.t
+    v.reconnect()  # back from a new source port
+    v.heartbeats = v.streaming = True
+    r.run(3.0)
+    assert r.link.connected
+    assert r.companion.reporter.health.state == HealthState.ACTIVE
+    valid = [m for m in v.received("OBSTACLE_DISTANCE", since=t_back) if any(x != UINT16_MAX for x in m.distances)]
+    assert valid
+    texts = statustexts(v, since=t_back)
+    assert any("restored" in s for s in texts), texts
+
+
+def test_bad_frames_never_crash_and_are_counted(rig):
+    r = rig()
+    bad = {
+        5: np.zeros((0, 0), np.uint8),  # empty
+        6: np.zeros((100, 100), np.uint8),  # wrong size
+        7: np.zeros((240, 320), np.float32),  # wrong type
+        8: None,  # nothing decoded
+        9: np.random.default_rng(0).integers(0, 256, (240, 320, 3), dtype=np.uint8),  # colour noise: decodes, is grey-converted
+        10: "garbage",
+    }
+    r.frame_hook = lambda i, t, img: bad.get(i, img)
+    r.run(2.5)
+    st = r.source.status()
+    assert st.rejected == {"empty": 2, "wrong_size": 1, "dtype": 1, "corrupt": 1}
+    assert r.companion.reporter.health.state == HealthState.ACTIVE
+    # and directly into the pipeline: invalid results with a reason, never an exception
+    p = r.companion.pipeline
+    for img in (np.zeros((0,), np.uint8), np.zeros((3, 3), np.uint8), np.full((240, 320), np.nan), object()):
+        res = p.process(Frame(10_000, r.t - 0.01, img), r.t)
+        assert not res.ok and res.reason.startswith("bad frame"), res.reason
+
+
+# ---------------------------------------------------------------------- ground-station output --
+def test_gcs_output_has_its_own_rate_and_the_vehicle_sysid(rig):
+    gport = free_port()
+    gcs_peer = mavutil.mavlink_connection(f"udpin:127.0.0.1:{gport}", source_system=255, source_component=190)
+    try:
+        r = rig(gcs=f"udpout:127.0.0.1:{gport}")
+        r.run(3.0)
+        got = []
+        while True:
+            m = gcs_peer.recv_match(blocking=False)
+            if m is None:
+                break
+            got.append(m)
+        od = [m for m in got if m.get_type() == "OBSTACLE_DISTANCE"]
+        auto = r.vehicle.received("OBSTACLE_DISTANCE")
+        assert od and all(m.get_srcSystem() == SYSID and m.get_srcComponent() == 196 for m in od)
+        assert len(od) <= 3.0 * r.config.outputs.gcs_obstacle_distance_hz + 1 < len(auto)
+        assert any(m.get_type() == "STATUSTEXT" for m in got)
+    finally:
+        gcs_peer.close()
+
+
+# ---------------------------------------------------------------------- pipeline units ---------
+def make_pipeline(flight=None, config=None, pipeline=PipelineConfig()):
+    flight = flight or SyntheticFlight(camera=CAM, wall_north_m=15.0, velocity_ned=(1.0, 3.0, 0.0))
+    config = config or small_config()
+    tel = TelemetryBuffer(config.telemetry)
+    tel.set_clock_offset(0.0)  # companion clock = vehicle boot clock = flight time
+    return flight, tel, Pipeline(CAM, config, pipeline, tel)
+
+
+def test_pose_is_interpolated_at_capture_time_and_frames_wait_for_the_bracketing_sample():
+    flight, tel, p = make_pipeline()
+    feed_telemetry(tel, flight, 0.0, 1.005)
+    t = 1.01  # after the newest ATTITUDE (1.00 s): wait, then fail once the wait is over
+    assert p.readiness(t, now=t + 0.005) == "wait"
+    assert p.readiness(t, now=t + 0.07) == "fail"
+    res = p.process(Frame(0, t, flight.render(t)), now=t + 0.07)
+    assert not res.ok and res.reason == "telemetry: attitude after_buffer"
+    feed_telemetry(tel, flight, 1.005, 1.03)
+    assert p.readiness(t, now=t + 0.021) == "ready"
+    res = p.process(Frame(1, t, flight.render(t)), now=t + 0.021)
+    assert res.ok, res.reason
+    # position extrapolated from the newest LOCAL_POSITION_NED (1.00 s) with its velocity
+    assert p.counters["position_extrapolated"] == 1
+    assert res.t_boot_capture == pytest.approx(t)
+
+
+def test_stale_telemetry_refuses_frames():
+    flight, tel, p = make_pipeline()
+    feed_telemetry(tel, flight, 0.0, 1.0)
+    res = p.process(Frame(0, 0.9, flight.render(0.9)), now=1.6)
+    assert not res.ok and "stale" in res.reason
+
+
+def test_clock_jump_and_reboot_restart_the_ranging():
+    flight, tel, p = make_pipeline()
+    feed_telemetry(tel, flight, 0.0, 2.0)
+    for k in range(20):
+        t = 1.0 + k / FPS
+        assert p.process(Frame(k, t, flight.render(t)), now=t + 0.02).ok
+    assert p.estimator.ekf.ids.size > 0
+    # frame time goes back
+    res = p.process(Frame(20, 1.2, flight.render(1.2)), now=1.7)
+    assert res.restart == "frame time went back" and res.ok
+    # the TIMESYNC mapping jumps by 0.3 s
+    tel.set_clock_offset(0.3)
+    feed_telemetry(tel, flight, 2.0, 2.2)  # (stamps are flight time; only the restart matters here)
+    res = p.process(Frame(21, 1.7, flight.render(1.4)), now=1.75)
+    assert res.restart.startswith("clock jump")
+    # an autopilot reboot (time_boot_ms back to 0)
+    tel.add_attitude(10, 0, 0, 0, 0, 0, 0)
+    res = p.process(Frame(22, 1.8, flight.render(1.5)), now=1.85)
+    assert res.restart == "autopilot reboot"
+    assert not res.ok  # the buffer was cleared: no pose
+    assert p.counters["restart_clock_jump"] == 1 and p.counters["restart_autopilot_reboot"] == 1
+
+
+def test_frames_from_the_future_are_a_clock_fault():
+    flight, tel, p = make_pipeline()
+    feed_telemetry(tel, flight, 0.0, 2.0)
+    res = p.process(Frame(0, 1.5, flight.render(1.5)), now=1.0)
+    assert not res.ok and res.reason.startswith("clock fault")
+
+
+def _fake_result(sectors, yaw=0.0, t=10.0):
+    return FrameResult(1, t, t, 0.005, True, "ok", sectors=sectors, yaw=yaw, n_tracks=10, t_boot_capture=t)
+
+
+def _sectors_with_obstacle_at(bearing_deg: float, dist_m: float, config: CompanionConfig):
+    from companion.core.sectors import compute_sectors
+
+    b = math.radians(bearing_deg)
+    pts = np.array([[dist_m * math.cos(b), dist_m * math.sin(b), 0.0]] * 3)
+    return compute_sectors(pts, np.full(3, 0.1), np.ones(3, bool), np.ones(3, bool), math.radians(60), 0.0, config.sectors)
+
+
+def test_reporter_rotates_sectors_by_the_yaw_change_since_exposure():
+    cfg = small_config()
+    rep = Reporter(cfg, PipelineConfig(), start=9.0)
+    sec = _sectors_with_obstacle_at(0.0, 10.0, cfg)
+    assert sec.distances_cm[0] != UINT16_MAX
+    res = _fake_result(sec, yaw=0.0)
+    msgs = rep.on_result(res, 10.03, yaw_now=math.radians(10.0), last_frame_at=10.0)
+    od = [m for _, m in msgs if m.get_type() == "OBSTACLE_DISTANCE"]
+    assert len(od) == 1
+    d = np.asarray(od[0].distances)
+    # the vehicle turned 10° right: the obstacle is now 10° to the left (sector 70)
+    assert d[70] != UINT16_MAX and d[0] == UINT16_MAX
+    ds = [m for _, m in msgs if m.get_type() == "DISTANCE_SENSOR"]
+    assert ds and ds[0].current_distance == UINT16_MAX  # the forward reading no longer points at what was seen
+
+
+def test_reporter_never_publishes_an_old_result_as_valid():
+    cfg = small_config()
+    rep = Reporter(cfg, PipelineConfig(), start=9.0)
+    sec = _sectors_with_obstacle_at(0.0, 10.0, cfg)
+    res = _fake_result(sec, t=10.0)
+    rep.on_result(res, 10.02, yaw_now=0.0, last_frame_at=10.0)
+    late = rep.tick(10.45, yaw_now=0.0, last_frame_at=10.4)  # no newer result for 0.45 s
+    od = [m for _, m in late if m.get_type() == "OBSTACLE_DISTANCE"]
+    assert od and all(x == UINT16_MAX for x in od[0].distances)
+    assert rep.health.state == HealthState.FAULT and rep.health.reason == "frames not processed in time"
+
+
+def test_frames_older_than_the_age_limit_are_dropped(rig):
+    r = rig()
+    r.run(0.3)
+    # a frame captured 0.25 s ago arrives now: dropped before processing
+    c = r.companion
+    before = c.counters["frames_stale"]
+    r.source.push(10_000, r.t - 0.25, r.flight.render(r.t - 0.25 - T0))
+    c.step()
+    assert c.counters["frames_stale"] == before + 1
+
+
+def test_garbage_duplicates_and_an_autopilot_reboot_never_stop_the_companion(rig):
+    r = rig()
+    r.run(1.5)
+    assert r.companion.reporter.health.state == HealthState.ACTIVE
+    v = r.vehicle
+    rng = np.random.default_rng(3)
+    t_noise = r.t
+    for _ in range(20):  # random bytes, a bad CRC, a truncated packet, an unknown message id
+        v.conn.write(bytes(rng.integers(0, 256, int(rng.integers(1, 300)), dtype=np.uint8)))
+        good = bytearray(mavlink.MAVLink_attitude_message(1, 0, 0, 0, 0, 0, 0).pack(v.conn.mav))
+        good[-1] ^= 0xFF
+        v.conn.write(bytes(good))
+        v.conn.write(bytes(good[:9]))
+        unknown = bytearray(good)
+        unknown[7:10] = (60000).to_bytes(3, "little")
+        v.conn.write(bytes(unknown))
+        r.run(0.02)
+    # duplicated and out-of-order telemetry
+    boot_ms = int(round((r.t - v.boot) * 1000))
+    for ms in (boot_ms - 40, boot_ms - 40, boot_ms - 80):
+        v.send(mavlink.MAVLink_attitude_message(ms, *r.flight.attitude_fields(ms / 1000 + v.boot - v.t0)))
+    r.run(0.5)
+    assert r.companion.reporter.health.state == HealthState.ACTIVE
+    valid = [m for m in v.received("OBSTACLE_DISTANCE", since=t_noise) if m.distances[0] != UINT16_MAX]
+    assert valid
+    assert r.link.status().counters.get("rx_bad_crc", 0) >= 20
+    # the autopilot reboots: time_boot_ms restarts from 0
+    t_reboot = r.t
+    v.boot = r.t
+    r.run(3.0)
+    texts = statustexts(v, since=t_reboot)
+    assert any("autopilot reboot" in s for s in texts), texts
+    assert r.companion.reporter.health.state == HealthState.ACTIVE
+    valid = [m for t, m in v.received_t("OBSTACLE_DISTANCE", since=t_reboot + 1.0) if m.distances[0] != UINT16_MAX]
+    assert valid and valid[-1].distances[0] / 100 == pytest.approx(r.flight.wall_distance(r.t - T0), rel=0.2)
+
+
+def test_obstacle_distance_3d_when_enabled_turns_with_the_vehicle():
+    base = small_config()
+    cfg = dataclasses.replace(base, outputs=dataclasses.replace(base.outputs, autopilot_obstacle_3d_hz=5.0))
+    rep = Reporter(cfg, PipelineConfig(), start=9.0)
+    sec = _sectors_with_obstacle_at(0.0, 10.0, cfg)
+    msgs = rep.on_result(_fake_result(sec), 10.02, yaw_now=math.radians(90.0), last_frame_at=10.0, time_boot_ms=1234)
+    o3 = [m for _, m in msgs if m.get_type() == "OBSTACLE_DISTANCE_3D"]
+    assert len(o3) == 1
+    m = o3[0]
+    assert m.frame == mavlink.MAV_FRAME_BODY_FRD and m.time_boot_ms == 1234 and m.obstacle_id == 0
+    # seen 10 m ahead (minus 2σ), the vehicle has since turned 90° right: now on its left
+    assert m.x == pytest.approx(0.0, abs=1e-6) and m.y == pytest.approx(-9.8, abs=1e-3) and m.z == pytest.approx(0.0)
+    assert m.min_distance == pytest.approx(0.5) and m.max_distance == pytest.approx(40.0)
