@@ -107,3 +107,52 @@ def test_bad_input_is_named():
         est.process(0.5, R, p, np.array([1]), np.array([[100.0, 100.0]]))
     with pytest.raises(ConfigError, match="filter must be one of"):
         EstimatorConfig(filter="ukf")
+
+
+def _with_t_junctions(frames, dx=10.0, n=8, seed=1):
+    """Add tracks that are not static points: u of a near point, v of one ``dx`` farther that starts
+    at about the same pixel (a T-junction of a near vertical edge and a farther horizontal edge,
+    DESIGN §3.2: the corner slides with parallax).  Ids 1000 + k."""
+    rng = np.random.default_rng(seed)
+    cam = CameraModel(CAM)
+    near = np.stack([rng.uniform(55, 65, n), rng.uniform(-8, 8, n), rng.uniform(-26, -14, n)], 1)
+    s = (near[:, 0] + dx) / near[:, 0]
+    far = near.copy()
+    far[:, 0] += dx
+    far[:, 1] *= s
+    far[:, 2] = -20 + (near[:, 2] + 20) * s
+    out = []
+    for t, R, p, ids, uv in frames:
+        un = cam.project(cam.world_to_camera(near, R, p))
+        uf = cam.project(cam.world_to_camera(far, R, p))
+        uv_j = np.stack([un[:, 0], uf[:, 1]], 1) + 0.1 * rng.standard_normal((n, 2))
+        ok = cam.in_image(uv_j)
+        out.append((t, R, p, np.concatenate([ids, 1000 + np.flatnonzero(ok)]), np.concatenate([uv, uv_j[ok]])))
+    return out
+
+
+@pytest.mark.parametrize("which", ["anchored", "landmark"])
+def test_tracks_inconsistent_with_a_static_point_are_retired(which):
+    pts, frames = flight(sigma_px=0.1, K=60)
+    frames = _with_t_junctions(frames)
+    results = {}
+    for max_nis in (0.0, 1.0):
+        est = RangeEstimator(CAM, EstimatorConfig(filter=which),
+                             ekf_anchored=AnchoredEKFConfig(sigma_px=0.5, max_mean_nis=max_nis),
+                             ekf_landmark=LandmarkEKFConfig(sigma_px=0.5, sigma_v=0.01, sigma_w=1e-4, max_mean_nis=max_nis))
+        retired_seen = []
+        for f in frames:
+            out = est.process(*f)
+            retired_seen.extend(out.retired_ids.tolist())
+        results[max_nis] = (est, out, set(retired_seen))
+    est, out, retired = results[1.0]
+    junctions = {i for i in range(1000, 1008)}
+    # the junction tracks are retired and never come back; real points are kept
+    assert len(junctions & retired) >= 6
+    assert not (set(out.ids.tolist()) & junctions & retired)
+    assert set(est.retired.tolist()) >= (junctions & retired)
+    real_retired = {i for i in retired if i < 1000}
+    assert len(real_retired) <= 0.1 * len(pts)
+    # with the test off, the same junctions run as filters (so the test above is what removed them)
+    est0, out0, retired0 = results[0.0]
+    assert len(set(out0.ids.tolist()) & junctions) >= 6

@@ -211,3 +211,14 @@ def test_bad_input_names_the_problem(scene):
         TrackConfig(max_tracks=0)
     with pytest.raises(ConfigError, match="border"):
         TrackManager(camera(), HarrisConfig(border=4), NCCConfig(), TrackConfig())
+
+
+def test_killed_tracks_end_for_good(scene):
+    tm = manager(max_tracks=60)
+    first = tm.step(scene.render(np.zeros(2)), 0.0, 0)
+    victims = first.ids[:10]
+    assert tm.kill(np.concatenate([victims, [999_999]])) == 10  # unknown ids are ignored
+    assert tm.n_live == 50 and not np.any(np.isin(tm.live_ids(), victims))
+    fr = tm.step(scene.render(np.array([1.0, 0.5])), 1 / 30, 1)
+    assert not np.any(np.isin(fr.ids, victims)), "a killed track must not be observed again"
+    assert tm.n_live <= 60 and set(fr.ids.tolist()) <= set(first.ids[10:].tolist()) | set(fr.new_ids.tolist())

@@ -37,7 +37,9 @@ drift (n = 3 states) the same equations hold with b = 0.
 
 Update: iterated EKF (Gauss–Newton on the prior + measurement cost, ``iterations`` relinearizations;
 1 = the plain EKF), χ² innovation gate on the first linearization, Joseph-form covariance.
-Measurement noise R = (σ_px/f)² + σ_att² (white attitude noise of each telemetry sample).
+Measurement noise R = (σ_px/f)² + σ_att² (white attitude noise of each telemetry sample)
++ 2 (ρ σ_p)² (the telemetry's position error at the anchor and now, seen from the landmark at
+inverse depth ρ; treated as white, an approximation for GPS-like correlated error).
 
 All operations are batched over landmarks: arrays of shape (N, 3), (N, 3, 3); no loop per landmark.
 """
@@ -64,10 +66,13 @@ class AnchoredEKFConfig:
     iterations: int = 2  # iterated-EKF relinearizations per update (1 = plain EKF)
     attitude_sigma_deg: float = 0.0  # white attitude error of each telemetry pose
     attitude_drift_deg_s: float = 0.0  # σ of the gyro bias per axis (°/s); > 0 adds 3 bias states
+    position_sigma_m: float = 0.0  # σ of the telemetry's camera position error per axis (m), seen as ρ·σ at the landmark
     converged_rel_sigma: float = 0.1  # converged when range σ / range is below this
     min_updates: int = 3  # ... and at least this many accepted updates
     max_consecutive_rejects: int = 5  # then the landmark is flagged diverged
     max_range_m: float = 10000.0  # ranges beyond this are reported as this value
+    nis_window: float = 10.0  # updates averaged (exponentially) in each landmark's mean NIS
+    max_mean_nis: float = 0.0  # mean NIS above this flags the landmark diverged (not a static point); 0 = off
 
     def __post_init__(self) -> None:
         require_finite("sigma_px", self.sigma_px, positive=True)
@@ -80,6 +85,10 @@ class AnchoredEKFConfig:
         require(isinstance(self.min_updates, int) and self.min_updates >= 0, "min_updates must be an integer >= 0")
         require(isinstance(self.max_consecutive_rejects, int) and self.max_consecutive_rejects >= 1, "max_consecutive_rejects must be >= 1")
         require_finite("max_range_m", self.max_range_m, positive=True)
+        require_finite("position_sigma_m", self.position_sigma_m, nonnegative=True)
+        require_finite("nis_window", self.nis_window)
+        require(self.nis_window >= 1.0, f"nis_window must be >= 1, got {self.nis_window}")
+        require_finite("max_mean_nis", self.max_mean_nis, nonnegative=True)
 
     @property
     def gate_threshold(self) -> float:
@@ -212,6 +221,8 @@ class AnchoredInverseDepthEKF:
         self.n_updates = np.zeros(0, dtype=np.int64)
         self.n_rejects = np.zeros(0, dtype=np.int64)  # consecutive
         self.diverged = np.zeros(0, dtype=bool)
+        self.nis_avg = np.zeros(0)  # mean NIS over the last ~nis_window measurements (consistency with a static point)
+        self.nis_count = np.zeros(0, dtype=np.int64)  # measurements in nis_avg
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -278,11 +289,13 @@ class AnchoredInverseDepthEKF:
         self.n_updates = np.concatenate([self.n_updates, np.zeros(m, np.int64)])[order]
         self.n_rejects = np.concatenate([self.n_rejects, np.zeros(m, np.int64)])[order]
         self.diverged = np.concatenate([self.diverged, np.zeros(m, bool)])[order]
+        self.nis_avg = np.concatenate([self.nis_avg, np.zeros(m)])[order]
+        self.nis_count = np.concatenate([self.nis_count, np.zeros(m, np.int64)])[order]
 
     def remove(self, ids) -> None:
         keep = np.ones(len(self.ids), bool)
         keep[self.index_of(ids)] = False
-        for name in ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged"):
+        for name in ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged", "nis_avg", "nis_count"):
             setattr(self, name, getattr(self, name)[keep])
 
     # -- model ----------------------------------------------------------------------------------
@@ -342,6 +355,9 @@ class AnchoredInverseDepthEKF:
         P0 = self.P[rows]
         RA, pA = self.R_world_camA[rows], self.p_world_camA[rows]
         Rn = self.measurement_noise(t, rows)
+        if self.config.position_sigma_m > 0:  # anchor and current position errors, ⟂ to the ray: 2 (ρ σ_p)²
+            pos = 2.0 * (np.maximum(x0[:, 2], 0.0) * self.config.position_sigma_m) ** 2
+            Rn = Rn + pos[:, None, None] * np.eye(2)
         dt = t - self.t_anchor[rows]
 
         h, zhat, H = self.measure(x0, RA, pA, Rc, C, dt)
@@ -377,6 +393,14 @@ class AnchoredInverseDepthEKF:
         self.n_updates[rows] += good
         self.n_rejects[rows] = np.where(good, 0, self.n_rejects[rows] + 1)
         self.diverged[rows] |= self.n_rejects[rows] >= self.config.max_consecutive_rejects
+        cap = 2.0 * self.config.gate_threshold
+        nis_c = np.where(np.isfinite(nis), np.minimum(nis, cap), cap)
+        self.nis_count[rows] += 1
+        alpha = 1.0 / np.minimum(self.nis_count[rows], self.config.nis_window)  # running mean, then exponential
+        self.nis_avg[rows] += alpha * (nis_c - self.nis_avg[rows])
+        if self.config.max_mean_nis > 0:
+            full = self.nis_count[rows] >= self.config.nis_window
+            self.diverged[rows] |= full & (self.nis_avg[rows] > self.config.max_mean_nis)
         return UpdateResult(ids, good, nis, reason)
 
     # -- output ---------------------------------------------------------------------------------

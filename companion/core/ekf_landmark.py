@@ -143,6 +143,8 @@ class LandmarkEKFConfig:
     max_normalized_coord: float = 20.0  # |x̄| or |ȳ| above this (ray > 87° off axis) flags invalid
     max_step: float = 0.05  # s: longer prediction steps are split into RK4 sub-steps
     max_dt: float = 1.0  # s: a longer predict() step is refused (constant-input model no longer holds)
+    nis_window: float = 10.0  # updates averaged (exponentially) in each landmark's mean NIS
+    max_mean_nis: float = 0.0  # mean NIS above this flags the landmark diverged (not a static point); 0 = off
 
     def __post_init__(self) -> None:
         require_finite("sigma_px", self.sigma_px, positive=True)
@@ -171,6 +173,9 @@ class LandmarkEKFConfig:
         require_finite("max_normalized_coord", self.max_normalized_coord, positive=True)
         require_finite("max_step", self.max_step, positive=True)
         require_finite("max_dt", self.max_dt, positive=True)
+        require_finite("nis_window", self.nis_window)
+        require(self.nis_window >= 1.0, f"nis_window must be >= 1, got {self.nis_window}")
+        require_finite("max_mean_nis", self.max_mean_nis, nonnegative=True)
         require(self.max_dt >= self.max_step, f"max_dt ({self.max_dt}) must be >= max_step ({self.max_step})")
 
     @property
@@ -418,8 +423,10 @@ class LandmarkEKFBank:
         self.n_rejects = np.zeros(0, np.int64)
         self.diverged = np.zeros(0, bool)
         self.invalid = np.zeros(0, bool)
+        self.nis_avg = np.zeros(0)  # mean NIS over the last ~nis_window measurements (consistency with a static point)
+        self.nis_count = np.zeros(0, np.int64)  # measurements in nis_avg
 
-    _ARRAYS = ("ids", "x", "P", "n_updates", "n_rejects", "diverged", "invalid")
+    _ARRAYS = ("ids", "x", "P", "n_updates", "n_rejects", "diverged", "invalid", "nis_avg", "nis_count")
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -470,6 +477,8 @@ class LandmarkEKFBank:
             "n_rejects": np.zeros(m, np.int64),
             "diverged": np.zeros(m, bool),
             "invalid": np.zeros(m, bool),
+            "nis_avg": np.zeros(m),
+            "nis_count": np.zeros(m, np.int64),
         }
         order = np.argsort(np.concatenate([self.ids, ids]), kind="stable")
         for name in self._ARRAYS:
@@ -592,6 +601,15 @@ class LandmarkEKFBank:
         self.n_rejects[gated] += 1
         self.diverged[gated] |= self.n_rejects[gated] >= self.config.max_consecutive_rejects
         self.invalid[ra] |= self._out_of_domain(self.x[ra], self.P[ra])
+        live = ~frozen
+        rl = rows[live]
+        cap = 2.0 * self.config.gate_threshold
+        self.nis_count[rl] += 1
+        alpha = 1.0 / np.minimum(self.nis_count[rl], self.config.nis_window)  # running mean, then exponential
+        self.nis_avg[rl] += alpha * (np.minimum(nis[live], cap) - self.nis_avg[rl])
+        if self.config.max_mean_nis > 0:
+            full = self.nis_count[rl] >= self.config.nis_window
+            self.diverged[rl] |= full & (self.nis_avg[rl] > self.config.max_mean_nis)
         return UpdateResult(ids, acc, nis, reason)
 
     # -- output ---------------------------------------------------------------------------------

@@ -76,6 +76,7 @@ class RangeOutput:
     n_initialized_prior: int  # started from the wide prior in this frame
     n_rejected: int  # measurements refused by the χ² gate in this frame
     tri_reasons: dict  # Reject name -> count among pending landmarks tried this frame
+    retired_ids: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))  # diverged this frame: end their tracks
 
 
 class _Pending:
@@ -161,6 +162,9 @@ class RangeEstimator:
         self._seen_ids = np.zeros(0, np.int64)
         self.t_prev: float | None = None
         self.pose_prev: tuple[np.ndarray, np.ndarray] | None = None
+        #: ids of tracks whose filters diverged (inconsistent with a static point): never restarted
+        self.retired = np.zeros(0, np.int64)
+        self._retired_now = np.zeros(0, np.int64)
 
     # -- validation -----------------------------------------------------------------------------
     @staticmethod
@@ -193,6 +197,10 @@ class RangeEstimator:
         """Fuse one frame.  ``uv``: raw (distorted) pixels (M, 2) of tracks ``ids`` (M,)."""
         R, p, ids, uv = self._validate(t, R_world_cam, p_world_cam, ids, uv)
         t = float(t)
+        self._retired_now = np.zeros(0, np.int64)
+        if len(self.retired):
+            fresh = ~np.isin(ids, self.retired)
+            ids, uv = ids[fresh], uv[fresh]
         if self.t_prev is not None and not t > self.t_prev:
             raise InputError(f"frame times must increase: {t} after {self.t_prev}")
         xy = self.camera.pixels_to_normalized(uv)
@@ -325,7 +333,11 @@ class RangeEstimator:
         """Drop filtered landmarks unseen for ``max_unseen_s``, diverged or invalid, and stale pending ones."""
         cfg = self.config
         if len(self.ekf):
-            gone = ((t - self.t_seen) > cfg.max_unseen_s) | self.ekf.diverged | self.ekf.invalid
+            bad = self.ekf.diverged | self.ekf.invalid
+            gone = ((t - self.t_seen) > cfg.max_unseen_s) | bad
+            if np.any(bad):  # a track that is not a static point stays out (bounded memory: newest ids)
+                self._retired_now = self.ekf.ids[bad].copy()
+                self.retired = np.union1d(self.retired, self._retired_now)[-cfg.max_landmarks:]
             if np.any(gone):
                 self.drop(self.ekf.ids[gone])
         if len(self.pending):
@@ -343,5 +355,5 @@ class RangeEstimator:
         return RangeOutput(
             t=t, ids=ids, p_world=p_world, range=rng, range_sigma=rsig, converged=conv, valid=valid,
             n_pending=len(self.pending), n_initialized_tri=n_tri, n_initialized_prior=n_prior,
-            n_rejected=n_rej, tri_reasons=reasons,
+            n_rejected=n_rej, tri_reasons=reasons, retired_ids=self._retired_now,
         )

@@ -204,6 +204,17 @@ class TrackManager:
         )
 
     # -- the step ------------------------------------------------------------------------------
+    def kill(self, ids) -> int:
+        """End the listed live tracks now (e.g. the estimator found them inconsistent with a static
+        point); their slots are refilled by the next detection.  Unknown ids are ignored; returns
+        how many tracks ended."""
+        slots = [self._slot_of.pop(int(i)) for i in np.asarray(ids, np.int64).reshape(-1) if int(i) in self._slot_of]
+        if slots:
+            s = np.asarray(slots, np.int64)
+            self._id[s] = -1
+            self._tpl_ok[s] = False
+        return len(slots)
+
     def _check_inputs(self, gray, t, frame_index) -> tuple[np.ndarray, float, int]:
         gray = as_gray_u8(gray, "gray")
         c = self.camera.config
