@@ -218,12 +218,14 @@ class _Trace:
 def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str | Path, config, *,
            camera: CameraConfig | None = None, pipeline: PipelineConfig = PipelineConfig(), plot: str | Path | None = None,
            fixed_processing_s: float | None = None, telemetry_latency_s: float = 0.0, tick_s: float = 0.01,
-           progress: Callable[[int, int], None] | None = None, truth: str | Path | None = None) -> ReplaySummary:
+           progress: Callable[[int, int], None] | None = None, truth: str | Path | None = None,
+           on_frame: Callable[[Pipeline, "FrameResult"], None] | None = None) -> ReplaySummary:
     """Replay a recorded flight (see the module docstring).  ``config``: a CompanionConfig.
 
     ``fixed_processing_s`` replaces the measured processing time (a deterministic output);
     ``progress(done, total)`` is called after each frame; ``truth``: a flightsim ``truth.npz`` whose
-    forward-sector distance is drawn on the plot.
+    forward-sector distance is drawn on the plot; ``on_frame(pipeline, result)`` is called after each
+    processed frame (benchmarks read the estimator's landmarks through it).
     """
     wall0 = time.perf_counter()
     cam = camera or config.camera
@@ -324,6 +326,8 @@ def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str
                 if now >= limit:
                     break
             res = pipe.process(f, now)
+            if on_frame is not None:
+                on_frame(pipe, res)
             dt = fixed_processing_s if fixed_processing_s is not None else res.processing_s
             t_send = now + dt
             feed(t_send)

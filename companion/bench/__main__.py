@@ -65,6 +65,19 @@ def cmd_seed000(args) -> dict:
         return seed000.run(args.runs, progress=tick)
 
 
+def cmd_pipeline004(args, runs: int) -> dict:
+    from companion.bench import pipeline_seed004
+
+    import logging
+
+    logging.disable(logging.WARNING)  # the replayed companion's STATUSTEXT log lines
+    try:
+        with _progress(runs, "seed-004 through the pipeline", args.json) as tick:
+            return pipeline_seed004.run(runs, progress=tick)
+    finally:
+        logging.disable(logging.NOTSET)
+
+
 def cmd_timing(args) -> dict:
     from companion.bench import timing
 
@@ -92,6 +105,10 @@ def main(argv=None) -> int:
         if name == "all":
             p.add_argument("--write", metavar="FILE", help="write the markdown report to FILE")
             p.add_argument("--repeats", type=int, default=50, help="timing repeats (default 50)")
+    p = sub.add_parser("pipeline004", help="seed004_straight flown in flightsim and replayed through the whole pipeline",
+                       description="seed004_straight flown in flightsim and replayed through the whole pipeline")
+    p.add_argument("--runs", type=int, default=20, help="flights (seeds) (default 20)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")
     p.add_argument("--repeats", type=int, default=50, help="repeats per measurement; the median is reported")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
@@ -105,6 +122,11 @@ def main(argv=None) -> int:
     elif args.cmd == "seed000":
         res = cmd_seed000(args)
         print(json.dumps(res) if args.json else report.seed000_markdown(res))
+    elif args.cmd == "pipeline004":
+        from companion.bench import pipeline_seed004
+
+        res = cmd_pipeline004(args, args.runs)
+        print(json.dumps(res) if args.json else pipeline_seed004.markdown(res))
     elif args.cmd == "timing":
         res = cmd_timing(args)
         print(json.dumps(report.timing_json(res)) if args.json else report.timing_markdown(res))
@@ -112,7 +134,8 @@ def main(argv=None) -> int:
         from companion.bench import flightsim_bench, latency
 
         res = {"seed004": cmd_seed004(args), "seed000": cmd_seed000(args), "timing": cmd_timing(args),
-               "latency": latency.run_all(), "flightsim": flightsim_bench.run_all()}
+               "latency": latency.run_all(), "pipeline004": cmd_pipeline004(args, max(5, args.runs // 10)),
+               "flightsim": flightsim_bench.run_all()}
         if args.json:
             print(json.dumps(res))
         else:

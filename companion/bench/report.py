@@ -173,6 +173,10 @@ def full_markdown(res: dict, runs: int, repeats: int) -> str:
         "",
         timing_markdown(res["timing"]),
         "",
+        "## Seed-004 through the whole pipeline (flightsim → companion replay)",
+        "",
+        pipeline004_markdown(res),
+        "",
         "## Companion pipeline latency",
         "",
         latency_markdown(res["latency"]),
@@ -182,6 +186,16 @@ def full_markdown(res: dict, runs: int, repeats: int) -> str:
         flightsim_markdown(res["flightsim"]),
         "",
     ])
+
+
+def pipeline004_markdown(res: dict) -> str:
+    from companion.bench.pipeline_seed004 import markdown
+
+    try:  # measurement level: anchored EKF, σ = 2 px, gyro model, frame 150, mean |error| (eq. 15)
+        ref = float(res["seed004"]["with_gyro_model"]["2"]["ekf_anchored_mean_abs_m"])
+    except (KeyError, TypeError, ValueError):
+        ref = None
+    return markdown(res["pipeline004"], ref)
 
 
 def latency_markdown(res: dict) -> str:

@@ -15,7 +15,9 @@ depth) is the pure-rotation image of the ray, ρ = 1/depth_min the closest expec
 segment is sampled at a few ρ (uniform in ρ, each projected with the camera's distortion, so a
 distorted curve is covered as well as a straight one); the search window is centred on the
 middle of the samples' bounding box and its radius is the farthest sample plus
-``base_radius_px`` (attitude / timing / pixel errors), capped at ``max_radius_px``.  A known
+``base_radius_px`` (attitude / timing / pixel errors), capped at ``max_radius_px``.  When the
+cap cuts the segment, the window covers its far end (ρ = 0 side: a static point far away, the common
+case; a near point that matters has a filtered depth and a short segment).  A known
 depth (from a filter) collapses the segment to a point (± ``depth_sigma``), giving a smaller
 window.  Parts of the ray at or behind the current camera are never projected: such points get
 a status flag and the largest radius, never NaN.
@@ -202,6 +204,15 @@ def predict_pixels_detailed(
     rows = np.arange(n)
     uv_far = np.where(any_front[:, None], px[rows, first], uv)
     uv_near = np.where(any_front[:, None], px[rows, last], uv)
+    # A segment longer than the window: cover its far end (static points far away are the common
+    # case; a near point that matters was tracked while it approached and has a filtered depth).
+    long_seg = any_front & (status != PRED_OK)
+    if np.any(long_seg):
+        seg = uv_near - uv_far
+        norm = np.linalg.norm(seg, axis=1)
+        reach = np.minimum(norm, max_radius_px - base_radius_px)
+        unit = seg / np.where(norm > 0, norm, 1.0)[:, None]
+        centre = np.where(long_seg[:, None], uv_far + unit * reach[:, None], centre)
     return PixelPrediction(uv=centre, radius=radius, uv_far=uv_far, uv_near=uv_near, status=status)
 
 
