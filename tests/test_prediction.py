@@ -141,3 +141,25 @@ def test_bad_input_names_the_problem():
         predict_pixels(cam, uv, R, p, R, p, 1.0, 10.0, 2.0, depth=np.ones(3))
     with pytest.raises(ConfigError, match="depth_max_m"):
         PredictionConfig(depth_min_m=5.0, depth_max_m=1.0)
+
+
+def test_a_capped_window_covers_the_far_end_of_the_segment(cam):
+    """Fast forward flight: from 1 m to infinity the segment is longer than the cap; far points
+    (the common case) must still fall inside the window, and the near end is given up first."""
+    R_prev, p_prev, R_cur, p_cur = poses()
+    uv, z, p_cam = scene_points(cam, 300, 150.0, 400.0, seed=3)
+    p_world = p_cam @ R_prev.T + p_prev
+    truth = cam.project(cam.world_to_camera(p_world, R_cur, p_cur))
+    det = predict_pixels_detailed(cam, uv, R_prev, p_prev, R_cur, p_cur, 1.0, math.inf, 3.0, max_radius_px=24.0)
+    capped = det.status != PRED_OK
+    assert capped.sum() > 50, "the scenario must exercise the cap"
+    d = np.linalg.norm(truth - det.uv, axis=1)
+    assert np.all(d[capped] <= det.radius[capped])
+    far = np.linalg.norm(det.uv_far - det.uv, axis=1)
+    assert np.all(far[capped] <= det.radius[capped] - 3.0 + 1e-9)  # the ρ = 0 image with its base margin
+    # the window no longer sits on the middle of the segment (which would lose the far points)
+    mid = np.linalg.norm(0.5 * (det.uv_far + det.uv_near) - det.uv, axis=1)
+    seg = np.linalg.norm(det.uv_near - det.uv_far, axis=1)
+    long_seg = capped & (seg > 2 * 24.0)
+    assert long_seg.sum() > 20
+    assert np.all(mid[long_seg] > 0.5 * seg[long_seg] - 24.0 - 1e-9)

@@ -208,11 +208,19 @@ def predict_pixels_detailed(
     # case; a near point that matters was tracked while it approached and has a filtered depth).
     long_seg = any_front & (status != PRED_OK)
     if np.any(long_seg):
-        seg = uv_near - uv_far
-        norm = np.linalg.norm(seg, axis=1)
-        reach = np.minimum(norm, max_radius_px - base_radius_px)
-        unit = seg / np.where(norm > 0, norm, 1.0)[:, None]
-        centre = np.where(long_seg[:, None], uv_far + unit * reach[:, None], centre)
+        # the point of the curve ~2·(cap − base) px from the far end (image motion ∝ ρ to first
+        # order), projected with the distortion; the window is centred between it and the far end
+        # length on the undistorted image plane (distortion can fold far off-axis projections)
+        norm = c.fx * np.linalg.norm(xy[rows, last] - xy[rows, first], axis=1)
+        frac = np.minimum(1.0, 2.0 * (max_radius_px - base_radius_px) / np.where(norm > 0, norm, 1.0))
+        rho_far = rho[rows, first]
+        rho_s = rho_far + (rho[rows, last] - rho_far) * frac
+        q_s = m @ R_rel.T + rho_s[:, None] * t_rel[None, :]
+        ok_s = q_s[:, 2] > _MIN_COS * np.linalg.norm(q_s, axis=1)
+        px_s = camera.normalized_to_pixels(q_s[:, :2] / np.where(ok_s, q_s[:, 2], 1.0)[:, None])
+        px_s = np.clip(px_s, -lim, lim)
+        use = long_seg & ok_s
+        centre = np.where(use[:, None], 0.5 * (uv_far + px_s), centre)
     return PixelPrediction(uv=centre, radius=radius, uv_far=uv_far, uv_near=uv_near, status=status)
 
 
