@@ -1,4 +1,5 @@
-"""``companion`` command line: ``run`` (the live process) and ``replay`` (a recorded flight offline).
+"""``companion`` command line: ``run`` (the live process), ``replay`` (a recorded flight offline) and
+``monitor`` (a ground-station view of a running companion, :mod:`companion.monitor`).
 
 Exit codes: 0 = done (including a clean stop by Ctrl-C / SIGTERM), 2 = usage or configuration
 error (the message names the argument, file, table or key), 1 = runtime failure.
@@ -13,6 +14,7 @@ import math
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 
 from companion.errors import CompanionError, ConfigError
@@ -38,9 +40,22 @@ camera sources:
   0 (device index), /dev/video0, rtsp://host/stream, http://host/stream.mjpg, video.avi,
   sim://127.0.0.1:5600 (the simulator's frame transport)
 
+clocks (--clock):
+  monotonic  the host's monotonic clock, mapped onto the autopilot's by TIMESYNC (real flights,
+             real-time simulation).
+  sim        lockstep with flightsim (flightsim sitl --clock lockstep): "now" is the autopilot's
+             boot clock as heard (SYSTEM_TIME / time_boot_ms of its messages / frame capture
+             stamps) plus the companion's own processing, --sim-processing-ms per frame (or the
+             measured time without it). The companion runs one round per frame: poll the link,
+             process, publish, acknowledge the frame; the simulator waits for that acknowledgement,
+             so the run is deterministic and as fast as the CPU allows. Needs --camera sim://.
+             Details: companion/simclock.py.
+
 examples:
   companion run --mavlink /dev/ttyAMA0,921600 --camera 0 --config configs/companion.toml
   companion run --mavlink udpin:0.0.0.0:14550 --camera sim://127.0.0.1:5600 --gcs udpout:10.0.0.2:14550
+  companion run --mavlink udpout:127.0.0.1:14550 --camera sim://127.0.0.1:5600 --clock sim \\
+      --sim-processing-ms 25 --camera-config out/sitl/camera.toml --config configs/companion.toml
 """
 
 _REPLAY_EPILOG = """\
@@ -51,6 +66,17 @@ left (frame capture + wait for telemetry + measured processing time).
 example:
   companion replay --tlog out/telemetry.tlog --video out/video.avi --frames out/frames.csv \\
       --out out/ranges.tlog --config configs/companion.toml --plot out/ranges.png
+"""
+
+
+_MONITOR_EPILOG = """\
+exit codes: 0 = done (also Ctrl-C), 2 = bad arguments or a connection that cannot be opened,
+1 = with --once: nothing heard from the companion.
+
+examples:
+  companion monitor udpin:0.0.0.0:14550
+  companion monitor udpin:0.0.0.0:14550 --once --json          # one JSON snapshot after 3 s
+  companion monitor udpin:0.0.0.0:14550 --json --interval 0.5 > monitor.jsonl
 """
 
 
@@ -77,6 +103,13 @@ def build_parser() -> argparse.ArgumentParser:
     _common(r)
     r.add_argument("--gcs", metavar="CONN", help="extra ground-station output with its own rate limits ([outputs] gcs_*)")
     r.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: run until Ctrl-C / SIGTERM)")
+    r.add_argument("--camera-config", metavar="TOML",
+                   help="a TOML whose [camera] table replaces the config's (e.g. the camera.toml flightsim writes)")
+    r.add_argument("--clock", choices=("monotonic", "sim"), default="monotonic",
+                   help="monotonic (default) or sim: lockstep with the flightsim simulator (see 'clocks' below)")
+    r.add_argument("--sim-processing-ms", type=float, metavar="MS",
+                   help="with --clock sim: each processed frame advances the clock by MS (deterministic runs); "
+                        "default: the measured processing time")
     r.set_defaults(func=cmd_run)
 
     q = sub.add_parser("replay", help="run the same pipeline offline on a recorded flight",
@@ -100,6 +133,28 @@ def build_parser() -> argparse.ArgumentParser:
                    help="transport delay of the logged telemetry, removed from the clock mapping (default 0)")
     q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.set_defaults(func=cmd_replay)
+
+    mo = sub.add_parser("monitor", help="ground-station view of a running companion: sectors, nearest range, health",
+                        description="Listen where the companion's messages arrive and show its live sectors, nearest range, "
+                                    "forward DISTANCE_SENSOR, HEARTBEAT health, diagnostics, STATUSTEXT and message rates "
+                                    "(issue 5). Sectors older than 0.5 s are shown STALE; no HEARTBEAT for 3 s = LINK LOST.",
+                        epilog=_MONITOR_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    mo.add_argument("conn", metavar="CONN", help="pymavlink connection string, e.g. udpin:0.0.0.0:14550 (the companion's "
+                                                 "--gcs udpout:HOST:14550), tcp:127.0.0.1:5760, /dev/ttyUSB0,57600")
+    mo.add_argument("--component", type=int, default=196, metavar="ID", help="the companion's component id (default 196)")
+    mo.add_argument("--system", type=int, default=0, metavar="ID", help="its system id (default 0: the first one heard)")
+    mo.add_argument("--once", action="store_true", help="print one snapshot after --duration seconds (default 3) and exit; "
+                                                        "exit 1 if the companion was not heard")
+    mo.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    mo.add_argument("--interval", type=float, default=1.0, metavar="S",
+                    help="seconds between snapshots when stdout is not a terminal or with --json (default 1)")
+    mo.add_argument("--json", action="store_true", help="one JSON object per line instead of the view")
+    mo.add_argument("--passive", action="store_true", help="send nothing (by default a GCS HEARTBEAT goes out at 1 Hz)")
+    mo.add_argument("--near", type=float, default=5.0, metavar="M", help="obstacles nearer than M metres are red (default 5)")
+    mo.add_argument("--mid", type=float, default=15.0, metavar="M", help="nearer than M metres yellow, farther green (default 15)")
+    mo.add_argument("--log-level", default="WARNING", type=str.upper, choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                    help="log verbosity on stderr (default WARNING)")
+    mo.set_defaults(func=cmd_monitor)
     return p
 
 
@@ -185,7 +240,23 @@ def cmd_run(args) -> int:
     check_connection_string("--mavlink", args.mavlink)
     if args.gcs:
         check_connection_string("--gcs", args.gcs)
-    rc = load_config(args.config, args.calibration)
+    sim_clock = None
+    clock = time.monotonic
+    if args.clock == "sim":
+        from companion.camera_sources import parse_camera_spec
+        from companion.simclock import SimClock
+
+        if parse_camera_spec(args.camera)[0] != "sim":
+            raise ConfigError(f"--clock sim needs the simulator's frames (--camera sim://HOST:PORT), got {args.camera!r}")
+        p_ms = args.sim_processing_ms
+        if p_ms is not None and not (math.isfinite(p_ms) and 0 <= p_ms < 10_000):
+            raise ConfigError(f"--sim-processing-ms must be in [0, 10000), got {p_ms}")
+        sim_clock = clock = SimClock(None if p_ms is None else p_ms / 1000.0)
+    elif args.sim_processing_ms is not None:
+        raise ConfigError("--sim-processing-ms needs --clock sim")
+    if args.camera_config is not None and not Path(args.camera_config).is_file():
+        raise ConfigError(f"--camera-config {args.camera_config}: no such file")
+    rc = load_config(args.config, args.calibration, args.camera_config)
     cfg = rc.companion
     cam = cfg.camera
     log.info("camera %d×%d, fx %.1f fy %.1f, filter %s, outputs: OBSTACLE_DISTANCE %.0f Hz to the autopilot%s",
@@ -200,13 +271,29 @@ def cmd_run(args) -> int:
 
     old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        link = MavLink(args.mavlink, cfg.link, telemetry=TelemetryBuffer(cfg.telemetry))
+        link = MavLink(args.mavlink, cfg.link, clock=clock, telemetry=TelemetryBuffer(cfg.telemetry),
+                       boot_time_observer=sim_clock.observe if sim_clock is not None else None,
+                       clock_offset_s=0.0 if sim_clock is not None else None)
         if args.gcs:
-            gcs = MavLink(args.gcs, cfg.link, role="gcs")
-        source = open_source(args.camera, cam.width, cam.height, rc.camera_source, clock_map=link.telemetry.to_companion)
-        companion = Companion(cfg, source, link, gcs, rc.pipeline, camera=cam)
-        companion.run(stop, duration=args.duration)
+            gcs = MavLink(args.gcs, cfg.link, clock=clock, role="gcs")
+        source = open_source(args.camera, cam.width, cam.height, rc.camera_source, clock=clock,
+                             clock_map=link.telemetry.to_companion)
+        companion = Companion(cfg, source, link, gcs, rc.pipeline, camera=cam, clock=clock)
+        if sim_clock is not None:
+            log.info("lockstep clock (--clock sim): simulation time, %s per processed frame",
+                     "measured processing time" if sim_clock.processing_s is None else f"{sim_clock.processing_s * 1000:g} ms")
+        companion.run(stop, duration=args.duration, lockstep=sim_clock is not None)
         log.info("stopped: %s", dict(companion.counters))
+        if sim_clock is not None:
+            ts = link.timesync
+            off = ts.offset_s
+            log.info("lockstep clock at %.3f s; TIMESYNC: %d requests, %d answers accepted, estimate %s (0 by construction)",
+                     sim_clock(), ts.counters.get("requests", 0), ts.counters.get("accepted", 0),
+                     "none" if off is None else f"{off * 1000:+.1f} ms")
+            lw = companion.lockstep_wall
+            n = max(1, lw["rounds"])
+            log.info("lockstep rounds: %d, wall %.3f s working (%.1f ms per round), %.3f s waiting for frames",
+                     lw["rounds"], lw["work_s"], 1000 * lw["work_s"] / n, lw["wait_s"])
         return EXIT_OK
     finally:
         for s, h in old.items():
@@ -298,6 +385,14 @@ def cmd_replay(args) -> int:
     if s.plot:
         print(f"plot: {s.plot}")
     return EXIT_OK
+
+
+# ---------------------------------------------------------------------- monitor -----------------
+def cmd_monitor(args) -> int:
+    from companion.monitor import cmd_monitor as run
+
+    check_connection_string("CONN", args.conn)
+    return run(args)
 
 
 # ---------------------------------------------------------------------- entry point -------------

@@ -29,6 +29,9 @@ Three layers, each usable on its own:
     poll the links often, take the newest frame (older unread frames are dropped by the source),
     drop a frame older than ``max_frame_age_s`` when processing would start, let a frame wait at
     most ``telemetry_wait_s`` for the ATTITUDE sample that brackets it, process, publish.
+    In lockstep with a simulator (``companion run --clock sim``, :mod:`companion.simclock`) it runs
+    one round per frame instead (:meth:`Companion.step_lockstep`) on a clock that follows
+    simulation time, so a SITL run is deterministic and as fast as the CPU allows.
 
 The replay tool (:mod:`companion.replay`) drives the same Pipeline and Reporter offline.
 """
@@ -286,6 +289,11 @@ class Pipeline:
             self.last_ok = res
         return res
 
+    @property
+    def landmarks(self) -> RangeOutput | None:
+        """The estimator's output for the latest processed frame (world points, ranges, σ)."""
+        return self._out_prev
+
     def _process(self, res: FrameResult, gray, now: float) -> None:
         cfg, tel = self.pcfg, self.telemetry
         t = res.t_capture
@@ -337,6 +345,8 @@ class Pipeline:
         if len(tf.dropped_ids):
             self.estimator.drop(tf.dropped_ids)
         out = self.estimator.process(t, R_wc, p_wc, tf.ids, tf.uv)
+        if len(out.retired_ids):
+            self.tracks.kill(out.retired_ids)
         self._t_prev, self._cam_prev, self._out_prev = t, (R_wc, p_wc), out
 
         p_body = (out.p_world - p_wb) @ R_wb  # R_body_world (p − p_vehicle), row form
@@ -627,6 +637,8 @@ class Companion:
         self.latencies: collections.deque[float] = collections.deque(maxlen=1000)
         self._status_t = clock()
         self._errors_logged = 0
+        self._lockstep_started = False
+        self.lockstep_wall: collections.Counter[str] = collections.Counter()  # rounds, wall s waiting / working
 
     # -- helpers ------------------------------------------------------------------------------------
     def _send(self, msgs) -> None:
@@ -682,6 +694,11 @@ class Companion:
         if self.pipeline.readiness(f.t, now) == "wait":
             return
         self._pending = None
+        res = self._run_pipeline(f, now)
+        self._done(f, "processed" if res.ok else "rejected")
+        self._publish(res)
+
+    def _run_pipeline(self, f: Frame, now: float) -> FrameResult:
         try:
             res = self.pipeline.process(f, now)
         except Exception as exc:  # a bug must not take the process down: log, restart the pipeline
@@ -692,8 +709,11 @@ class Companion:
             self.pipeline.reset("internal error")
             res = FrameResult(f.index, f.t, now, 0.0, False, "error: internal", restart="internal error")
             self.pipeline.last_result = res
-        self._done(f, "processed" if res.ok else "rejected")
         self.counters["frames_processed" if res.ok else "frames_failed"] += 1
+        return res
+
+    def _publish(self, res: FrameResult) -> None:
+        """Send the messages of a processed frame, stamped when processing ended (``clock()``)."""
         t_send = self.clock()
         msgs = self.reporter.on_result(
             res, t_send, yaw_now=self.pipeline.yaw_now(t_send), last_frame_at=self._last_frame_at,
@@ -703,6 +723,52 @@ class Companion:
         if res.ok:
             self.latencies.append(t_send - res.t_capture)
         self._send(msgs)
+
+    # -- lockstep ------------------------------------------------------------------------------------
+    def step_lockstep(self, timeout: float = 0.2) -> bool:
+        """One lockstep round with a simulator (``companion run --clock sim``, :mod:`companion.simclock`).
+
+        ``self.clock`` must be a :class:`~companion.simclock.SimClock` fed by the link.  Waits up to
+        ``timeout`` wall seconds for a frame; then polls the links (the simulator sent everything
+        up to the frame before it), processes the frame without waiting for telemetry (nothing more
+        comes until it is acknowledged), publishes at capture start + processing time, runs the
+        periodic duties and acknowledges the frame last, so the simulator's next step sees every
+        message of this round.  Nothing is sent between rounds.  Returns False if no frame came.
+        """
+        w0 = time.perf_counter()
+        f = self.source.read(timeout=timeout)
+        w1 = time.perf_counter()
+        self.lockstep_wall["wait_s"] += w1 - w0
+        if f is None:
+            return False
+        clock = self.clock
+        clock.observe(f.t)  # the companion clock is the autopilot boot clock (offset 0)
+        if not self._lockstep_started:  # the clock read 0 before the simulator was heard
+            self._lockstep_started = True
+            self.reporter.health.start = clock()
+            self._status_t = clock()
+        self.link.poll()
+        if self.gcs is not None:
+            self.gcs.poll()
+            sid = self.link.system_id
+            if sid is not None and self.gcs.system_id != sid:
+                self.gcs.set_system_id(sid)
+        now = clock()
+        self._last_frame_at = now
+        self.counters["frames_in"] += 1
+        if now - f.t > self.pcfg.max_frame_age_s:  # the companion fell behind in simulation time
+            self.counters["frames_stale"] += 1
+            status = "dropped"
+        else:
+            res = self._run_pipeline(f, now)
+            clock.work(res.processing_s)
+            status = "processed" if res.ok else "rejected"
+            self._publish(res)
+        self._tick(clock())
+        self._done(f, status)
+        self.lockstep_wall["rounds"] += 1
+        self.lockstep_wall["work_s"] += time.perf_counter() - w1
+        return True
 
     def _tick(self, now: float) -> None:
         events = self.link.drain_events() + self.source.drain_events()
@@ -733,14 +799,23 @@ class Companion:
                  self.counters["frames_stale"], self.counters["frames_superseded"], src.dropped, src.rejected or "{}",
                  {k: round(v, 1) for k, v in self.link.rates().items()})
 
-    def run(self, stop: threading.Event | None = None, duration: float | None = None, wait: float = 0.002) -> None:
-        """Loop until ``stop`` is set (or ``duration`` seconds passed)."""
+    def run(self, stop: threading.Event | None = None, duration: float | None = None, wait: float = 0.002,
+            lockstep: bool = False) -> None:
+        """Loop until ``stop`` is set (or ``duration`` seconds passed on ``clock``).
+
+        ``lockstep``: run :meth:`step_lockstep` rounds (``clock`` a SimClock); ``duration`` then
+        counts simulation time from the first frame.
+        """
         stop = stop or threading.Event()
-        t_end = None if duration is None else self.clock() + duration
-        log.info("companion running: camera %s, autopilot %s%s", self.source.name, self.link.conn_str,
-                 f", ground station {self.gcs.conn_str}" if self.gcs is not None else "")
+        t_end = None if duration is None or lockstep else self.clock() + duration
+        log.info("companion running%s: camera %s, autopilot %s%s", " in lockstep with the simulator" if lockstep else "",
+                 self.source.name, self.link.conn_str, f", ground station {self.gcs.conn_str}" if self.gcs is not None else "")
         while not stop.is_set():
-            self.step(wait=wait)
+            if lockstep:
+                if self.step_lockstep(timeout=0.2) and duration is not None and t_end is None:
+                    t_end = self.clock() + duration
+            else:
+                self.step(wait=wait)
             if t_end is not None and self.clock() >= t_end:
                 break
             if self.source.ended:

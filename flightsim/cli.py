@@ -1,17 +1,24 @@
 """``flightsim`` command line (also ``python -m flightsim``).
 
   flightsim fly configs/scenarios/X.toml --out DIR [--seed N] [--no-plot]
+  flightsim sitl configs/scenarios/X.toml --out DIR [--clock lockstep|realtime] [--attach] [--video] …
+  flightsim score DIR | --ranges R.tlog --truth truth.npz [--out DIR]
+  flightsim campaign configs/scenarios/X.toml --runs N --workers W --out DIR [--mode auto|replay|sitl]
 
-Exit codes: 0 done, 2 a bad scenario/world/argument (the message names it), 1 a failure in flight.
+Exit codes: 0 done, 2 a bad scenario/world/argument or a busy port (the message names it), 1 a
+failure in flight or of the companion (the message names its log).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 
-from companion.errors import ConfigError
+from pathlib import Path
+
+from companion.errors import CompanionError, ConfigError
 
 log = logging.getLogger("flightsim")
 
@@ -49,6 +56,121 @@ def cmd_fly(args) -> int:
     return 0
 
 
+def cmd_sitl(args) -> int:
+    import shlex
+
+    from flightsim.sitl import SitlConfig, run_sitl
+
+    cfg = SitlConfig(processing_ms=args.processing_ms, connect_timeout_s=args.connect_timeout)
+    log.info("SITL %s (%s clock) into %s", args.scenario, args.clock, args.out)
+    bar, tick = _progress_bar(f"sitl {args.clock}")
+    if bar:
+        bar.start()
+    try:
+        s = run_sitl(args.scenario, args.out, seed=args.seed, clock=args.clock, companion_config=args.config,
+                     attach=args.attach, video=args.video, progress=tick, mavlink_port=args.mavlink_port,
+                     camera_port=args.camera_port, config=cfg, score=not args.no_score)
+    finally:
+        if bar:
+            bar.stop()
+    rx = s["messages_received"]
+    print(f"{s['scenario']}: {s['frames']} frames to the companion ({s['clock']}"
+          + (f", {s['processing_ms']:g} ms per frame" if s["processing_ms"] is not None else "") + f"), "
+          f"{s['duration_s']:g} s flown in {s['loop_wall_s']:.1f} s ({s['realtime_factor']:.2f}× real time; "
+          f"{s['wall_s']:.1f} s with start-up)")
+    if s["acks"]:
+        print("frames acknowledged: " + ", ".join(f"{k} {v}" for k, v in sorted(s["acks"].items())))
+    print(f"received {sum(rx.values())} MAVLink messages: " + (", ".join(f"{k} {v}" for k, v in rx.items()) or "none"))
+    print("streams: " + ", ".join(f"{k} {'off' if v is None else f'{v:g} Hz'}" for k, v in s["streams"].items())
+          + f"; TIMESYNC answered {s['timesync_answered']}")
+    bad = {k: v for k, v in s["checks"].items() if k in ("obstacle_distance_bad_fields", "clock_mismatches") and v}
+    if bad:
+        print("checks FAILED: " + ", ".join(f"{k} {v}" for k, v in bad.items()))
+    if s["companion"] is not None:
+        print(f"companion exit code {s['companion_exit_code']}; log {s['companion']['log']}")
+    else:
+        print("companion attached (not started by flightsim): " + shlex.join(s["companion_command"]))
+    if s["score"] is not None:
+        print(f"score: {Path(args.out) / 'score.md'}")
+    else:
+        print(f"not scored: {s['score_note']}")
+    print(f"files in {args.out}: " + ", ".join(Path(p).name for p in s["paths"].values()))
+    if s["score_failed"]:
+        print(f"flightsim: error: {s['score_note']}", file=sys.stderr)
+        return 1
+    if s["companion"] is not None and s["companion_exit_code"] not in (0, None):
+        print(f"flightsim: error: the companion exited with code {s['companion_exit_code']} (see {s['companion']['log']})",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def _world_for_names(scenario: str | None, run_dir: Path | None):
+    """The world that names the obstacles: ``--scenario``, else the one flight.json names (best effort)."""
+    from flightsim.scenario import load_scenario
+
+    if scenario:
+        return load_scenario(scenario).world
+    if run_dir is not None and (run_dir / "flight.json").is_file():
+        try:
+            path = json.loads((run_dir / "flight.json").read_text()).get("scenario_file")
+            if path and Path(path).is_file():
+                return load_scenario(path).world
+            log.info("obstacles are not named: %s (from flight.json) not found; give --scenario", path)
+        except Exception as exc:  # naming is optional: never fail the score for it
+            log.warning("obstacles are not named: %s", exc)
+    return None
+
+
+def cmd_score(args) -> int:
+    from flightsim.score import mark
+    from flightsim.score_io import load_score_config, score_run, write_score
+
+    run_dir = Path(args.dir) if args.dir else None
+    if run_dir is not None and not run_dir.is_dir():
+        raise ConfigError(f"{run_dir}: no such run directory")
+    ranges = Path(args.ranges) if args.ranges else None
+    if ranges is None:
+        if run_dir is None:
+            raise ConfigError("give a run directory or --ranges and --truth")
+        ranges = next((c for c in (run_dir / "received.tlog", run_dir / "ranges.tlog") if c.is_file()), None)
+        if ranges is None:
+            raise ConfigError(f"{run_dir}: neither received.tlog (SITL) nor ranges.tlog (replay); give --ranges")
+    truth = Path(args.truth) if args.truth else (run_dir / "truth.npz" if run_dir else None)
+    if truth is None:
+        raise ConfigError("--truth is required without a run directory")
+    out = Path(args.out) if args.out else (run_dir or ranges.parent)
+    cfg = load_score_config(args.config)
+    world = _world_for_names(args.scenario, run_dir)
+    log.info("scoring %s against %s", ranges, truth)
+    score = score_run(ranges, truth, config=cfg, companion_config=args.companion_config, world=world,
+                      series_out=None if args.no_series else out / "score_series.npz")
+    write_score(out, score)
+    r = score["rates"]
+
+    def pc(v):
+        return "–" if v is None else f"{100 * v:.2f} %"
+
+    print(f"{score['messages']['obstacle_distance_scored']} OBSTACLE_DISTANCE scored: detection {pc(r['detection'])}, "
+          f"false obstacle (clear cells) {pc(r['false_obstacle_clear_cells'])}, too near {pc(r['too_near'])}")
+    for t in score["targets"]:
+        print(f"  {mark(t['met'])} {t['name']}: {pc(t['value'])} (target {t['op']} {100 * t['threshold']:g} %, n = {t['n']})")
+    la, ne = score["latency"], score["nees"]
+    if la["n"]:
+        print(f"  latency p50 {la['p50_ms']:.1f} ms, p99 {la['p99_ms']:.1f} ms")
+    if ne["n"]:
+        print(f"  NEES {ne['mean']:.2f} (n = {ne['n']}, {100 * ne['confidence']:g} % band "
+              f"[{ne['band'][0]:.2f}, {ne['band'][1]:.2f}])")
+    print(f"wrote {out / 'score.json'} and {out / 'score.md'}")
+    return 0
+
+
+def cmd_campaign(args) -> int:
+    from flightsim.campaign import campaign_from_args
+
+    return campaign_from_args(args)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
         prog="flightsim",
@@ -67,14 +189,107 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="output directory (created if missing)")
     p.add_argument("--seed", type=int, default=None, help="override the scenario's [scenario] seed")
     p.add_argument("--no-plot", action="store_true", help="skip summary.png")
+    q = sub.add_parser(
+        "sitl", help="software in the loop: play the autopilot and camera to a live companion and score its ranges",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Fly a scenario while playing the autopilot over MAVLink 2 (UDP on 127.0.0.1: HEARTBEAT, the streams the "
+                    "companion requests, TIMESYNC) and the camera (sim:// frame transport), with the companion "
+                    "(python -m companion run) as a separate process; record every message it sends and score its "
+                    "OBSTACLE_DISTANCE / DISTANCE_SENSOR against the truth of the moment they arrive.",
+        epilog="clocks:\n"
+               "  lockstep  (default) deterministic, as fast as the CPU allows: the simulator waits for the companion's\n"
+               "            acknowledgement of each frame; the companion runs with --clock sim and advances its clock\n"
+               "            by --processing-ms per processed frame (see companion/simclock.py).\n"
+               "  realtime  the simulator follows the wall clock; the companion runs on its own clock with TIMESYNC.\n\n"
+               "output in --out: truth.npz, frames.csv, camera.toml, telemetry.tlog (sent), received.tlog (from the\n"
+               "companion, stamped on arrival on the truth clock), companion.log, sitl.json, score.json/score.md when\n"
+               "flightsim/score.py is present, video.avi with --video.\n\n"
+               "example:\n  flightsim sitl configs/scenarios/quad_approach.toml --out out/sitl\n"
+               "  flightsim sitl configs/scenarios/quad_approach.toml --out out/sitl --attach   # you start the companion")
+    q.add_argument("scenario", help="scenario TOML file")
+    q.add_argument("--out", required=True, help="output directory (created if missing)")
+    q.add_argument("--seed", type=int, default=None, help="override the scenario's [scenario] seed")
+    q.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep", help="lockstep (default) or realtime")
+    q.add_argument("--config", metavar="TOML", default=None,
+                   help="companion configuration (default: configs/companion.toml of this repository)")
+    q.add_argument("--attach", action="store_true",
+                   help="do not start the companion: print the command line to run and wait for it to connect")
+    q.add_argument("--video", action="store_true", help="also write video.avi (MJPG)")
+    q.add_argument("--mavlink-port", type=int, default=14550, metavar="PORT",
+                   help="UDP port the simulated autopilot listens on, 127.0.0.1 (default 14550; 0 = any free port)")
+    q.add_argument("--camera-port", type=int, default=5600, metavar="PORT",
+                   help="TCP port of the camera frame transport, 127.0.0.1 (default 5600; 0 = any free port)")
+    q.add_argument("--processing-ms", type=float, default=25.0, metavar="MS",
+                   help="lockstep: simulated processing time per frame of the companion (default 25)")
+    q.add_argument("--connect-timeout", type=float, default=60.0, metavar="S",
+                   help="seconds the companion has to connect (×5 with --attach; default 60)")
+    q.add_argument("--no-score", action="store_true", help="do not score the received ranges")
+    p = sub.add_parser("score", help="score a recorded run against its truth (score.json, score.md)",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Compare the companion's OBSTACLE_DISTANCE / DISTANCE_SENSOR (a ranges tlog: companion "
+                                   "replay's ranges.tlog or SITL's received.tlog) with the flight's truth.npz and write "
+                                   "score.json and score.md (detection and false-obstacle rates per sector, dangerous "
+                                   "clears, range error by range bin, time to the first valid range per obstacle, "
+                                   "latency, NEES of the reported σ, the issue-5 targets) and score_series.npz.",
+                       epilog="examples:\n  flightsim score out/quad        # out/quad/{received,ranges}.tlog + truth.npz\n"
+                              "  flightsim score --ranges r.tlog --truth truth.npz --out scores/\n\n"
+                              "exit codes: 0 scored, 2 missing or unreadable inputs / bad options.")
+    p.add_argument("dir", nargs="?", help="run directory (flightsim fly output with ranges.tlog or received.tlog)")
+    p.add_argument("--ranges", help="ranges tlog (default DIR/received.tlog, else DIR/ranges.tlog)")
+    p.add_argument("--truth", help="truth.npz (default DIR/truth.npz)")
+    p.add_argument("--out", help="where score.json / score.md go (default DIR, else the tlog's directory)")
+    p.add_argument("--config", help="TOML with a [score] table (default: built-in defaults, as configs/score.toml)")
+    p.add_argument("--companion-config", help="companion TOML the run used: its [sectors] sigma_k and [outputs] "
+                                              "quality_zero_rel_sigma undo the conservative offset")
+    p.add_argument("--scenario", help="scenario TOML whose world names the obstacles (default: the one flight.json names)")
+    p.add_argument("--no-series", action="store_true", help="do not write score_series.npz (per-message arrays)")
+    p = sub.add_parser("campaign", help="Monte Carlo over seeds in worker processes, scored, with a report",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Fly a scenario with seeds seed0 … seed0+N−1 (default seed0 = the scenario's seed), run "
+                                   "the companion on each (replay in-process, or SITL), score every run, and write "
+                                   "DIR/campaign.json and DIR/report/ (index.md with pooled tables and the targets, plots). "
+                                   "Runs go to DIR/runs/seed_NNNN/; a failed run is recorded and the rest go on.",
+                       epilog="example:\n  flightsim campaign configs/scenarios/quad_approach.toml --runs 20 --workers 2 "
+                              "--out out/camp\n\nexit codes: 0 all runs scored, 1 some runs failed (the report covers "
+                              "the others), 2 bad arguments or scenario.")
+    p.add_argument("scenario", help="scenario TOML file")
+    p.add_argument("--runs", type=int, required=True, help="number of runs (seeds)")
+    p.add_argument("--workers", type=int, default=None, help="worker processes (default: min(runs, CPU count))")
+    p.add_argument("--out", required=True, help="campaign directory (created; runs/, report/, campaign.json)")
+    p.add_argument("--mode", choices=["auto", "replay", "sitl"], default="auto",
+                   help="replay: fly + companion replay in-process; sitl: flightsim.sitl.run_sitl (lockstep clock, free "
+                        "ports); auto (default): sitl if available, else replay")
+    p.add_argument("--seed0", type=int, default=None, help="first seed (default: the scenario's [scenario] seed)")
+    p.add_argument("--companion-config", default=None,
+                   help="companion TOML for the runs and for undoing k·σ (default configs/companion.toml if present)")
+    p.add_argument("--score-config", default=None, help="TOML with a [score] table (default: built-in defaults)")
+    p.add_argument("--fixed-processing-ms", type=float, default=30.0,
+                   help="processing time per frame, ms: replay stamps it on every frame, SITL lockstep advances the "
+                        "companion's clock by it (deterministic runs; default 30)")
+    p.add_argument("--obstacle", default="forward",
+                   help="obstacle drawn in range_vs_truth.png: an obstacle name from the scores, or 'forward' (default: "
+                        "the forward DISTANCE_SENSOR)")
+    p.add_argument("--times", default=None, help="comma-separated times (s after the first frame) of the sector radar "
+                                                  "plots (default: 4 times spread over the flight)")
+    p.add_argument("--keep-video", action="store_true", help="keep each run's video.avi (default: deleted after scoring; "
+                                                             "the seed reproduces it)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         if args.cmd == "fly":
             return cmd_fly(args)
+        if args.cmd == "sitl":
+            return cmd_sitl(args)
+        if args.cmd == "score":
+            return cmd_score(args)
+        if args.cmd == "campaign":
+            return cmd_campaign(args)
     except ConfigError as exc:
         print(f"flightsim: error: {exc}", file=sys.stderr)
         return 2
+    except CompanionError as exc:  # a failure in flight or of the companion (SitlError names its log)
+        print(f"flightsim: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("flightsim: interrupted", file=sys.stderr)
         return 130

@@ -9,6 +9,10 @@
   the companion's camera model;
 * records the truth of that frame: vehicle and camera pose, per-sector nearest obstacle, targets.
 
+The per-step loop itself — dynamics, telemetry error states, stream schedule, camera frames and
+their truth — is :class:`Flight` with :class:`StreamSchedule`, shared with the software-in-the-loop
+run (:mod:`flightsim.sitl`, issue 5), which plays the same flight to a live companion.
+
 Files written to ``out_dir``:
 
 * ``telemetry.tlog`` — MAVLink 2 (ardupilotmega) tlog, record stamps on the recording clock
@@ -63,6 +67,8 @@ TRUTH_FIELDS = {
     "target_visible": "target inside the image and not occluded",
 }
 
+EPS_T = 1e-9  # tolerance of "is it due" comparisons on the simulation clock, s
+
 
 def _mav_type(vehicle_kind: str) -> int:
     return mavlink.MAV_TYPE_FIXED_WING if vehicle_kind == "fixedwing" else mavlink.MAV_TYPE_QUADROTOR
@@ -92,6 +98,208 @@ def camera_toml(camera) -> str:
     return "\n".join(lines) + "\n"
 
 
+# ---------------------------------------------------------------------- the shared flight loop ---
+class StreamSchedule:
+    """Periodic autopilot streams on the simulation clock.
+
+    Each stream has a period (None = off), a builder ``build(state) -> message`` and a delay
+    (the message leaves ``delay`` s after the state it describes).  :meth:`due` is called once per
+    physics step after :meth:`Flight.step`; a due stream is built from that step's state and its
+    next time advances by one period (the grid stays fixed: a stream faster than the physics step
+    is sent once per step).  ``fly`` uses the scenario's rates; ``sitl`` the companion's requests.
+    """
+
+    def __init__(self) -> None:
+        self._streams: dict[str, list] = {}  # name -> [period | None, next_t, build, delay]
+
+    def add(self, name: str, period: float | None, build: Callable, delay: float = 0.0, start_t: float = 0.0) -> None:
+        self._streams[name] = [period, start_t, build, delay]
+
+    def names(self) -> list[str]:
+        return list(self._streams)
+
+    def period(self, name: str) -> float | None:
+        return self._streams[name][0]
+
+    def set_period(self, name: str, period: float | None, t_now: float) -> None:
+        """Change a stream's period (None = stop); a (re)started stream sends at the next step."""
+        s = self._streams[name]
+        if period is not None and (s[0] is None or period != s[0]):
+            s[1] = t_now
+        s[0] = period
+
+    def restart_at(self, name: str, t: float) -> None:
+        """Send ``name`` at the first step at or after ``t`` (and then on its period)."""
+        self._streams[name][1] = t
+
+    def due(self, state) -> list[tuple[float, str, object]]:
+        """``(t_emit, name, message)`` for every stream due at ``state.time_s``, in stream order."""
+        t = state.time_s
+        out = []
+        for name, s in self._streams.items():
+            period, next_t, build, delay = s
+            if period is not None and t + EPS_T >= next_t:
+                out.append((t + delay, name, build(state)))
+                s[1] = next_t + period
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
+class CapturedFrame:
+    index: int
+    t_s: float  # capture (mid-exposure) time, simulation clock
+    image: np.ndarray  # (H, W) uint8
+
+
+class Flight:
+    """A scenario in flight, one JSBSim step at a time (shared by ``fly`` and ``sitl``).
+
+    :meth:`step` advances the dynamics and the telemetry model's error states (the first call
+    gives the start state); :attr:`tm` builds the autopilot's messages from the state of the step
+    (:meth:`telemetry_builders`); :meth:`frame_due` / :meth:`capture` render the camera frame of
+    the frame grid from the true camera pose and record its truth; :meth:`truth_arrays` and
+    :meth:`write_common` produce the export files both commands share.
+
+    :meth:`step` = :meth:`physics_step` + :meth:`advance_telemetry`.  Nothing in the dynamics, the
+    camera or the truth depends on the telemetry, so ``sitl`` runs the physics and the camera
+    ahead (while the companion works on the previous frame) and advances the telemetry model
+    later, in the same step order — the random draws, and so every message, stay the same.
+    """
+
+    def __init__(self, sc: Scenario):
+        self.sc = sc
+        meta = sc.meta
+        self.vehicle = make_vehicle(sc.vehicle)
+        self.tm = TelemetryModel(sc.telemetry, sc.telemetry_seed, _mav_type(sc.vehicle.kind))
+        self.origin = LocalNED(sc.vehicle.origin_lat_deg, sc.vehicle.origin_lon_deg, sc.vehicle.origin_alt_m)
+        self.renderer = Renderer(sc.world, sc.camera, sc.render)
+        self.cam = CameraModel(sc.camera)
+        self.R_cam_body = sc.camera.R_cam_body
+        self.dt = self.vehicle.dt
+        self.n_steps = int(round(meta.duration_s / self.vehicle.dt))
+        self.n_frames = int(math.floor(meta.duration_s * meta.fps + 1e-9)) + 1
+        self.next_frame = 0
+        self.frame_times: list[float] = []  # capture times (simulation clock) of the frames so far
+        self.truth: dict[str, list] = {k: [] for k in TRUTH_FIELDS if k not in ("sector_max_m", "target_names", "target_p_world")}
+        self.state = None
+        self.step_index = -1
+        self.timing = {"dynamics": 0.0, "telemetry": 0.0, "render": 0.0, "truth": 0.0}  # wall seconds per part
+
+    @property
+    def finished(self) -> bool:
+        return self.step_index >= self.n_steps
+
+    def step(self):
+        """Advance one physics step (the first call gives the start state) and the telemetry model's
+        error states; None after the last step."""
+        state = self.physics_step()
+        if state is not None:
+            self.advance_telemetry(state)
+        return state
+
+    def physics_step(self):
+        """Advance the dynamics only (see the class docstring); None after the last step."""
+        if self.step_index >= self.n_steps:
+            return None
+        w0 = time.perf_counter()
+        self.step_index += 1
+        self.state = self.vehicle.state() if self.step_index == 0 else self.vehicle.step(self.vehicle.dt)
+        self.timing["dynamics"] += time.perf_counter() - w0
+        return self.state
+
+    def advance_telemetry(self, state) -> None:
+        """Integrate the telemetry model's error states to ``state`` (once per step, in step order)."""
+        w0 = time.perf_counter()
+        self.tm.advance(state)
+        self.timing["telemetry"] += time.perf_counter() - w0
+
+    def telemetry_builders(self) -> dict[str, Callable]:
+        """Message builders of the autopilot's streams, in the order they are built each step."""
+        tm, origin = self.tm, self.origin
+        return {
+            "HEARTBEAT": lambda s: tm.heartbeat(),
+            "ATTITUDE": tm.attitude,
+            "LOCAL_POSITION_NED": tm.local_position,
+            "GLOBAL_POSITION_INT": lambda s: tm.global_position(s, origin),
+        }
+
+    def scenario_streams(self) -> StreamSchedule:
+        """The scenario's fixed streams: HEARTBEAT 1 Hz and the ``[telemetry]`` rates with its latency."""
+        tel = self.sc.telemetry
+        b = self.telemetry_builders()
+        sched = StreamSchedule()
+        sched.add("HEARTBEAT", 1.0, b["HEARTBEAT"], 0.0)
+        sched.add("ATTITUDE", 1.0 / tel.attitude_rate_hz, b["ATTITUDE"], tel.latency_s)
+        sched.add("LOCAL_POSITION_NED", 1.0 / tel.position_rate_hz, b["LOCAL_POSITION_NED"], tel.latency_s)
+        sched.add("GLOBAL_POSITION_INT", 1.0 / tel.global_rate_hz, b["GLOBAL_POSITION_INT"], tel.latency_s)
+        return sched
+
+    def frame_due(self, state=None) -> bool:
+        """A frame of the frame grid is due at ``state`` (default: the newest physics step)."""
+        state = self.state if state is None else state
+        return (state is not None and self.next_frame < self.n_frames
+                and state.time_s + EPS_T >= self.next_frame / self.sc.meta.fps)
+
+    def capture(self, state=None) -> CapturedFrame:
+        """Render the due frame from the true camera pose at ``state`` (default: the newest physics
+        step) and record its truth."""
+        sc, meta = self.sc, self.sc.meta
+        state = self.state if state is None else state
+        cam_cfg = sc.camera
+        t = state.time_s
+        w0 = time.perf_counter()
+        R_wb = state.R_world_body
+        R_wc, p_wc = self.cam.camera_pose(R_wb, state.p_ned)
+        frame = self.renderer.render(R_wc, p_wc, v_world_cam=state.v_ned, w_cam=self.R_cam_body @ state.pqr,
+                                     frame_index=self.next_frame)
+        w1 = time.perf_counter()
+        tt = target_truth(sc.world, p_wc, R_wc, cam_cfg)
+        truth = self.truth
+        for key, val in (("t_s", meta.epoch_s + t), ("t_sim_s", t), ("p_ned", state.p_ned), ("v_ned", state.v_ned),
+                         ("rpy", state.rpy), ("pqr", state.pqr), ("R_world_body", R_wb), ("R_world_cam", R_wc),
+                         ("p_world_cam", p_wc),
+                         ("sector_m", sector_truth(sc.world, R_wb, state.p_ned, cam_cfg, meta.sector_max_distance_m)),
+                         ("target_range_m", tt.range_m),
+                         ("target_visible", tt.visible if tt.visible is not None else np.zeros(len(tt.names), bool))):
+            truth[key].append(np.asarray(val))
+        self.timing["render"] += w1 - w0
+        self.timing["truth"] += time.perf_counter() - w1
+        out = CapturedFrame(self.next_frame, t, frame.image)
+        self.frame_times.append(t)
+        self.next_frame += 1
+        return out
+
+    def truth_arrays(self) -> dict[str, np.ndarray]:
+        tt0 = target_truth(self.sc.world, np.zeros(3))
+        arrays = {k: np.array(v) for k, v in self.truth.items()}
+        arrays["sector_max_m"] = np.array(self.sc.meta.sector_max_distance_m)
+        arrays["target_names"] = np.array(tt0.names, dtype="U64")
+        arrays["target_p_world"] = np.asarray(tt0.p_world, float).reshape(-1, 3)
+        return arrays
+
+    def write_common(self, out: Path) -> dict[str, np.ndarray]:
+        """Write frames.csv, truth.npz and camera.toml (the files fly and sitl share); returns the truth."""
+        epoch = self.sc.meta.epoch_s
+        rows = ["index,t_s"] + [f"{i},{epoch + t:.6f}" for i, t in enumerate(self.frame_times)]
+        (out / "frames.csv").write_text("\n".join(rows) + "\n")
+        arrays = self.truth_arrays()
+        save_npz_deterministic(out / "truth.npz", arrays)
+        (out / "camera.toml").write_text(camera_toml(self.sc.camera))
+        return arrays
+
+
+def open_video(path: Path, sc: Scenario):
+    """An MJPG grey VideoWriter for the scenario's camera (RuntimeError if OpenCV cannot write it)."""
+    cam_cfg, meta = sc.camera, sc.meta
+    video = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), meta.fps, (cam_cfg.width, cam_cfg.height),
+                            isColor=False)
+    if not video.isOpened():
+        raise RuntimeError(f"cannot open {path} for MJPG writing")
+    video.set(cv2.VIDEOWRITER_PROP_QUALITY, meta.video_quality)
+    return video
+
+
+# ---------------------------------------------------------------------- fly ----------------------
 @dataclasses.dataclass
 class FlightResult:
     out_dir: Path
@@ -111,79 +319,29 @@ def fly(sc: Scenario, out_dir: str | Path, progress: Callable[[int, int], None] 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     wall0 = time.perf_counter()
-    meta, cam_cfg = sc.meta, sc.camera
-    vehicle = make_vehicle(sc.vehicle)
-    tm = TelemetryModel(sc.telemetry, sc.telemetry_seed, _mav_type(sc.vehicle.kind))
-    origin = LocalNED(sc.vehicle.origin_lat_deg, sc.vehicle.origin_lon_deg, sc.vehicle.origin_alt_m)
-    renderer = Renderer(sc.world, cam_cfg, sc.render)
-    cam = CameraModel(cam_cfg)
-    R_cam_body = cam_cfg.R_cam_body
-    lat = sc.telemetry.latency_s
-
-    n_steps = int(round(meta.duration_s / vehicle.dt))
-    n_frames = int(math.floor(meta.duration_s * meta.fps + 1e-9)) + 1
-    streams = [  # (period, builder, latency)
-        (1.0, lambda s: tm.heartbeat(), 0.0),
-        (1.0 / sc.telemetry.attitude_rate_hz, tm.attitude, lat),
-        (1.0 / sc.telemetry.position_rate_hz, tm.local_position, lat),
-        (1.0 / sc.telemetry.global_rate_hz, lambda s: tm.global_position(s, origin), lat),
-    ]
-    next_t = [0.0] * len(streams)
-    next_frame = 0
+    meta = sc.meta
+    flight = Flight(sc)
+    streams = flight.scenario_streams()
     queue: list[tuple[float, int, object]] = []
-    truth: dict[str, list] = {k: [] for k in TRUTH_FIELDS if k not in ("sector_max_m", "target_names", "target_p_world")}
-    fourcc = cv2.VideoWriter_fourcc(*"MJPG")
-    video = cv2.VideoWriter(str(out / "video.avi"), fourcc, meta.fps, (cam_cfg.width, cam_cfg.height), isColor=False)
-    if not video.isOpened():
-        raise RuntimeError(f"cannot open {out / 'video.avi'} for MJPG writing")
-    video.set(cv2.VIDEOWRITER_PROP_QUALITY, meta.video_quality)
-    rows = ["index,t_s"]
-    eps = 1e-9
-    state = vehicle.state()
+    video = open_video(out / "video.avi", sc)
     try:
-        for step in range(n_steps + 1):
-            if step > 0:
-                state = vehicle.step(vehicle.dt)
-            tm.advance(state)
-            t = state.time_s
-            for i, (period, build, delay) in enumerate(streams):
-                if t + eps >= next_t[i]:
-                    queue.append((t + delay, len(queue), build(state)))
-                    next_t[i] += period
-            if next_frame < n_frames and t + eps >= next_frame / meta.fps:
-                R_wb = state.R_world_body
-                R_wc, p_wc = cam.camera_pose(R_wb, state.p_ned)
-                frame = renderer.render(R_wc, p_wc, v_world_cam=state.v_ned, w_cam=R_cam_body @ state.pqr,
-                                        frame_index=next_frame)
+        while (state := flight.step()) is not None:
+            for t_emit, _name, msg in streams.due(state):
+                queue.append((t_emit, len(queue), msg))
+            if flight.frame_due():
+                frame = flight.capture()
                 video.write(frame.image)
-                rows.append(f"{next_frame},{meta.epoch_s + t:.6f}")
-                tt = target_truth(sc.world, p_wc, R_wc, cam_cfg)
-                for key, val in (("t_s", meta.epoch_s + t), ("t_sim_s", t), ("p_ned", state.p_ned), ("v_ned", state.v_ned),
-                                 ("rpy", state.rpy), ("pqr", state.pqr), ("R_world_body", R_wb), ("R_world_cam", R_wc),
-                                 ("p_world_cam", p_wc),
-                                 ("sector_m", sector_truth(sc.world, R_wb, state.p_ned, cam_cfg, meta.sector_max_distance_m)),
-                                 ("target_range_m", tt.range_m),
-                                 ("target_visible", tt.visible if tt.visible is not None else np.zeros(len(tt.names), bool))):
-                    truth[key].append(np.asarray(val))
-                next_frame += 1
                 if progress:
-                    progress(next_frame, n_frames)
+                    progress(flight.next_frame, flight.n_frames)
     finally:
         video.release()
     queue.sort(key=lambda item: (item[0], item[1]))
     with TlogWriter(out / "telemetry.tlog", meta.epoch_s) as w:
         for t_emit, _, msg in queue:
             w.write(t_emit, msg, sysid=sc.telemetry.system_id, compid=1)
-    (out / "frames.csv").write_text("\n".join(rows) + "\n")
-    tt0 = target_truth(sc.world, np.zeros(3))
-    arrays = {k: np.array(v) for k, v in truth.items()}
-    arrays["sector_max_m"] = np.array(meta.sector_max_distance_m)
-    arrays["target_names"] = np.array(tt0.names, dtype="U64")
-    arrays["target_p_world"] = np.asarray(tt0.p_world, float).reshape(-1, 3)
-    save_npz_deterministic(out / "truth.npz", arrays)
-    (out / "camera.toml").write_text(camera_toml(cam_cfg))
+    arrays = flight.write_common(out)
     wall = time.perf_counter() - wall0
-    result = FlightResult(out, next_frame, len(queue), meta.duration_s, wall)
+    result = FlightResult(out, flight.next_frame, len(queue), meta.duration_s, wall)
     (out / "flight.json").write_text(json.dumps({
         "scenario": meta.name, "scenario_file": str(sc.path), "seed": meta.seed, "aircraft": sc.vehicle.aircraft,
         "duration_s": meta.duration_s, "frames": result.frames, "messages": result.messages,

@@ -42,6 +42,15 @@ class TlogWriter:
         self._fh.write(struct.pack(">Q", us) + buf)
         self.count += 1
 
+    def write_raw(self, t_s: float, buf: bytes) -> None:
+        """Record an already packed MAVLink frame (as it went over a wire) at simulation time ``t_s``."""
+        us = int(round((self.epoch_s + t_s) * 1e6))
+        if us < self._last_us:
+            raise ValueError(f"tlog records must be in time order ({us} µs after {self._last_us} µs)")
+        self._last_us = us
+        self._fh.write(struct.pack(">Q", us) + bytes(buf))
+        self.count += 1
+
     def close(self) -> None:
         if not self._fh.closed:
             self._fh.close()

@@ -377,7 +377,12 @@ class MavLink:
 
     def __init__(self, conn_str: str, config: LinkConfig = LinkConfig(), clock: Callable[[], float] = time.monotonic, *,
                  role: str = "autopilot", telemetry: TelemetryBuffer | None = None,
-                 connection_factory: Callable[..., Any] | None = None):
+                 connection_factory: Callable[..., Any] | None = None,
+                 boot_time_observer: Callable[[float], None] | None = None, clock_offset_s: float | None = None):
+        """``boot_time_observer(t_boot_s)`` is told every ``time_boot_ms`` heard from the vehicle
+        (ATTITUDE, positions, SYSTEM_TIME, …); ``clock_offset_s`` fixes ``t_companion − t_autopilot``
+        instead of the TIMESYNC estimate (TIMESYNC still runs and is logged) — both for the lockstep
+        clock of :mod:`companion.simclock`, whose offset is 0 by construction."""
         if role not in ("autopilot", "gcs"):
             raise ConfigError(f"role must be 'autopilot' or 'gcs', got {role!r}")
         if not isinstance(conn_str, str) or not conn_str:
@@ -387,9 +392,15 @@ class MavLink:
         self.role = role
         self._clock = clock
         self._factory = connection_factory or _default_factory
+        self._boot_observer = boot_time_observer
+        if clock_offset_s is not None and not (isinstance(clock_offset_s, (int, float)) and math.isfinite(clock_offset_s)):
+            raise ConfigError(f"clock_offset_s must be a finite number, got {clock_offset_s!r}")
+        self._fixed_offset = None if clock_offset_s is None else float(clock_offset_s)
         self._lock = threading.RLock()
         self.counters: collections.Counter[str] = collections.Counter()
         self.telemetry = telemetry if telemetry is not None else TelemetryBuffer()
+        if self._fixed_offset is not None:
+            self.telemetry.set_clock_offset(self._fixed_offset)
         self.timesync = TimesyncEstimator(config.timesync)
         self.meter = RateMeter(config.rate_window_s)
         self.streams = StreamRequester(
@@ -621,6 +632,10 @@ class MavLink:
         if not self._from_vehicle(m):
             self.counters["rx_foreign"] += 1
             return
+        if self._boot_observer is not None:
+            tb = getattr(m, "time_boot_ms", None)
+            if isinstance(tb, int):
+                self._boot_observer(tb * 1e-3)
         if t == "ATTITUDE":
             self.meter.tick(t, now)
             r = self.telemetry.add_attitude(m.time_boot_ms, m.roll, m.pitch, m.yaw, m.rollspeed, m.pitchspeed, m.yawspeed)
@@ -713,7 +728,7 @@ class MavLink:
         if self._hb_limiter.ready(now):
             self._send(msgs.heartbeat(self._system_status))
         if self.role != "autopilot" or self._sysid is None or not self._connected:
-            self.telemetry.set_clock_offset(self.timesync.offset_s)
+            self.telemetry.set_clock_offset(self._clock_offset())
             return
         if self.timesync.request_due(now):
             self._send(timesync_request(self.timesync, now))
@@ -728,7 +743,11 @@ class MavLink:
         for ev in self.streams.events:
             self._event(*ev)
         self.streams.events.clear()
-        self.telemetry.set_clock_offset(self.timesync.offset_s)
+        self.telemetry.set_clock_offset(self._clock_offset())
+
+    def _clock_offset(self) -> float | None:
+        """``t_companion − t_autopilot`` in use: the fixed one if given, else the TIMESYNC estimate."""
+        return self._fixed_offset if self._fixed_offset is not None else self.timesync.offset_s
 
     def _event(self, severity: int, text: str) -> None:
         self._events.append((severity, text))
@@ -847,7 +866,8 @@ class MavLink:
     def autopilot_time_usec(self, t_companion: float) -> int | None:
         """Companion time mapped onto the autopilot's boot clock, µs (None before TIMESYNC)."""
         with self._lock:
-            t = self.timesync.companion_to_autopilot(t_companion)
+            t = (t_companion - self._fixed_offset) if self._fixed_offset is not None else \
+                self.timesync.companion_to_autopilot(t_companion)
         return None if t is None or t < 0 else int(round(t * 1e6))
 
     def autopilot_time_boot_ms(self, t_companion: float) -> int | None:

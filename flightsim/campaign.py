@@ -1,0 +1,409 @@
+"""Monte Carlo campaigns over seeds, scored and reported (issue 5: ``flightsim campaign``).
+
+``run_campaign(scenario, out, runs=N, workers=W)`` runs seeds ``seed0 … seed0+N−1`` (``seed0`` = the
+scenario's own ``[scenario] seed`` unless given), each in a worker process
+(:class:`concurrent.futures.ProcessPoolExecutor`, ``spawn`` start method) into
+``out/runs/seed_NNNN/``:
+
+* mode ``replay``: :func:`flightsim.fly.fly` then :func:`companion.replay.replay` in-process with a
+  fixed processing time (deterministic), ranges in ``ranges.tlog``;
+* mode ``sitl``: :func:`flightsim.sitl.run_sitl` (lockstep clock, free ports), ranges in
+  ``received.tlog`` (stamped on arrival);
+* then :func:`flightsim.score_io.score_run` (obstacles named from the scenario's world) writes
+  ``score.json``, ``score.md`` and ``score_series.npz``.
+
+A run that raises is recorded (``status = "failed"``, the error, ``error.txt`` with the traceback)
+and the campaign goes on; each run logs into its own ``run.log``.  Afterwards the runs are pooled
+(:func:`aggregate`) into ``out/campaign.json`` and ``out/report/`` (:mod:`flightsim.report`).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import dataclasses
+import importlib
+import json
+import logging
+import math
+import multiprocessing
+import os
+import shutil
+import time
+import traceback
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from companion.errors import ConfigError
+from flightsim.score import ScoreConfig, _jsonable, mark, nees_stats
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_COMPANION_CONFIG = ROOT / "configs" / "companion.toml"
+MODES = ("auto", "replay", "sitl")
+RATE_KEYS = ("detection", "valid_range", "dangerous_clear", "false_obstacle_clear_cells", "too_near", "over_range",
+             "messages_without_false_obstacle", "messages_with_claims")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunJob:
+    """One run of a campaign (picklable: it crosses into the worker process)."""
+
+    scenario: str
+    seed: int
+    run_dir: str
+    mode: str  # "replay" | "sitl"
+    companion_config: str | None
+    score_config: ScoreConfig
+    fixed_processing_ms: float
+    keep_video: bool = False
+
+
+# ---------------------------------------------------------------------- one run (worker) --------
+def _log_to(path: Path) -> logging.Handler:
+    root = logging.getLogger()
+    for h in list(root.handlers):
+        root.removeHandler(h)
+    h = logging.FileHandler(path, encoding="utf-8")
+    h.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root.addHandler(h)
+    root.setLevel(logging.INFO)
+    return h
+
+
+def _replay_run(job: RunJob, sc, run_dir: Path) -> Path:
+    from companion.cli import load_config
+    from companion.replay import replay
+    from flightsim.fly import fly
+
+    fly(sc, run_dir, plot=False)
+    rc = load_config(job.companion_config, None, str(run_dir / "camera.toml"))
+    out = run_dir / "ranges.tlog"
+    replay(run_dir / "telemetry.tlog", run_dir / "video.avi", run_dir / "frames.csv", out, rc.companion,
+           camera=rc.companion.camera, pipeline=rc.pipeline, fixed_processing_s=job.fixed_processing_ms / 1000.0)
+    return out
+
+
+def _sitl_run(job: RunJob, run_dir: Path) -> Path:
+    from flightsim.sitl import run_sitl
+
+    run_sitl(job.scenario, run_dir, seed=job.seed, clock="lockstep", port_base=None, companion_config=job.companion_config,
+             processing_ms=job.fixed_processing_ms, score=False)
+    return run_dir / "received.tlog"
+
+
+def run_one(job: RunJob) -> dict:
+    """Fly, range and score one seed (in a worker process); never raises for a failed run."""
+    from flightsim.scenario import load_scenario
+    from flightsim.score_io import score_run, write_score
+
+    run_dir = Path(job.run_dir)
+    if run_dir.exists():  # a previous campaign's run of this seed: start clean (the directory belongs to the campaign)
+        shutil.rmtree(run_dir)
+    run_dir.mkdir(parents=True)
+    handler = _log_to(run_dir / "run.log")
+    t0 = time.perf_counter()
+    res = {"seed": job.seed, "dir": str(run_dir), "status": "failed", "error": None, "wall_s": None, "score": None}
+    try:
+        logging.getLogger(__name__).info("run seed %d, mode %s", job.seed, job.mode)
+        sc = load_scenario(job.scenario, seed=job.seed)
+        ranges = _replay_run(job, sc, run_dir) if job.mode == "replay" else _sitl_run(job, run_dir)
+        score = score_run(ranges, run_dir / "truth.npz", config=job.score_config, companion_config=job.companion_config,
+                          world=sc.world, series_out=run_dir / "score_series.npz")
+        write_score(run_dir, score)
+        res.update(status="ok", score=score)
+    except Exception as exc:  # recorded, the campaign goes on
+        res["error"] = f"{type(exc).__name__}: {exc}"
+        (run_dir / "error.txt").write_text(traceback.format_exc(), encoding="utf-8")
+        logging.getLogger(__name__).error("run seed %d failed: %s", job.seed, res["error"])
+    finally:
+        res["wall_s"] = round(time.perf_counter() - t0, 2)
+        video = run_dir / "video.avi"
+        if not job.keep_video and video.exists():
+            video.unlink()
+        handler.close()
+        logging.getLogger().removeHandler(handler)
+    return res
+
+
+# ---------------------------------------------------------------------- aggregation -------------
+def _mean_std(values) -> dict:
+    v = np.array([x for x in values if x is not None], float)
+    return {"n": int(v.size), "mean": float(v.mean()) if v.size else None,
+            "std": float(v.std(ddof=1)) if v.size > 1 else (0.0 if v.size == 1 else None),
+            "min": float(v.min()) if v.size else None, "max": float(v.max()) if v.size else None}
+
+
+def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig = ScoreConfig()) -> dict:
+    """Pool the scored runs: summed cell counts and pooled rates, mean ± std of per-run rates, the
+    targets on the pooled rates (and how many runs meet each), pooled range error, latency, NEES and
+    time to the first valid range per obstacle name.  ``series``: seed → score_series arrays."""
+    from flightsim.score import error_table
+
+    ok = [r for r in results if r["status"] == "ok" and r.get("score")]
+    scores = [r["score"] for r in ok]
+    cells: dict[str, int] = {}
+    for s in scores:
+        for k, v in s["cells"].items():
+            cells[k] = cells.get(k, 0) + int(v or 0)
+
+    def rate(num, den):
+        return None if not cells.get(den) else cells.get(num, 0) / cells[den]
+
+    pooled = {
+        "detection": rate("detections", "obstacle"), "valid_range": rate("valid_ranges", "obstacle"),
+        "dangerous_clear": rate("dangerous_clears", "obstacle"), "too_near": rate("too_near", "obstacle"),
+        "over_range": rate("over_range", "obstacle"), "false_obstacle_clear_cells": rate("false_obstacles_clear_cells", "clear"),
+        "messages_without_false_obstacle": rate("messages_without_false_obstacle", "messages_eligible_no_false"),
+    }
+    per_run = {k: _mean_std(s["rates"].get(k) for s in scores) for k in RATE_KEYS}
+    targets = []
+    for i, t in enumerate(scores[0]["targets"] if scores else []):
+        key = "messages_without_false_obstacle" if i == 0 else "dangerous_clear"
+        v = pooled[key]
+        met = None if v is None else (v >= t["threshold"] if t["op"] == ">=" else v <= t["threshold"])
+        runs_met = sum(1 for s in scores if s["targets"][i]["met"])
+        runs_known = sum(1 for s in scores if s["targets"][i]["met"] is not None)
+        n = cells.get("messages_eligible_no_false" if i == 0 else "obstacle", 0)
+        targets.append({"name": t["name"], "op": t["op"], "threshold": t["threshold"], "pooled": v, "n": n, "met": met,
+                        "runs_met": runs_met, "runs_scored": runs_known})
+    cat = lambda key: np.concatenate([np.asarray(series[s][key], float).reshape(-1) for s in series]) if series else np.zeros(0)  # noqa: E731
+    bins = config.range_bins_m
+    ds_T, ds_max = cat("ds_truth_arrival"), cat("ds_max_m")
+    ds_pub, ds_est, ds_state = cat("ds_published_m"), cat("ds_estimate_m"), cat("ds_state")
+    fwd = (ds_state == 1) & np.isfinite(ds_T) & (ds_T <= ds_max)
+    range_error = {
+        "published_all_sectors": error_table(cat("det_true_m"), cat("det_published_m"), bins),
+        "published_forward": error_table(ds_T[fwd], ds_pub[fwd], bins),
+        "estimate_forward": error_table(ds_T[fwd & np.isfinite(ds_est)], ds_est[fwd & np.isfinite(ds_est)], bins),
+    }
+    lat = cat("od_latency_s")
+    lat = lat[np.isfinite(lat)] * 1000.0
+    pct = lambda q: float(np.percentile(lat, q)) if lat.size else None  # noqa: E731
+    latency = {"n": int(lat.size), "p50_ms": pct(50), "p95_ms": pct(95), "p99_ms": pct(99),
+               "max_ms": float(lat.max()) if lat.size else None}
+    nees = nees_stats(cat("nees_exposure"), config.nees_confidence)
+    nees["arrival"] = nees_stats(cat("nees_arrival"), config.nees_confidence)
+    nees["per_run_mean"] = _mean_std(s["nees"]["mean"] for s in scores)
+    nees["confidence"] = config.nees_confidence
+    obstacles: dict[str, dict] = {}
+    for s in scores:
+        for o in s["obstacles"]:
+            d = obstacles.setdefault(o["name"], {"name": o["name"], "runs_in_range": 0, "runs_valid": 0, "ttfv": [],
+                                                 "detected_fraction": [], "in_range_at_s": []})
+            if o["in_range_at_s"] is not None:
+                d["runs_in_range"] += 1
+                d["in_range_at_s"].append(o["in_range_at_s"])
+                d["detected_fraction"].append(o["detected_fraction"])
+                if o["time_to_first_valid_s"] is not None:
+                    d["runs_valid"] += 1
+                    d["ttfv"].append(o["time_to_first_valid_s"])
+    obs_rows = []
+    for d in obstacles.values():
+        obs_rows.append({"name": d["name"], "runs_in_range": d["runs_in_range"], "runs_with_valid_range": d["runs_valid"],
+                         "runs_never_valid": d["runs_in_range"] - d["runs_valid"],
+                         "in_range_at_s": _mean_std(d["in_range_at_s"]), "time_to_first_valid_s": _mean_std(d["ttfv"]),
+                         "detected_fraction": _mean_std(d["detected_fraction"])})
+    return _jsonable({
+        "runs": len(results), "runs_ok": len(ok), "runs_failed": len(results) - len(ok),
+        "cells": cells, "pooled_rates": pooled, "per_run_rates": per_run, "targets": targets,
+        "range_error": range_error, "latency": latency, "nees": nees, "obstacles": obs_rows,
+        "first_claim_at_s": _mean_std(s.get("first_claim_at_s") for s in scores),
+    })
+
+
+def run_key_figures(score: dict) -> dict:
+    """The per-run line of campaign.json (the full score is in the run's score.json)."""
+    r = score["rates"]
+    return _jsonable({
+        "detection": r["detection"], "valid_range": r["valid_range"], "dangerous_clear": r["dangerous_clear"],
+        "false_obstacle_clear_cells": r["false_obstacle_clear_cells"], "too_near": r["too_near"],
+        "messages_without_false_obstacle": r["messages_without_false_obstacle"],
+        "targets_met": [t["met"] for t in score["targets"]], "latency_p50_ms": score["latency"]["p50_ms"],
+        "latency_p99_ms": score["latency"]["p99_ms"], "nees_mean": score["nees"]["mean"], "nees_n": score["nees"]["n"],
+        "first_claim_at_s": score["first_claim_at_s"],
+        "time_to_first_valid_s": {o["name"]: o["time_to_first_valid_s"] for o in score["obstacles"]},
+    })
+
+
+# ---------------------------------------------------------------------- the campaign ------------
+def sitl_available() -> bool:
+    try:
+        mod = importlib.import_module("flightsim.sitl")
+    except ImportError:
+        return False
+    return callable(getattr(mod, "run_sitl", None))
+
+
+def resolve_mode(mode: str) -> str:
+    if mode not in MODES:
+        raise ConfigError(f"--mode must be one of {', '.join(MODES)}, got {mode!r}")
+    if mode == "auto":
+        return "sitl" if sitl_available() else "replay"
+    if mode == "sitl" and not sitl_available():
+        raise ConfigError("--mode sitl: flightsim.sitl.run_sitl is not available in this checkout yet; use --mode replay")
+    return mode
+
+
+def parse_times(text: str | None) -> list[float] | None:
+    if text is None or not str(text).strip():
+        return None
+    try:
+        vals = [float(x) for x in str(text).split(",") if x.strip()]
+    except ValueError:
+        raise ConfigError(f"--times {text!r}: expected comma-separated seconds, e.g. 3,6,9") from None
+    if not vals or not all(math.isfinite(v) and v >= 0 for v in vals):
+        raise ConfigError(f"--times {text!r}: times must be finite and >= 0")
+    return vals
+
+
+def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: int | None = None, mode: str = "auto",
+                 seed0: int | None = None, companion_config: str | Path | None = None,
+                 score_config: ScoreConfig | None = None, fixed_processing_ms: float = 30.0, keep_video: bool = False,
+                 obstacle: str = "forward", times: list[float] | None = None,
+                 progress: Callable[[int, int, int], None] | None = None,
+                 run_fn: Callable[[RunJob], dict] = run_one) -> dict:
+    """Run, score and report a campaign (module docstring); returns the campaign.json contents.
+
+    ``progress(done, total, failed)`` is called as runs finish.  ``run_fn`` runs one job in the
+    worker (a picklable module-level function; :func:`run_one` by default).
+    """
+    from flightsim.report import write_report
+    from flightsim.scenario import load_scenario
+    from flightsim.score_io import load_series
+
+    if not (isinstance(runs, int) and runs >= 1):
+        raise ConfigError(f"--runs must be an integer >= 1, got {runs!r}")
+    cpu = os.cpu_count() or 1
+    workers = min(runs, cpu) if workers is None else workers
+    if not (isinstance(workers, int) and workers >= 1):
+        raise ConfigError(f"--workers must be an integer >= 1, got {workers!r}")
+    if not (math.isfinite(fixed_processing_ms) and fixed_processing_ms >= 0):
+        raise ConfigError(f"--fixed-processing-ms must be >= 0, got {fixed_processing_ms}")
+    mode = resolve_mode(mode)
+    scenario = Path(scenario).resolve()
+    sc = load_scenario(scenario)  # a bad scenario stops here, before any worker starts
+    base = sc.meta.seed if seed0 is None else int(seed0)
+    if base < 0:
+        raise ConfigError(f"--seed0 must be >= 0, got {base}")
+    if companion_config is None and DEFAULT_COMPANION_CONFIG.is_file():
+        companion_config = DEFAULT_COMPANION_CONFIG
+    if companion_config is not None:
+        from flightsim.score_io import companion_score_params
+
+        companion_config = Path(companion_config).resolve()
+        if not companion_config.is_file():
+            raise ConfigError(f"--companion-config {companion_config}: no such file")
+        companion_score_params(companion_config)  # validates the file before the runs
+    cfg = score_config or ScoreConfig()
+    out = Path(out)
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    jobs = [RunJob(str(scenario), base + i, str(out / "runs" / f"seed_{base + i:04d}"), mode,
+                   None if companion_config is None else str(companion_config), cfg, float(fixed_processing_ms), keep_video)
+            for i in range(runs)]
+    log.info("campaign %s: %d runs (seeds %d…%d), mode %s, %d workers → %s", sc.meta.name, runs, base, base + runs - 1,
+             mode, workers, out)
+    wall0 = time.perf_counter()
+    results: dict[int, dict] = {}
+    failed = 0
+    interrupted = False
+    ex = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    try:
+        futs = {ex.submit(run_fn, job): job for job in jobs}
+        for fut in cf.as_completed(futs):
+            job = futs[fut]
+            try:
+                res = fut.result()
+            except Exception as exc:  # the worker process died (BrokenProcessPool) or run_fn raised
+                res = {"seed": job.seed, "dir": job.run_dir, "status": "failed", "error": f"{type(exc).__name__}: {exc}",
+                       "wall_s": None, "score": None}
+            results[job.seed] = res
+            if res["status"] != "ok":
+                failed += 1
+                log.warning("seed %d failed: %s", job.seed, res["error"])
+            else:
+                log.info("seed %d scored in %.1f s", job.seed, res["wall_s"] or 0.0)
+            if progress:
+                progress(len(results), runs, failed)
+    except KeyboardInterrupt:
+        interrupted = True
+        ex.shutdown(wait=False, cancel_futures=True)
+        log.warning("interrupted: %d of %d runs done; writing what there is", len(results), runs)
+    finally:
+        ex.shutdown(wait=not interrupted, cancel_futures=True)
+    ordered = [results[j.seed] for j in jobs if j.seed in results]
+    series = {}
+    for r in ordered:
+        p = Path(r["dir"]) / "score_series.npz"
+        if r["status"] == "ok" and p.is_file():
+            series[r["seed"]] = load_series(p)
+    agg = aggregate(ordered, series, cfg)
+    campaign = {
+        "scenario": str(scenario), "scenario_name": sc.meta.name, "mode": mode, "seeds": [j.seed for j in jobs],
+        "workers": workers, "fixed_processing_ms": fixed_processing_ms,
+        "companion_config": None if companion_config is None else str(companion_config),
+        "score_config": dataclasses.asdict(cfg), "wall_s": round(time.perf_counter() - wall0, 2), "interrupted": interrupted,
+        "runs": [{k: v for k, v in r.items() if k != "score"} | ({"key_figures": run_key_figures(r["score"])} if r["score"] else {})
+                 for r in ordered],
+        "aggregate": agg,
+    }
+    campaign = _jsonable(campaign)
+    report_files = write_report(out / "report", campaign, series, obstacle=obstacle, times=times)
+    campaign["report"] = {k: str(v) for k, v in report_files.items()}
+    (out / "campaign.json").write_text(json.dumps(campaign, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+    if interrupted:
+        raise KeyboardInterrupt
+    return campaign
+
+
+def _progress_bar(label: str):
+    import sys
+
+    if not sys.stderr.isatty():
+        return None, None
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                   TimeRemainingColumn(), transient=False)
+    task = bar.add_task(label, total=None)
+
+    def tick(done: int, total: int, failed: int) -> None:
+        bar.update(task, completed=done, total=total, description=f"{label}" + (f" ({failed} failed)" if failed else ""))
+
+    return bar, tick
+
+
+def campaign_from_args(args) -> int:
+    """``flightsim campaign`` (see flightsim/cli.py for the options)."""
+    from flightsim.score_io import load_score_config
+
+    times = parse_times(args.times)
+    cfg = load_score_config(args.score_config)
+    bar, tick = _progress_bar("campaign")
+    if bar:
+        bar.start()
+        bar.update(bar.task_ids[0], total=args.runs)
+    try:
+        c = run_campaign(args.scenario, args.out, runs=args.runs, workers=args.workers, mode=args.mode, seed0=args.seed0,
+                         companion_config=args.companion_config, score_config=cfg,
+                         fixed_processing_ms=args.fixed_processing_ms, keep_video=args.keep_video, obstacle=args.obstacle,
+                         times=times, progress=tick)
+    finally:
+        if bar:
+            bar.stop()
+    a = c["aggregate"]
+    print(f"{c['scenario_name']}: {a['runs_ok']} of {a['runs']} runs scored ({c['mode']} mode) in {c['wall_s']:.0f} s")
+    pr = a["pooled_rates"]
+    pc = lambda v: "–" if v is None else f"{100 * v:.2f} %"  # noqa: E731
+    print(f"pooled: detection {pc(pr['detection'])}, false obstacle (clear cells) {pc(pr['false_obstacle_clear_cells'])}, "
+          f"too near {pc(pr['too_near'])}; latency p50 {a['latency']['p50_ms'] or float('nan'):.1f} ms")
+    for t in a["targets"]:
+        print(f"  {mark(t['met'])} {t['name']}: {pc(t['pooled'])} (target {t['op']} {100 * t['threshold']:g} %; "
+              f"met in {t['runs_met']} of {t['runs_scored']} runs)")
+    for r in c["runs"]:
+        if r["status"] != "ok":
+            print(f"  seed {r['seed']} FAILED: {r['error']} (see {r['dir']}/error.txt)")
+    print(f"report: {Path(args.out) / 'report' / 'index.md'}; machine-readable: {Path(args.out) / 'campaign.json'}")
+    return 0 if a["runs_failed"] == 0 else 1

@@ -1,0 +1,362 @@
+"""Campaign report: plots (matplotlib, Agg) and a markdown index (issue 5).
+
+``write_report(report_dir, campaign, series)`` writes into ``report_dir``:
+
+* ``range_vs_truth.png`` — range estimate vs truth over time with ±σ bands, every run overlaid:
+  the forward DISTANCE_SENSOR (``obstacle="forward"``: estimate = published + k·σ, its σ band, the
+  conservative published value, the forward truth at arrival), or one named obstacle (nearest
+  true distance over its sectors, nearest published range over them, and the forward estimate ±σ
+  while the forward sector belongs to it);
+* ``error_vs_range.png`` — range error against the true range L, pooled over runs: signed error
+  of every detection and of the forward estimate, binned median and 5–95 % band; |error| in % of L;
+* ``radar.png`` — polar sector plots of one run at chosen times: truth vs published (ranges,
+  "clear", unknown left blank);
+* ``latency_hist.png`` — exposure → message latency, pooled;
+* ``index.md`` — the tables of campaign.json (targets ✓/✗, pooled rates, per-run mean ± std,
+  range error by bin, time to the first valid range per obstacle, latency, NEES, runs) linking
+  the plots and each run's score.md.
+
+Only reads what it is handed (campaign dict, per-run series arrays); no figure here comes from
+anywhere but those arrays.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from flightsim.score import REP_CLEAR, REP_RANGE, SECTOR_DEG, TRUTH_OBSTACLE, mark
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _empty(ax, text: str = "no scored runs") -> None:
+    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, color="0.4")
+
+
+# ---------------------------------------------------------------------- plots -------------------
+def plot_range_vs_truth(series: dict[int, dict], path: Path, obstacle: str = "forward") -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(10, 5.5))
+    drawn = False
+    cmap = plt.get_cmap("tab10")
+    for n, (seed, s) in enumerate(sorted(series.items())):
+        c = cmap(n % 10)
+        t0 = float(s["t0"])
+        lab = f"seed {seed}" if n < 6 else None
+        ds_t = np.asarray(s["ds_t"]) - t0
+        est, sig = np.asarray(s["ds_estimate_m"]), np.asarray(s["ds_sigma_m"])
+        if obstacle == "forward":
+            truth_t, truth = ds_t, np.asarray(s["ds_truth_arrival"])
+            sel = np.ones(len(ds_t), bool)
+            pub_t, pub = ds_t, np.asarray(s["ds_published_m"])
+        else:
+            names = [str(x) for x in s["obstacle_names"]]
+            if obstacle not in names:
+                continue
+            k = names.index(obstacle)
+            cells = (np.asarray(s["od_label"]) == k) & (np.asarray(s["od_tcls"]) == TRUTH_OBSTACLE)
+            od_t = np.asarray(s["od_t"]) - t0
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: the obstacle is not in range then
+                truth = np.nanmin(np.where(cells, np.asarray(s["od_truth"], float), np.nan), axis=1) if cells.size else np.zeros(0)
+                rng = cells & (np.asarray(s["od_rep"]) == REP_RANGE)
+                pub = np.nanmin(np.where(rng, np.asarray(s["od_cm"]) / 100.0, np.nan), axis=1) if rng.size else np.zeros(0)
+            truth_t = pub_t = od_t
+            j = np.searchsorted(np.asarray(s["od_t"]), np.asarray(s["ds_t"]) + 1e-9, side="right") - 1
+            sel = np.zeros(len(j), bool)
+            if len(j) and len(od_t):
+                sel = (j >= 0) & (np.asarray(s["od_label"])[np.maximum(j, 0), 0] == k)
+        ax.plot(truth_t, truth, color="k", lw=1.0, alpha=0.6, label="truth" if n == 0 else None)
+        ok = sel & np.isfinite(est) & np.isfinite(sig)
+        if np.any(ok):
+            e = np.where(ok, est, np.nan)
+            ax.plot(ds_t, e, color=c, lw=1.0, label=None if lab is None else f"{lab}: estimate ± σ")
+            ax.fill_between(ds_t, e - np.where(ok, sig, np.nan), e + np.where(ok, sig, np.nan), color=c, alpha=0.15, lw=0)
+            drawn = True
+        if np.any(np.isfinite(pub)):
+            ax.plot(pub_t, pub, ".", ms=2, color=c, alpha=0.5, label=None if lab is None else f"{lab}: published")
+            drawn = True
+    if not drawn:
+        _empty(ax, "no ranges for this obstacle" if series else "no scored runs")
+    what = "forward sector (DISTANCE_SENSOR)" if obstacle == "forward" else f"obstacle {obstacle!r}"
+    ax.set_title(f"Range estimate ± σ vs truth, {what}; dots: conservative published value")
+    ax.set_xlabel("time since the first frame, s")
+    ax.set_ylabel("horizontal range, m")
+    if drawn:
+        ax.legend(fontsize=8, loc="upper right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _binned(x: np.ndarray, y: np.ndarray, width: float = 2.5):
+    if x.size == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0)
+    edges = np.arange(0.0, float(np.nanmax(x)) + width, width)
+    idx = np.digitize(x, edges) - 1
+    cs, med, lo, hi = [], [], [], []
+    for i in range(len(edges)):
+        v = y[idx == i]
+        if v.size >= 5:
+            cs.append(edges[i] + width / 2)
+            med.append(np.median(v))
+            lo.append(np.percentile(v, 5))
+            hi.append(np.percentile(v, 95))
+    return np.array(cs), np.array(med), np.array(lo), np.array(hi)
+
+
+def plot_error_vs_range(series: dict[int, dict], path: Path) -> Path:
+    plt = _plt()
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(10, 8), sharex=True)
+    cat = lambda k: np.concatenate([np.asarray(s[k], float).reshape(-1) for s in series.values()]) if series else np.zeros(0)  # noqa: E731
+    T, r = cat("det_true_m"), cat("det_published_m")
+    dT, dest, dstate = cat("ds_truth_exposure"), cat("ds_estimate_m"), cat("ds_state")
+    ok = np.isfinite(dT) & np.isfinite(dest) & (dstate == REP_RANGE)
+    dT, dest = dT[ok], dest[ok]
+    if T.size == 0 and dT.size == 0:
+        _empty(a1)
+        _empty(a2)
+    rng = np.random.default_rng(0)
+    if T.size:
+        sub = rng.choice(T.size, min(T.size, 20000), replace=False)
+        a1.plot(T[sub], (r - T)[sub], ".", ms=2, alpha=0.2, color="tab:blue", label="published (conservative), all sectors")
+        c, m, lo, hi = _binned(T, r - T)
+        a1.plot(c, m, "-", color="tab:blue", lw=2)
+        a1.fill_between(c, lo, hi, color="tab:blue", alpha=0.15)
+        c, m, lo, hi = _binned(T, 100 * np.abs(r - T) / T)
+        a2.plot(c, m, "-o", ms=3, color="tab:blue", label="published, median")
+        a2.fill_between(c, 0 * c, hi, color="tab:blue", alpha=0.1, label="published, 95th percentile")
+    if dT.size:
+        a1.plot(dT, dest - dT, ".", ms=3, alpha=0.4, color="tab:orange", label="forward estimate (published + k·σ)")
+        c, m, lo, hi = _binned(dT, dest - dT)
+        a1.plot(c, m, "-", color="tab:orange", lw=2)
+        c, m, lo, hi = _binned(dT, 100 * np.abs(dest - dT) / dT)
+        a2.plot(c, m, "-o", ms=3, color="tab:orange", label="forward estimate, median")
+    a1.axhline(0, color="k", lw=0.8)
+    a1.set_ylabel("error (value − true), m")
+    a1.set_title("Range error vs true range L (lines: binned median; band: 5–95 %), pooled over runs")
+    a2.set_ylabel("|error|, % of L")
+    a2.set_xlabel("true horizontal range L, m")
+    for a in (a1, a2):
+        a.grid(alpha=0.3)
+        if T.size or dT.size:
+            a.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def radar_times(s: dict, n: int = 4) -> list[float]:
+    t = np.asarray(s["od_t"]) - float(s["t0"])
+    if t.size == 0:
+        return []
+    return [float(x) for x in np.linspace(t[-1] * 0.25, t[-1], n)]
+
+
+def plot_radar(s: dict | None, seed: int | None, path: Path, times: list[float] | None = None) -> Path:
+    plt = _plt()
+    times = list(times) if times else (radar_times(s) if s is not None else [])
+    k = max(1, len(times))
+    cols = min(k, 4)
+    rows = math.ceil(k / cols)
+    fig = plt.figure(figsize=(4.2 * cols, 2.9 * rows + 1.0))
+    if s is None or not times:
+        ax = fig.add_subplot(1, 1, 1)
+        _empty(ax)
+        ax.axis("off")
+    else:
+        t = np.asarray(s["od_t"]) - float(s["t0"])
+        scored = np.asarray(s["od_scored"], bool)
+        theta = np.radians(np.arange(72) * SECTOR_DEG)
+        width = np.radians(SECTOR_DEG)
+        for i, tau in enumerate(times):
+            ax = fig.add_subplot(rows, cols, i + 1, projection="polar")
+            ax.set_theta_zero_location("N")
+            ax.set_theta_direction(-1)
+            cand = np.flatnonzero(scored & (t >= tau - 1e-9))
+            j = cand[0] if cand.size else (np.flatnonzero(scored)[-1] if np.any(scored) else None)
+            if j is None:
+                _empty(ax, "no message")
+                continue
+            mx = float(s["od_max_m"][j])
+            T = np.asarray(s["od_truth"][j], float)
+            rep = np.asarray(s["od_rep"][j])
+            r = np.asarray(s["od_cm"][j]) / 100.0
+            seen = ~np.isnan(T)
+            fin = np.isfinite(T)
+            ax.bar(theta[seen & ~fin], mx, width=width, color="0.92", edgecolor="none", label="truth: nothing within range")
+            clear = rep == REP_CLEAR
+            if np.any(clear):
+                ax.bar(theta[clear], mx, width=width, color="tab:green", alpha=0.35, label="published: clear")
+            arc = np.linspace(-width / 2, width / 2, 6)
+            rr = rep == REP_RANGE
+            for k_, (idx, val, col, lw) in enumerate(((np.flatnonzero(fin), T, "k", 2.5), (np.flatnonzero(rr), r, "tab:red", 1.6))):
+                for q in idx:
+                    ax.plot(theta[q] + arc, np.full(arc.shape, min(val[q], mx * 1.05)), "-", color=col, lw=lw,
+                            label=(None if q != idx[0] else ("truth: nearest obstacle" if k_ == 0 else "published range")))
+            ax.set_rticks(np.arange(10.0, mx + 1e-9, 10.0))
+            ax.tick_params(labelsize=7)
+            ax.set_rmax(mx * 1.05)
+            ax.set_thetamin(-90)
+            ax.set_thetamax(90)
+            ax.set_title(f"t = {t[j]:.2f} s", fontsize=9)
+        seen_labels: dict[str, object] = {}
+        for ax_ in fig.axes:
+            for h_, l_ in zip(*ax_.get_legend_handles_labels()):
+                seen_labels.setdefault(l_, h_)
+        labels, handles = list(seen_labels), list(seen_labels.values())
+        if handles:
+            fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8, frameon=False)
+        fig.suptitle(f"Sectors, body frame (0° = forward, clockwise), seed {seed}: truth at arrival vs published")
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_latency(series: dict[int, dict], path: Path) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    lat = np.concatenate([np.asarray(s["od_latency_s"], float) for s in series.values()]) if series else np.zeros(0)
+    lat = lat[np.isfinite(lat)] * 1000.0
+    if lat.size:
+        lo, hi = float(lat.min()), float(lat.max())
+        bins = np.linspace(lo - 0.5, hi + 0.5, 41) if hi - lo > 1 else np.linspace(lo - 2, hi + 2, 9)
+        ax.hist(lat, bins=bins, color="tab:blue", alpha=0.8)
+        for q, ls in ((50, "-"), (99, "--")):
+            v = float(np.percentile(lat, q))
+            ax.axvline(v, color="k", ls=ls, lw=1, label=f"p{q} {v:.1f} ms")
+        ax.legend()
+    else:
+        _empty(ax, "no exposure times known")
+    ax.set_xlabel("exposure → message stamp, ms")
+    ax.set_ylabel("OBSTACLE_DISTANCE messages")
+    ax.set_title(f"Latency, pooled over runs (n = {lat.size})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+# ---------------------------------------------------------------------- index.md ----------------
+def _pc(v, d: int = 2) -> str:
+    return "–" if v is None else f"{100 * v:.{d}f} %"
+
+
+def _f(v, fmt: str = "{:.2f}") -> str:
+    return "–" if v is None else fmt.format(v)
+
+
+def _ms(d: dict, fmt: str = "{:.2f}", pct: bool = False) -> str:
+    if not d or d.get("mean") is None:
+        return "–"
+    if pct:
+        return f"{100 * d['mean']:.2f} ± {100 * (d['std'] or 0):.2f} %"
+    return f"{fmt.format(d['mean'])} ± {fmt.format(d['std'] or 0)}"
+
+
+def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
+    a = c["aggregate"]
+    L = [f"# Campaign: {c['scenario_name']}", "",
+         f"Scenario `{c['scenario']}`, mode **{c['mode']}**, seeds {c['seeds'][0]}…{c['seeds'][-1]} ({len(c['seeds'])} runs, "
+         f"{a['runs_ok']} scored, {a['runs_failed']} failed), {c['workers']} workers, {c['wall_s']:.0f} s wall; processing "
+         f"time {c['fixed_processing_ms']:g} ms per frame; companion config `{c['companion_config']}`.", "",
+         "Reproduce: `flightsim campaign " + f"{c['scenario']} --runs {len(c['seeds'])} --seed0 {c['seeds'][0]} "
+         f"--mode {c['mode']} --fixed-processing-ms {c['fixed_processing_ms']:g} --out DIR`.", "",
+         "Definitions (cells, tolerance, false obstacle, dangerous clear, NEES, latency): the module docstring of "
+         "`flightsim/score.py`, repeated at the end of every run's score.md.", "",
+         "## Targets (issue 5), pooled over runs", "",
+         "| target | pooled | threshold | n | met | runs meeting it |", "|---|---|---|---|---|---|"]
+    for t in a["targets"]:
+        L.append(f"| {t['name']} | {_pc(t['pooled'])} | {t['op']} {100 * t['threshold']:g} % | {t['n']} | {mark(t['met'])} | "
+                 f"{t['runs_met']} of {t['runs_scored']} |")
+    cells, pr, per = a["cells"], a["pooled_rates"], a["per_run_rates"]
+    L += ["", "## Rates", "", "| rate | pooled | per run (mean ± std) | cells |", "|---|---|---|---|"]
+    rows = (("detection (range in an obstacle cell)", "detection", "detections", "obstacle"),
+            ("valid range (within tolerance)", "valid_range", "valid_ranges", "obstacle"),
+            ("dangerous clear", "dangerous_clear", "dangerous_clears", "obstacle"),
+            ("too near (false obstacle in an obstacle cell)", "too_near", "too_near", "obstacle"),
+            ("over range", "over_range", "over_range", "obstacle"),
+            ("false obstacle in clear cells", "false_obstacle_clear_cells", "false_obstacles_clear_cells", "clear"),
+            ("messages without a false obstacle in clear sectors", "messages_without_false_obstacle",
+             "messages_without_false_obstacle", "messages_eligible_no_false"))
+    for label, key, num, den in rows:
+        L.append(f"| {label} | {_pc(pr.get(key))} | {_ms(per.get(key), pct=True)} | {cells.get(num, 0)} / {cells.get(den, 0)} |")
+    L += ["", f"Ranges beyond the truth horizon (unverifiable): {cells.get('unverifiable_beyond_truth', 0)}; claims in "
+          f"unseen sectors: {cells.get('unscored_claims', 0)}; first claim {_ms(a['first_claim_at_s'])} s after the first frame.", ""]
+    L += ["## Range error (value − true) by true range, pooled", ""]
+    for key, label in (("published_all_sectors", "Conservative published value, all sectors"),
+                       ("published_forward", "Conservative published value, forward DISTANCE_SENSOR"),
+                       ("estimate_forward", "Estimate (published + k·σ), forward DISTANCE_SENSOR")):
+        L += [f"{label}:", "", "| true range | n | bias m | mean abs m | median abs m | p95 abs m | mean abs % | median abs % |",
+              "|---|---|---|---|---|---|---|---|"]
+        for r in a["range_error"][key]:
+            L.append(f"| {r['bin']} | {r['n']} | {_f(r['bias_m'])} | {_f(r['mae_m'])} | {_f(r['median_abs_m'])} | "
+                     f"{_f(r['p95_abs_m'])} | {_f(r['mae_pct'], '{:.1f}')} | {_f(r['median_abs_pct'], '{:.1f}')} |")
+        L.append("")
+    L += ["## Obstacles: time to the first valid range", "",
+          "| obstacle | runs in range | in range at s | time to first valid s (mean ± std) | runs never valid | detected share |",
+          "|---|---|---|---|---|---|"]
+    for o in a["obstacles"]:
+        L.append(f"| {o['name']} | {o['runs_in_range']} | {_ms(o['in_range_at_s'])} | {_ms(o['time_to_first_valid_s'])} | "
+                 f"{o['runs_never_valid']} | {_ms(o['detected_fraction'], pct=True)} |")
+    la, ne = a["latency"], a["nees"]
+    band = ne.get("band") or [None, None]
+    L += ["", "## Latency and NEES", "",
+          f"Latency exposure → message (n = {la['n']}): p50 {_f(la['p50_ms'], '{:.1f}')} ms, p95 {_f(la['p95_ms'], '{:.1f}')} ms, "
+          f"p99 {_f(la['p99_ms'], '{:.1f}')} ms, max {_f(la['max_ms'], '{:.1f}')} ms.", "",
+          f"NEES of the forward σ against the truth at exposure, pooled: n = {ne['n']}, mean {_f(ne['mean'])}, median "
+          f"{_f(ne['median'])}, {100 * ne['confidence']:g} % band [{_f(band[0], '{:.3f}')}, {_f(band[1], '{:.3f}')}] "
+          f"{mark(ne['consistent'])}; per-run mean {_ms(ne['per_run_mean'])}; at arrival: mean {_f(ne['arrival']['mean'])}.  "
+          "Samples within a run are correlated (one filter over many frames): the band is optimistic.", "",
+          "## Plots", ""]
+    for key, title in (("range_vs_truth", "Range estimate ± σ vs truth"), ("error_vs_range", "Error vs true range L"),
+                       ("radar", "Sector radar"), ("latency", "Latency histogram")):
+        if key in files:
+            L += [f"### {title}", "", f"![{title}]({files[key].name})", ""]
+    L += ["## Runs", "", "| seed | status | detection | no false obstacle (msgs) | dangerous clear | latency p50 ms | NEES | "
+          "wall s | score |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in c["runs"]:
+        kf = r.get("key_figures") or {}
+        rel = Path(r["dir"])
+        try:
+            rel = Path("..") / rel.relative_to(report_dir.parent)
+        except ValueError:
+            pass
+        link = f"[score.md]({rel.as_posix()}/score.md)" if r["status"] == "ok" else (r.get("error") or "").replace("|", "/")[:120]
+        L.append(f"| {r['seed']} | {r['status']} | {_pc(kf.get('detection'), 1)} | {_pc(kf.get('messages_without_false_obstacle'), 1)} | "
+                 f"{_pc(kf.get('dangerous_clear'))} | {_f(kf.get('latency_p50_ms'), '{:.1f}')} | {_f(kf.get('nees_mean'))} | "
+                 f"{_f(r.get('wall_s'), '{:.0f}')} | {link} |")
+    return "\n".join(L) + "\n"
+
+
+def write_report(report_dir: str | Path, campaign: dict, series: dict[int, dict], *, obstacle: str = "forward",
+                 times: list[float] | None = None) -> dict[str, Path]:
+    """Plots and index.md (module docstring); returns the files written by key."""
+    d = Path(report_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    files = {
+        "range_vs_truth": plot_range_vs_truth(series, d / "range_vs_truth.png", obstacle),
+        "error_vs_range": plot_error_vs_range(series, d / "error_vs_range.png"),
+    }
+    first = min(series) if series else None
+    files["radar"] = plot_radar(series[first] if first is not None else None, first, d / "radar.png", times)
+    files["latency"] = plot_latency(series, d / "latency_hist.png")
+    idx = d / "index.md"
+    idx.write_text(index_markdown(campaign, files, d), encoding="utf-8")
+    files["index"] = idx
+    return files

@@ -1,0 +1,223 @@
+"""Readers and writers of the score (issue 5): the companion's ranges tlog, ``truth.npz``,
+``score.json`` / ``score.md`` / ``score_series.npz``, and ``configs/score.toml``.
+
+The logic is in :mod:`flightsim.score`; this module only moves bytes.  A ranges tlog is a MAVLink 2
+tlog (8-byte big-endian µs stamp + packed frame per record, see :mod:`flightsim.tlog`); only the
+messages of the companion (component 196 by default) are read; corrupt records are skipped and
+counted, never raised on.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import json
+import logging
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from companion.mavlink.dialect import mavlink, mavutil  # first: MAVLink 2 + ardupilotmega
+from companion.config import from_mapping
+from companion.errors import ConfigError, InputError
+from flightsim.score import (
+    N_SECTORS,
+    RangeMessages,
+    ScoreConfig,
+    SectorTruth,
+    evaluate,
+    markdown,
+    series_arrays,
+    summarize,
+    world_namer,
+)
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+log = logging.getLogger(__name__)
+
+COMPANION_COMPONENT = 196  # MAV_COMP_ID_OBSTACLE_AVOIDANCE (DESIGN §5)
+_BOOT_TYPES = ("DISTANCE_SENSOR", "NAMED_VALUE_FLOAT", "OBSTACLE_DISTANCE_3D")  # time_boot_ms = sending time
+
+
+def read_ranges_tlog(path: str | Path, component_id: int = COMPANION_COMPONENT, system_id: int | None = None) -> RangeMessages:
+    """The companion's messages in a tlog as :class:`RangeMessages`.
+
+    The sender is component ``component_id`` of ``system_id`` (default: the system that sent the
+    most OBSTACLE_DISTANCE from that component).  Records of other senders are counted as
+    ``foreign``; unreadable ones as ``bad_records``.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: no such tlog")
+    counters: collections.Counter[str] = collections.Counter()
+    rows: list[tuple[float, int, int, object]] = []
+    try:
+        conn = mavutil.mavlogfile(str(p), robust_parsing=True)
+    except Exception as exc:
+        raise ConfigError(f"{p}: cannot read as a tlog: {exc}") from None
+    try:
+        while True:
+            try:
+                m = conn.recv_msg()
+            except Exception as exc:  # garbage the parser cannot step over: stop here, keep what was read
+                counters["parser_errors"] += 1
+                log.warning("%s: parser error %r; reading stops here", p, exc)
+                break
+            if m is None:
+                break
+            typ = m.get_type()
+            if typ == "BAD_DATA" or typ.startswith("UNKNOWN"):
+                counters["bad_records"] += 1
+                continue
+            t = float(getattr(m, "_timestamp", math.nan))
+            if not math.isfinite(t):
+                counters["bad_timestamps"] += 1
+                continue
+            rows.append((t, m.get_srcSystem(), m.get_srcComponent(), m))
+    finally:
+        try:
+            conn.close()
+        except Exception:
+            pass
+    comp_rows = [r for r in rows if r[2] == component_id]
+    if system_id is None and comp_rows:
+        od_senders = collections.Counter(r[1] for r in comp_rows if r[3].get_type() == "OBSTACLE_DISTANCE")
+        system_id = (od_senders or collections.Counter(r[1] for r in comp_rows)).most_common(1)[0][0]
+    od, ds, boot, hb, texts = [], [], [], [], []
+    by_type: collections.Counter[str] = collections.Counter()
+    for t, src, comp, m in rows:
+        if comp != component_id or src != system_id:
+            counters["foreign"] += 1
+            continue
+        typ = m.get_type()
+        by_type[typ] += 1
+        try:
+            if typ == "OBSTACLE_DISTANCE":
+                d = np.asarray(m.distances, np.int64)
+                inc = float(m.increment_f) if float(m.increment_f) > 0 else float(m.increment)  # ArduPilot's rule
+                geometry_ok = bool(len(d) == N_SECTORS and abs(inc - 5.0) < 1e-6 and abs(float(m.angle_offset)) < 1e-6
+                                   and int(m.frame) == mavlink.MAV_FRAME_BODY_FRD)
+                od.append((t, int(m.time_usec), d, int(m.min_distance), int(m.max_distance), geometry_ok))
+            elif typ == "DISTANCE_SENSOR":
+                ds.append((t, int(m.current_distance), int(m.min_distance), int(m.max_distance), int(m.covariance),
+                           int(getattr(m, "signal_quality", 0)), int(m.orientation)))
+            elif typ == "HEARTBEAT":
+                hb.append((t, int(m.system_status)))
+            elif typ == "STATUSTEXT":
+                txt = m.text if isinstance(m.text, str) else bytes(m.text).decode("ascii", "replace")
+                texts.append((t, int(m.severity), txt.rstrip("\x00")))
+            if typ in _BOOT_TYPES:
+                boot.append((t, int(m.time_boot_ms)))
+        except (AttributeError, TypeError, ValueError) as exc:
+            counters["bad_fields"] += 1
+            log.warning("%s: %s at %.3f s unusable (%s)", p, typ, t, exc)
+    if not comp_rows:
+        log.warning("%s: no message from component %d", p, component_id)
+    counts = dict(counters)
+    counts["by_type"] = dict(by_type)
+    counts["system_id"] = system_id
+    return RangeMessages.build(od, ds, boot, hb, texts, counts)
+
+
+def read_truth_npz(path: str | Path) -> SectorTruth:
+    """:class:`SectorTruth` from a flightsim ``truth.npz`` (``t_s``, ``sector_m``, ``p_ned``, ``rpy``, ``sector_max_m``)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: no such truth file")
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            missing = [k for k in ("t_s", "sector_m", "p_ned", "rpy", "sector_max_m") if k not in z.files]
+            if missing:
+                raise ConfigError(f"{p}: not a flightsim truth.npz (missing {', '.join(missing)})")
+            rpy = np.asarray(z["rpy"], float)
+            tr = SectorTruth(t_s=np.asarray(z["t_s"], float), sector_m=np.asarray(z["sector_m"], float),
+                             p_ned=np.asarray(z["p_ned"], float), yaw=rpy[:, 2] if rpy.ndim == 2 and rpy.shape[1] == 3 else rpy,
+                             sector_max_m=float(z["sector_max_m"]))
+    except ConfigError:
+        raise
+    except InputError as exc:
+        raise ConfigError(f"{p}: {exc}") from None
+    except Exception as exc:  # not a zip, truncated, wrong dtype
+        raise ConfigError(f"{p}: cannot read as truth.npz: {exc}") from None
+    return tr
+
+
+def load_score_config(path: str | Path | None) -> ScoreConfig:
+    """The ``[score]`` table of a TOML file (defaults when ``path`` is None)."""
+    if path is None:
+        return ScoreConfig()
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: no such file") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    unknown = sorted(set(data) - {"score"})
+    if unknown:
+        raise ConfigError(f"{p}: unknown table(s) {', '.join(map(repr, unknown))}; expected [score]")
+    try:
+        return from_mapping(ScoreConfig, data.get("score"), "score")
+    except ConfigError as exc:
+        raise ConfigError(f"{p}: {exc}") from None
+
+
+def companion_score_params(companion_config) -> dict:
+    """``sigma_k`` and ``quality_zero_rel_sigma`` of a companion config (a CompanionConfig or a TOML path)."""
+    cfg = companion_config
+    if isinstance(cfg, (str, Path)):
+        from companion.io.config_files import CompanionConfig, read_toml
+
+        try:
+            cfg = from_mapping(CompanionConfig, read_toml(cfg), "")
+        except ConfigError as exc:
+            raise ConfigError(f"{companion_config}: {exc}") from None
+    return {"sigma_k": float(cfg.sectors.sigma_k), "quality_zero_rel_sigma": float(cfg.outputs.quality_zero_rel_sigma)}
+
+
+def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, companion_config=None, world=None,
+              component_id: int = COMPANION_COMPONENT, series_out=None, **fields) -> dict:
+    """See :func:`flightsim.score.score_run`."""
+    cfg = config or ScoreConfig()
+    over = {}
+    if companion_config is not None:
+        over.update(companion_score_params(companion_config))
+    unknown = sorted(set(fields) - {f.name for f in dataclasses.fields(ScoreConfig)})
+    if unknown:
+        raise ConfigError(f"score_run: unknown option(s) {', '.join(unknown)}")
+    over.update(fields)
+    if over:
+        cfg = dataclasses.replace(cfg, **{k: (tuple(v) if k == "range_bins_m" else v) for k, v in over.items()})
+    msgs = read_ranges_tlog(ranges_tlog, component_id)
+    truth = read_truth_npz(truth_npz)
+    ev = evaluate(msgs, truth, cfg, namer=world_namer(world) if world is not None else None)
+    score = summarize(ev)
+    score["inputs"] = {"ranges": str(ranges_tlog), "truth": str(truth_npz)}
+    if series_out is not None:
+        save_series(series_out, series_arrays(ev))
+    return score
+
+
+def write_score(out_dir, score: dict) -> None:
+    """``score.json`` and ``score.md`` into ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "score.json").write_text(json.dumps(score, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+    (out / "score.md").write_text(markdown(score, f"Score of {out.name}"), encoding="utf-8")
+
+
+def save_series(path, arrays: dict) -> None:
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(p, **arrays)
+
+
+def load_series(path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}

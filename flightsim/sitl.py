@@ -1,0 +1,658 @@
+"""Software-in-the-loop run: the simulator plays the autopilot and the camera to a live companion (issue 5).
+
+``flightsim sitl configs/scenarios/X.toml --out DIR`` (:func:`run_sitl`) flies the scenario with
+the same per-step loop as ``flightsim fly`` (:class:`flightsim.fly.Flight`) and, instead of
+writing the autopilot's messages to a file, speaks them over real sockets on 127.0.0.1:
+
+* MAVLink 2 over UDP (:mod:`flightsim.autopilot`): the simulator binds ``127.0.0.1:PORT`` (14550
+  on the command line, like ArduPilot SITL's ground-station port; a free port from the API) and
+  the companion connects with ``udpout:127.0.0.1:PORT``.  HEARTBEAT 1 Hz as system
+  ``[telemetry] system_id`` component 1, the streams the companion asks for at the rates it asks
+  (SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM), TIMESYNC answers, ``time_boot_ms`` on the
+  vehicle's own boot clock, with the telemetry model's noise, drift and latency;
+* camera frames through the simulator frame transport (:class:`companion.camera_sources.SimFrameServer`,
+  ``sim://127.0.0.1:PORT``), each stamped with its capture (mid-exposure) time on the autopilot
+  boot clock (clock 1).  A frame leaves once the ATTITUDE sample that brackets its exposure has
+  been sent (at least ``frame_latency_s``, at most ``frame_wait_max_s`` after capture) — the
+  readout and transfer delay of a real camera — preceded by a SYSTEM_TIME carrying the vehicle's
+  clock at that instant;
+* the companion: ``python -m companion run`` started as a separate process (stdout and stderr to
+  ``DIR/companion.log``) and stopped with SIGTERM at the end (SIGKILL after ``stop_timeout_s``);
+  with ``attach`` the user runs it and the command line is printed.  A companion that exits,
+  never connects or stops acknowledging frames ends the run with :class:`SitlError` naming the log.
+
+Clocks
+------
+``lockstep`` (default): deterministic in simulation time and as fast as the CPU allows.  After
+each frame the simulator waits for the companion's acknowledgement (:meth:`SimFrameServer.wait_ack`)
+before it advances; the companion runs with ``--clock sim`` (:mod:`companion.simclock`): its clock
+is the autopilot clock it has heard plus ``processing_ms`` per processed frame, and it works in one
+round per frame (poll the link, process, publish, acknowledge), sending nothing between rounds.
+The simulator reads the companion's datagrams only at these acknowledgements and dates them
+where the companion's clock put them: ``max(delivery, companion busy until) + processing_ms`` for
+a processed frame (``+ 0`` for a frame dropped as stale); requests are handled at the first
+physics step at or after that instant.  Every DISTANCE_SENSOR's ``time_boot_ms`` is checked
+against this model (``clock_mismatches`` in the summary).  While the companion works on a
+frame the simulator already runs the physics and renders the next frame (nothing in them depends
+on the companion; the telemetry model advances later, in step order, so its random draws are
+unchanged), so on two cores the processes overlap; no fixed sleeps lie in this path.  Determinism
+rests on loopback ordering: a datagram sent before the frame (or the acknowledgement) is queued at
+the receiver before the frame (acknowledgement) is — true of Linux loopback, where ``sendto``
+delivers before it returns.
+
+``realtime``: the simulator paces itself to the wall clock and never waits for the companion,
+which runs on its normal monotonic clock with TIMESYNC; a datagram is dated when it is read
+(``select`` between physics steps).
+
+Output in ``DIR``: the same export as ``flightsim fly`` — ``truth.npz``, ``frames.csv``,
+``camera.toml``, ``telemetry.tlog`` (every MAVLink message the vehicle sent, stamped when it was
+sent) and, with ``video``, ``video.avi`` — plus ``received.tlog`` (every MAVLink message received
+from the companion, stamped with its arrival on the recording clock of truth.npz ``t_s`` and
+frames.csv), ``companion.log`` and ``sitl.json`` (the summary).  When :mod:`flightsim.score`
+provides ``score_run`` / ``write_score`` the received ranges are scored against the truth
+(``score.json``, ``score.md``).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import heapq
+import importlib
+import importlib.util
+import json
+import logging
+import math
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+from companion.mavlink.dialect import mavlink  # first: MAVLink 2 + ardupilotmega
+from companion.camera_sources import ACK_DROPPED, ACK_PROCESSED, ACK_REJECTED, SimFrameServer
+from companion.config import require, require_finite
+from companion.errors import CompanionError, ConfigError
+from flightsim.autopilot import AutopilotLogic, PortBusyError, UdpEndpoint
+from flightsim.fly import EPS_T, Flight, StreamSchedule, camera_toml, open_video
+from flightsim.scenario import Scenario, load_scenario
+from flightsim.tlog import TlogWriter
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_COMPANION_CONFIG = ROOT / "configs" / "companion.toml"
+CLOCKS = ("lockstep", "realtime")
+_ACK_NAMES = {ACK_PROCESSED: "processed", ACK_DROPPED: "dropped", ACK_REJECTED: "rejected"}
+
+
+@dataclasses.dataclass(frozen=True)
+class SitlConfig:
+    """Settings of a SITL run (defaults suit CI and the benchmark)."""
+
+    processing_ms: float = 25.0  # lockstep: the companion's simulated compute time per frame (--sim-processing-ms), ms; its log reports the measured "ms per round"
+    frame_latency_s: float = 0.0  # a frame leaves at least this long after its capture, s
+    frame_wait_max_s: float = 0.1  # ... and at most this long, even if the ATTITUDE that brackets it has not been sent, s
+    connect_timeout_s: float = 60.0  # the companion must connect to the frame transport within this long (wall), s
+    ack_timeout_s: float = 30.0  # lockstep: a frame not acknowledged within this long (wall) is a failure, s
+    stop_timeout_s: float = 5.0  # SIGTERM, then SIGKILL after this long (wall), s
+    tail_s: float = 0.5  # realtime: keep listening this long (wall) after the flight for the last messages, s
+
+    def __post_init__(self) -> None:
+        require_finite("processing_ms", self.processing_ms, nonnegative=True)
+        require(self.processing_ms < 10_000, "processing_ms must be < 10000")
+        require_finite("frame_latency_s", self.frame_latency_s, nonnegative=True)
+        require_finite("frame_wait_max_s", self.frame_wait_max_s, nonnegative=True)
+        require(self.frame_wait_max_s >= self.frame_latency_s, "frame_wait_max_s must be >= frame_latency_s")
+        for name in ("connect_timeout_s", "ack_timeout_s", "stop_timeout_s"):
+            require_finite(name, getattr(self, name), positive=True)
+        require_finite("tail_s", self.tail_s, nonnegative=True)
+
+
+class SitlError(CompanionError, RuntimeError):
+    """The run failed (companion crashed, never connected, stopped answering); the message names the log."""
+
+
+# ---------------------------------------------------------------------- the companion process ---
+class CompanionProcess:
+    """``python -m companion run …`` as a child process with its output in a log file.
+
+    On Linux the child is sent SIGTERM if the thread that started it ends (PR_SET_PDEATHSIG), so a
+    killed simulator leaves no orphan: start runs from a thread that outlives them (e.g. a
+    process's main thread, as the campaign workers do).
+    """
+
+    def __init__(self, cmd: list[str], log_path: Path):
+        self.cmd = cmd
+        self.log_path = log_path
+        self._log = log_path.open("wb")
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        try:
+            self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                         env=env, start_new_session=True,  # Ctrl-C reaches us; we stop it cleanly
+                                         preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+        except OSError as exc:
+            self._log.close()
+            raise SitlError(f"cannot start the companion ({shlex.join(cmd[:4])} …): {exc}") from None
+        self.exit_code: int | None = None
+        self.killed = False
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def tail(self, lines: int = 12) -> str:
+        try:
+            self._log.flush()
+            text = self.log_path.read_text(errors="replace").rstrip().splitlines()
+        except OSError:
+            return ""
+        return "\n".join("    " + ln for ln in text[-lines:])
+
+    def failure(self, what: str) -> SitlError:
+        tail = self.tail()
+        return SitlError(f"{what}; see {self.log_path}" + (f" — last lines:\n{tail}" if tail else ""))
+
+    def stop(self, timeout: float) -> int:
+        """SIGTERM, wait ``timeout`` s, then SIGKILL; returns the exit code (negative = killed by a signal)."""
+        if self.proc.poll() is None:
+            try:
+                self.proc.send_signal(signal.SIGTERM)
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                log.warning("companion (pid %d) did not stop within %.0f s of SIGTERM: killing it", self.proc.pid, timeout)
+                self.killed = True
+                self.proc.kill()
+                self.proc.wait()
+            except ProcessLookupError:
+                pass
+        self.exit_code = self.proc.returncode
+        self._log.close()
+        return self.exit_code
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """Linux: SIGTERM the companion if the simulator dies without stopping it (no orphans on CI)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except Exception:
+        pass
+
+
+def companion_command(mavlink_port: int, camera_port: int, camera_config: Path, *, lockstep: bool, processing_ms: float,
+                      companion_config: Path | None, python: str = sys.executable) -> list[str]:
+    """The ``companion run`` command line that talks to this simulator."""
+    cmd = [python, "-m", "companion", "run", "--mavlink", f"udpout:127.0.0.1:{mavlink_port}",
+           "--camera", f"sim://127.0.0.1:{camera_port}", "--camera-config", str(camera_config)]
+    if companion_config is not None:
+        cmd += ["--config", str(companion_config)]
+    if lockstep:
+        cmd += ["--clock", "sim", "--sim-processing-ms", f"{processing_ms:g}"]
+    return cmd
+
+
+# ---------------------------------------------------------------------- the run ---------------------
+@dataclasses.dataclass
+class _Received:
+    t: float  # arrival, simulation clock
+    raw: bytes
+    msg: object
+
+
+class _Run:
+    """One SITL run (see the module docstring); :func:`run_sitl` is the entry point."""
+
+    def __init__(self, sc: Scenario, out: Path, clock: str, cfg: SitlConfig, companion_config: Path | None,
+                 attach: bool, video: bool, progress, mavlink_port: int, camera_port: int):
+        self.sc, self.out, self.clock, self.cfg = sc, out, clock, cfg
+        self.lockstep = clock == "lockstep"
+        self.companion_config = companion_config
+        self.attach, self.want_video, self.progress = attach, video, progress
+        self.mavlink_port, self.camera_port = mavlink_port, camera_port
+        self.tel = sc.telemetry
+        self.boot0 = sc.telemetry.boot_time_s
+        self.epoch = sc.meta.epoch_s
+        self.P = cfg.processing_ms / 1000.0
+        self.counts_rx: collections.Counter[str] = collections.Counter()
+        self.counts_tx: collections.Counter[str] = collections.Counter()
+        self.acks: collections.Counter[str] = collections.Counter()
+        self.checks: collections.Counter[str] = collections.Counter()
+        self.timing: collections.Counter[str] = collections.Counter()
+        self.inbox: collections.deque[_Received] = collections.deque()
+        self.outq: list = []  # heap of (t_emit, seq, name, state_t, msg)
+        self._seq = 0
+        self.comp_free = -math.inf  # lockstep: the companion is busy until then (simulation time)
+        self.frames_sent = 0
+        self.frames_unsent = 0
+        self.att_state_sent = -math.inf  # state time of the newest ATTITUDE sent
+        self.t_now = 0.0  # the autopilot's step (simulation time)
+        self._ack_wall: float | None = None
+        self._last_rx_t = -math.inf
+        self._last_tx_t = -math.inf
+        self.companion: CompanionProcess | None = None
+        self.endpoint: UdpEndpoint | None = None
+        self.server: SimFrameServer | None = None
+        self.video = None
+
+    # -- helpers -----------------------------------------------------------------------------------
+    def boot_s(self, t: float) -> float:
+        return self.boot0 + t
+
+    def _record_tx(self, t: float, name: str, buf: bytes | None) -> None:
+        if buf is None:
+            self.counts_tx["unsent_" + name] += 1
+            return
+        self.counts_tx[name] += 1
+        self._last_tx_t = max(t, self._last_tx_t)  # real time: an immediate answer may be dated between steps
+        self.tx_log.write_raw(self._last_tx_t, buf)
+
+    def _send(self, t: float, msg) -> None:
+        self._record_tx(t, msg.get_type(), self.endpoint.send(msg))
+
+    def _receive(self, arrival: float) -> None:
+        """Read every waiting datagram, date it ``arrival`` (simulation time), record and queue it."""
+        w0 = time.perf_counter()
+        peers = self.endpoint.counters["peers"]
+        got = self.endpoint.receive()
+        if self.endpoint.counters["peers"] != peers:  # a new companion: HEARTBEAT at once, then every second
+            self.streams.restart_at("HEARTBEAT", arrival)
+        for raw, msg in got:
+            t = max(arrival, self._last_rx_t)
+            self._last_rx_t = t
+            self.rx_log.write_raw(t, raw)
+            self._inspect(t, msg)
+            if not self.lockstep and msg.get_type() == "TIMESYNC":  # real time: answered on arrival, like an
+                for reply in self.logic.handle(msg, t):          # autopilot's fast loop (a short round trip)
+                    self._send(t, reply)
+                continue
+            self.inbox.append(_Received(t, raw, msg))
+        self.timing["ipc_recv"] += time.perf_counter() - w0
+
+    def _inspect(self, t: float, msg) -> None:
+        """Count and check what the companion sends (DESIGN §5 fields, the lockstep clock model)."""
+        typ = msg.get_type()
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        self.counts_rx[typ] += 1
+        self.checks[f"from_{src[0]}_{src[1]}"] += 1
+        if typ == "OBSTACLE_DISTANCE":
+            ok = (len(msg.distances) == 72 and msg.increment == 5 and abs(msg.increment_f - 5.0) < 1e-6
+                  and msg.frame == mavlink.MAV_FRAME_BODY_FRD and msg.angle_offset == 0)
+            self.checks["obstacle_distance_ok" if ok else "obstacle_distance_bad_fields"] += 1
+            if any(d != 65535 for d in msg.distances):
+                self.checks["obstacle_distance_valid"] += 1
+        elif typ == "DISTANCE_SENSOR" and self.lockstep and msg.time_boot_ms > 0:
+            expected_ms = self.boot_s(t) * 1000.0
+            if abs(msg.time_boot_ms - expected_ms) > 1.5:
+                self.checks["clock_mismatches"] += 1
+                if self.checks["clock_mismatches"] <= 3:
+                    log.warning("DISTANCE_SENSOR stamped %d ms, lockstep model says %.1f ms (is the companion on "
+                                "--clock sim --sim-processing-ms %g?)", msg.time_boot_ms, expected_ms, self.cfg.processing_ms)
+
+    def _handle_inbox(self, t: float) -> None:
+        while self.inbox and self.inbox[0].t <= t + EPS_T:
+            item = self.inbox.popleft()
+            for reply in self.logic.handle(item.msg, t):
+                self._send(t, reply)
+
+    # -- setup ----------------------------------------------------------------------------------------
+    def setup(self) -> None:
+        out = self.out
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "camera.toml").write_text(camera_toml(self.sc.camera))  # the companion needs it at start
+        self.endpoint = UdpEndpoint(self.mavlink_port, self.tel.system_id)
+        try:
+            self.server = SimFrameServer("127.0.0.1", self.camera_port)
+        except OSError as exc:
+            raise PortBusyError(f"TCP port {self.camera_port} on 127.0.0.1 is not available for the camera frames "
+                                f"({exc.strerror or exc}); pick another with --camera-port, or 0 for any free port") from None
+        self.cmd = companion_command(self.endpoint.port, self.server.port, (out / "camera.toml").resolve(),
+                                     lockstep=self.lockstep, processing_ms=self.cfg.processing_ms,
+                                     companion_config=self.companion_config)
+        if self.attach:
+            print("flightsim sitl: waiting for the companion; start it with\n  " + shlex.join(self.cmd), file=sys.stderr,
+                  flush=True)
+        else:
+            self.companion = CompanionProcess(self.cmd, out / "companion.log")
+            log.info("companion started (pid %d): %s", self.companion.pid, shlex.join(self.cmd))
+        w0 = time.perf_counter()
+        self.flight = Flight(self.sc)  # builds the world textures while the companion starts
+        self.timing["setup_flight"] += time.perf_counter() - w0
+        b = self.flight.telemetry_builders()
+        b["SYSTEM_TIME"] = self._system_time
+        lat = self.tel.latency_s
+        self.streams = StreamSchedule()
+        self.streams.add("HEARTBEAT", 1.0, b["HEARTBEAT"], 0.0)
+        for name in ("ATTITUDE", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "SYSTEM_TIME"):
+            self.streams.add(name, None, b[name], 0.0 if name == "SYSTEM_TIME" else lat)
+        defaults = {"ATTITUDE": 1.0 / self.tel.attitude_rate_hz, "LOCAL_POSITION_NED": 1.0 / self.tel.position_rate_hz,
+                    "GLOBAL_POSITION_INT": 1.0 / self.tel.global_rate_hz, "SYSTEM_TIME": 1.0}
+        self.logic = AutopilotLogic(self.tel.system_id, self.streams.set_period, defaults, self.boot_s)
+        self.tx_log = TlogWriter(out / "telemetry.tlog", self.epoch)
+        self.rx_log = TlogWriter(out / "received.tlog", self.epoch)
+        if self.want_video:
+            self.video = open_video(out / "video.avi", self.sc)
+        self._wait_for_companion()
+
+    def _system_time(self, state):
+        return self._system_time_at(state.time_s)
+
+    def _system_time_at(self, t: float):
+        return mavlink.MAVLink_system_time_message(int(round((self.epoch + t) * 1e6)), self.flight.tm.time_boot_ms(t))
+
+    def _wait_for_companion(self) -> None:
+        timeout = self.cfg.connect_timeout_s * (5 if self.attach else 1)
+        deadline = time.monotonic() + timeout
+        while not self.server.wait_client(timeout=0.1):
+            if self.companion is not None and not self.companion.alive():
+                raise self.companion.failure(f"the companion exited with code {self.companion.proc.returncode} "
+                                             "before connecting")
+            if time.monotonic() > deadline:
+                what = f"the companion did not connect to the camera frames ({self.server.address}) within {timeout:.0f} s"
+                raise self.companion.failure(what) if self.companion is not None else SitlError(what)
+        log.info("companion connected to the camera frames (%s)", self.server.address)
+
+    # -- the loop -------------------------------------------------------------------------------------
+    def _deliver(self, frame, t: float) -> None:
+        """SYSTEM_TIME tick + the frame; in lockstep wait for its acknowledgement and read the replies."""
+        w0 = time.perf_counter()
+        if self._ack_wall is not None:  # lockstep: acknowledgement → next frame (the simulator's serial part)
+            self.timing["turnaround"] += w0 - self._ack_wall
+            self._ack_wall = None
+        self._send(t, self._system_time_at(t))
+        w0 = time.perf_counter()
+        ok = self.server.send(frame.image, frame.index, int(round(self.boot_s(frame.t_s) * 1e9)))
+        self.timing["ipc_send"] += time.perf_counter() - w0
+        if not ok:
+            self.frames_unsent += 1
+            if self.companion is not None and not self.companion.alive():
+                raise self.companion.failure(f"the companion exited with code {self.companion.proc.returncode} during the run")
+            if self.lockstep:
+                raise self._lost(f"frame {frame.index} could not be sent (the companion closed the frame connection)")
+            return
+        self.frames_sent += 1
+        if not self.lockstep:
+            return
+        self._run_ahead()  # the physics and the next frame's rendering overlap the companion's work
+        w0 = time.perf_counter()
+        status = self.server.wait_ack(frame.index, timeout=self.cfg.ack_timeout_s)
+        self._ack_wall = time.perf_counter()
+        self.timing["ipc_wait_ack"] += self._ack_wall - w0
+        if status is None:
+            raise self._lost(f"no acknowledgement of frame {frame.index} (t = {t:.3f} s) within {self.cfg.ack_timeout_s:g} s")
+        self.acks[_ACK_NAMES.get(status, str(status))] += 1
+        start = max(t, self.comp_free)
+        self.comp_free = start + (self.P if status in (ACK_PROCESSED, ACK_REJECTED) else 0.0)
+        self._receive(self.comp_free)
+
+    def _lost(self, what: str) -> SitlError:
+        if self.companion is not None:
+            if not self.companion.alive():
+                return self.companion.failure(f"the companion exited with code {self.companion.proc.returncode} during the run")
+            return self.companion.failure(what)
+        return SitlError(what)
+
+    def _pace(self, t_next: float, wall0: float) -> None:
+        """Real time: wait for the wall clock, reading the companion's datagrams as they come."""
+        target = wall0 + t_next
+        while True:
+            now = time.perf_counter()
+            if now >= target:
+                break
+            if self.endpoint.wait_readable(target - now):
+                self._receive(time.perf_counter() - wall0)
+
+    def _physics_one(self) -> bool:
+        """Run the physics (and the camera, if a frame is due) one step ahead of the autopilot."""
+        fl = self.flight
+        state = fl.physics_step()
+        if state is None:
+            return False
+        frame = fl.capture(state) if fl.frame_due(state) else None
+        if frame is not None and self.video is not None:
+            w0 = time.perf_counter()
+            self.video.write(frame.image)
+            self.timing["video"] += time.perf_counter() - w0
+        self.ahead.append((state, frame))
+        return True
+
+    def _run_ahead(self) -> None:
+        """Lockstep, while the companion works on a frame: compute the physics and the camera up to
+        the next frame and the steps its delivery waits for (the bracketing ATTITUDE)."""
+        cfg, dt = self.cfg, self.flight.dt
+        period = self.streams.period("ATTITUDE")
+        margin = cfg.frame_latency_s if period is None else self.tel.latency_s + period + dt
+        margin = min(max(margin, cfg.frame_latency_s), cfg.frame_wait_max_s)
+        while True:
+            nxt = next((f for _, f in self.ahead if f is not None), None)
+            if nxt is not None and self.ahead[-1][0].time_s + EPS_T >= nxt.t_s + margin:
+                return
+            if not self._physics_one():
+                return
+
+    def _play(self, state, frame) -> None:
+        """The autopilot's side of one step: requests due, telemetry, frames ready to leave."""
+        cfg, fl = self.cfg, self.flight
+        t = state.time_s
+        self.t_now = t
+        self._handle_inbox(t)
+        fl.advance_telemetry(state)
+        w0 = time.perf_counter()
+        for t_emit, name, msg in self.streams.due(state):
+            heapq.heappush(self.outq, (t_emit, self._seq, name, t, msg))
+            self._seq += 1
+        self.timing["telemetry_build"] += time.perf_counter() - w0
+        if frame is not None:
+            self.pending.append(frame)
+        w0 = time.perf_counter()
+        while self.outq and self.outq[0][0] <= t + EPS_T:
+            _t_emit, _seq, name, state_t, msg = heapq.heappop(self.outq)
+            self._send(t, msg)
+            if name == "ATTITUDE":
+                self.att_state_sent = state_t
+        self.timing["send"] += time.perf_counter() - w0
+        att_on = self.streams.period("ATTITUDE") is not None
+        while self.pending:
+            f = self.pending[0]
+            age = t - f.t_s
+            bracketed = self.att_state_sent >= f.t_s - EPS_T or not att_on
+            if age + EPS_T < cfg.frame_latency_s or (not bracketed and age + EPS_T < cfg.frame_wait_max_s):
+                break
+            self.pending.popleft()
+            self._deliver(f, t)
+            if self.progress:
+                self.progress(self.frames_sent, fl.n_frames)
+
+    def loop(self) -> None:
+        """Two cursors over the steps: the physics and camera (:meth:`_physics_one`, run ahead in
+        lockstep while the companion works) and the autopilot (:meth:`_play`, strictly in order)."""
+        fl, cfg = self.flight, self.cfg
+        self.ahead: collections.deque = collections.deque()
+        self.pending: collections.deque = collections.deque()
+        self.wall0 = time.perf_counter()
+        next_alive_check = 0.0
+        while self.ahead or self._physics_one():
+            state, frame = self.ahead.popleft()
+            self._play(state, frame)
+            if not self.lockstep:
+                t = state.time_s
+                if t >= next_alive_check:
+                    next_alive_check = t + 0.5
+                    if self.companion is not None and not self.companion.alive():
+                        raise self.companion.failure(
+                            f"the companion exited with code {self.companion.proc.returncode} during the run")
+                self._pace(t + fl.dt, self.wall0)
+        self.frames_unsent += len(self.pending)  # captured too late in the flight to be delivered
+        self.wall_loop = time.perf_counter() - self.wall0
+        if not self.lockstep:  # the last messages still on their way
+            self._pace(self.t_now + cfg.tail_s, self.wall0)
+        while self.inbox:  # arrived after the last step: counted, no longer answered
+            self.logic.handle(self.inbox.popleft().msg, self.t_now)
+            self.checks["after_flight"] += 1
+
+    # -- the end ----------------------------------------------------------------------------------------
+    def close(self) -> None:
+        for thing in (self.video,):
+            if thing is not None:
+                thing.release()
+        self.video = None
+        if self.companion is not None and self.companion.exit_code is None:
+            code = self.companion.stop(self.cfg.stop_timeout_s)
+            log.info("companion stopped with exit code %d%s", code, " (killed)" if self.companion.killed else "")
+        for thing in (self.server, self.endpoint):
+            if thing is not None:
+                try:
+                    thing.close()
+                except Exception:  # best effort
+                    pass
+        for w in ("tx_log", "rx_log"):
+            if hasattr(self, w):
+                getattr(self, w).close()
+
+
+def _score(out: Path, companion_config: Path | None, world) -> tuple[dict | None, str]:
+    """Score received.tlog against truth.npz with :mod:`flightsim.score` if it exists: (score, note).
+
+    The companion's own configuration (its sector σ factor) and the world (obstacle names) are
+    handed to the scorer.
+    """
+    if importlib.util.find_spec("flightsim.score") is None:
+        log.warning("flightsim/score.py not present: the received ranges are not scored")
+        return None, "flightsim.score not present"
+    mod = importlib.import_module("flightsim.score")
+    if not (callable(getattr(mod, "score_run", None)) and callable(getattr(mod, "write_score", None))):
+        log.warning("flightsim.score lacks score_run / write_score: the received ranges are not scored")
+        return None, "flightsim.score lacks score_run / write_score"
+    opts = {"world": world}
+    if companion_config is not None:
+        opts["companion_config"] = companion_config
+    score = mod.score_run(out / "received.tlog", out / "truth.npz", **opts)
+    mod.write_score(out, score)
+    return score, "scored"
+
+
+def _free_or(port: int | None) -> int:
+    return 0 if port is None else int(port)
+
+
+def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None = None, clock: str = "lockstep",
+             companion_config: str | Path | None = None, attach: bool = False, video: bool = False,
+             progress: Callable[[int, int], None] | None = None, port_base: int | None = None,
+             mavlink_port: int | None = None, camera_port: int | None = None, processing_ms: float | None = None,
+             config: SitlConfig | None = None, score: bool = True) -> dict:
+    """Fly ``scenario_path`` against a live companion and write ``out_dir``; returns the summary dict.
+
+    Ports: ``mavlink_port`` / ``camera_port`` when given, else ``port_base`` and ``port_base + 1``,
+    else free ports chosen by the system (parallel runs do not collide).  ``companion_config``:
+    the companion's TOML (default: the repository's ``configs/companion.toml``).  ``processing_ms``
+    overrides ``config.processing_ms``.  Raises :class:`ConfigError` for a bad scenario, argument
+    or busy port and :class:`SitlError` when the companion fails.
+    """
+    if clock not in CLOCKS:
+        raise ConfigError(f"clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
+    cfg = config or SitlConfig()
+    if processing_ms is not None:
+        cfg = dataclasses.replace(cfg, processing_ms=float(processing_ms))
+    if port_base is not None:
+        if not (isinstance(port_base, int) and 1 <= port_base <= 65534):
+            raise ConfigError(f"port_base must be in 1..65534, got {port_base!r}")
+        mavlink_port = port_base if mavlink_port is None else mavlink_port
+        camera_port = port_base + 1 if camera_port is None else camera_port
+    for name, p in (("mavlink_port", mavlink_port), ("camera_port", camera_port)):
+        if p is not None and not (isinstance(p, int) and 0 <= p <= 65535):
+            raise ConfigError(f"{name} must be in 0..65535, got {p!r}")
+    if companion_config is None:
+        companion_config = DEFAULT_COMPANION_CONFIG if DEFAULT_COMPANION_CONFIG.is_file() else None
+    if companion_config is not None:
+        companion_config = Path(companion_config).resolve()
+        if not companion_config.is_file():
+            raise ConfigError(f"companion config {companion_config}: no such file")
+    sc = load_scenario(scenario_path, seed=seed)
+    out = Path(out_dir)
+    run = _Run(sc, out, clock, cfg, companion_config, attach, video, progress, _free_or(mavlink_port), _free_or(camera_port))
+    wall0 = time.perf_counter()
+    failure: BaseException | None = None
+    try:
+        run.setup()
+        run.loop()
+    except BaseException as exc:  # stop the companion whatever happened, then re-raise
+        failure = exc
+        raise
+    finally:
+        run.close()
+        if failure is not None and run.companion is not None:
+            log.info("companion log: %s", run.companion.log_path)
+    wall = time.perf_counter() - wall0
+    w0 = time.perf_counter()
+    run.flight.write_common(out)
+    write_s = time.perf_counter() - w0
+    sc_result, note, score_failed = None, "not requested", False
+    if score:
+        try:
+            sc_result, note = _score(out, companion_config, sc.world)
+        except Exception as exc:  # the run itself is recorded; say loudly that its verdict is missing
+            log.exception("scoring %s failed", out)
+            sc_result, note, score_failed = None, f"scoring failed: {exc!r}", True
+    fl = run.flight
+    sim_s = fl.state.time_s
+    timing = {k: round(v, 3) for k, v in sorted({**fl.timing, **run.timing, "write_files": write_s}.items())}
+    sim_work = sum(v for k, v in timing.items() if k not in ("ipc_wait_ack", "setup_flight", "write_files", "turnaround"))
+    summary = {
+        "scenario": sc.meta.name, "scenario_file": str(sc.path), "seed": sc.meta.seed, "clock": clock,
+        "processing_ms": cfg.processing_ms if clock == "lockstep" else None,
+        "duration_s": sim_s, "frames": run.frames_sent, "frames_captured": fl.next_frame, "frames_unsent": run.frames_unsent,
+        "acks": dict(run.acks), "messages_received": dict(sorted(run.counts_rx.items())),
+        "messages_sent": dict(sorted(run.counts_tx.items())),
+        "received_from": {k[5:]: v for k, v in sorted(run.checks.items()) if k.startswith("from_")},
+        "checks": {k: v for k, v in sorted(run.checks.items()) if not k.startswith("from_")},
+        "streams": {k: (None if v is None else round(1.0 / v, 3)) for k, v in run.logic.periods.items()},
+        "stream_requests": [{"t_s": round(t, 4), "how": how, "stream": s, "rate_hz": None if p is None else round(1.0 / p, 3)}
+                            for t, how, s, p in run.logic.requests],
+        "timesync_answered": run.logic.counters["timesync_answered"],
+        "autopilot_counters": dict(sorted(run.logic.counters.items())),
+        "endpoint_counters": dict(sorted(run.endpoint.counters.items())),
+        "wall_s": round(wall, 3), "loop_wall_s": round(run.wall_loop, 3),
+        "realtime_factor": round(sim_s / run.wall_loop, 3) if run.wall_loop > 0 else None,
+        "timing_s": timing,  # wall seconds per part of the simulator (ipc_wait_ack: waiting for the companion)
+        "sim_work_s": round(sim_work, 3),
+        "companion": None if run.companion is None else {
+            "command": run.cmd, "pid": run.companion.pid, "exit_code": run.companion.exit_code,
+            "killed": run.companion.killed, "log": str(run.companion.log_path)},
+        "companion_command": run.cmd, "companion_exit_code": None if run.companion is None else run.companion.exit_code,
+        "ports": {"mavlink_udp": run.endpoint.port, "camera_tcp": run.server.port},
+        "paths": {name: str(out / name) for name in ("truth.npz", "frames.csv", "camera.toml", "telemetry.tlog",
+                                                     "received.tlog", "companion.log", "sitl.json", "video.avi",
+                                                     "score.json", "score.md") if (out / name).exists() or name == "sitl.json"},
+        "score": sc_result, "score_note": note, "score_failed": score_failed,
+    }
+    (out / "sitl.json").write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
+    if not run.counts_rx.get("HEARTBEAT"):
+        what = (f"the companion never spoke MAVLink to the simulated autopilot (UDP 127.0.0.1:{run.endpoint.port}): "
+                "no HEARTBEAT received")
+        raise SitlError(f"{what}; see {run.companion.log_path}" if run.companion is not None else what)
+    return summary
+
+
+def _json_default(o):
+    try:
+        import numpy as np
+
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(o, Path):
+        return str(o)
+    return repr(o)
+
+
+__all__ = ["run_sitl", "SitlConfig", "SitlError", "CompanionProcess", "companion_command", "CLOCKS"]

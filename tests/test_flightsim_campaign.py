@@ -1,0 +1,133 @@
+"""flightsim campaign (issue 5): a tiny replay campaign in worker processes, failed runs recorded,
+pooling that matches the runs' own scores, and the CLI's exit codes."""
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.errors import ConfigError
+from flightsim import campaign as C
+from flightsim.cli import main as flightsim_main
+from flightsim.score import ScoreConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def short_scenario(tmp_path: Path, duration_s: float = 2.5) -> Path:
+    text = (ROOT / "configs" / "scenarios" / "quad_approach.toml").read_text()
+    text = re.sub(r'^world = "\.\./worlds/', f'world = "{(ROOT / "configs" / "worlds").as_posix()}/', text, flags=re.M)
+    text = re.sub(r"^duration_s = .*$", f"duration_s = {duration_s}", text, flags=re.M)
+    p = tmp_path / "short.toml"
+    p.write_text(text)
+    return p
+
+
+@pytest.fixture(scope="module")
+def tiny_campaign(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("campaign")
+    sp = short_scenario(tmp)
+    ticks = []
+    c = C.run_campaign(sp, tmp / "camp", runs=2, workers=2, mode="replay", fixed_processing_ms=30.0, times=[1.0, 2.0],
+                       progress=lambda done, total, failed: ticks.append((done, total, failed)))
+    return tmp / "camp", c, ticks
+
+
+def test_tiny_campaign_runs_scores_and_reports(tiny_campaign):
+    out, c, ticks = tiny_campaign
+    assert ticks[-1] == (2, 2, 0)
+    assert c["mode"] == "replay" and c["seeds"] == [1, 2]  # quad_approach's own seed is 1
+    assert [r["status"] for r in c["runs"]] == ["ok", "ok"]
+    for seed in (1, 2):
+        run = out / "runs" / f"seed_{seed:04d}"
+        assert (run / "ranges.tlog").is_file() and (run / "score.md").is_file() and (run / "score_series.npz").is_file()
+        assert not (run / "video.avi").exists()  # deleted after scoring (the seed reproduces it)
+        assert json.loads((run / "flight.json").read_text())["seed"] == seed
+    # the two seeds flew differently (different noise), so their ranges differ
+    a = (out / "runs" / "seed_0001" / "ranges.tlog").read_bytes()
+    b = (out / "runs" / "seed_0002" / "ranges.tlog").read_bytes()
+    assert a != b
+    on_disk = json.loads((out / "campaign.json").read_text())
+    assert on_disk["aggregate"]["runs_ok"] == 2 and on_disk["report"]["index"].endswith("index.md")
+    idx = (out / "report" / "index.md").read_text()
+    for name in ("range_vs_truth.png", "error_vs_range.png", "radar.png", "latency_hist.png", "runs/seed_0001/score.md"):
+        assert name in idx
+        if name.endswith(".png"):
+            assert (out / "report" / name).stat().st_size > 10_000
+    assert "✓" in idx or "✗" in idx
+
+
+def test_pooled_figures_are_the_sums_of_the_runs(tiny_campaign):
+    out, c, _ = tiny_campaign
+    scores = [json.loads((out / "runs" / f"seed_{s:04d}" / "score.json").read_text()) for s in (1, 2)]
+    agg = c["aggregate"]
+    for key in ("obstacle", "clear", "detections", "dangerous_clears", "false_obstacles_clear_cells"):
+        assert agg["cells"][key] == sum(s["cells"][key] for s in scores)
+    if agg["cells"]["obstacle"]:
+        assert agg["pooled_rates"]["detection"] == pytest.approx(agg["cells"]["detections"] / agg["cells"]["obstacle"])
+    det = [s["rates"]["detection"] for s in scores if s["rates"]["detection"] is not None]
+    if det:
+        assert agg["per_run_rates"]["detection"]["mean"] == pytest.approx(np.mean(det))
+    assert agg["latency"]["n"] == sum(s["latency"]["n"] for s in scores)
+    assert agg["latency"]["p50_ms"] == pytest.approx(40.0, abs=15.0)  # 30 ms processing + the wait for telemetry
+    t_msg = agg["targets"][0]
+    assert t_msg["n"] == sum(s["cells"]["messages_eligible_no_false"] for s in scores)
+
+
+def fail_or_real(job: C.RunJob) -> dict:
+    """Seed 11 raises inside the worker; seed 12 runs for real with a scenario that vanished."""
+    if job.seed == 11:
+        raise RuntimeError("boom in the worker")
+    return C.run_one(C.RunJob(str(Path(job.run_dir) / "missing.toml"), job.seed, job.run_dir, job.mode, None,
+                              job.score_config, job.fixed_processing_ms))
+
+
+def test_failed_runs_are_recorded_and_the_report_still_written(tmp_path):
+    sp = short_scenario(tmp_path)
+    c = C.run_campaign(sp, tmp_path / "camp", runs=2, workers=2, mode="replay", seed0=11, run_fn=fail_or_real)
+    runs = {r["seed"]: r for r in c["runs"]}
+    assert runs[11]["status"] == "failed" and "boom in the worker" in runs[11]["error"]
+    assert runs[12]["status"] == "failed" and "no such scenario file" in runs[12]["error"]
+    assert (tmp_path / "camp" / "runs" / "seed_0012" / "error.txt").is_file()
+    assert c["aggregate"]["runs_failed"] == 2 and c["aggregate"]["targets"] == []
+    idx = (tmp_path / "camp" / "report" / "index.md").read_text()
+    assert "boom in the worker" in idx and (tmp_path / "camp" / "report" / "radar.png").is_file()
+
+
+def test_aggregate_pools_counts_not_rates():
+    def score(obst, det, elig, ok, nees):
+        return {"cells": {"obstacle": obst, "detections": det, "messages_eligible_no_false": elig,
+                          "messages_without_false_obstacle": ok, "dangerous_clears": 0},
+                "rates": {"detection": det / obst, "messages_without_false_obstacle": ok / elig},
+                "targets": [{"name": "a", "op": ">=", "threshold": 0.95, "met": ok / elig >= 0.95},
+                            {"name": "b", "op": "<=", "threshold": 0.01, "met": True}],
+                "obstacles": [{"name": "mast", "in_range_at_s": 0.1, "detected_fraction": 0.5, "time_to_first_valid_s": nees}],
+                "nees": {"mean": nees}, "first_claim_at_s": 1.0}
+    results = [{"seed": 1, "status": "ok", "score": score(10, 9, 100, 99, 1.0)},
+               {"seed": 2, "status": "ok", "score": score(90, 45, 10, 5, 3.0)},
+               {"seed": 3, "status": "failed", "score": None, "error": "x"}]
+    a = C.aggregate(results, {}, ScoreConfig())
+    assert a["pooled_rates"]["detection"] == pytest.approx(54 / 100)  # not the mean of 0.9 and 0.5
+    assert a["per_run_rates"]["detection"]["mean"] == pytest.approx(0.7)
+    assert a["per_run_rates"]["detection"]["std"] == pytest.approx(np.std([0.9, 0.5], ddof=1))
+    assert a["targets"][0]["pooled"] == pytest.approx(104 / 110) and a["targets"][0]["met"] is False
+    assert a["targets"][0]["runs_met"] == 1 and a["targets"][1]["met"] is True
+    assert a["runs_failed"] == 1 and a["obstacles"][0]["time_to_first_valid_s"]["mean"] == pytest.approx(2.0)
+
+
+def test_arguments_are_checked(tmp_path, capsys):
+    with pytest.raises(ConfigError, match="--times"):
+        C.parse_times("1,x")
+    assert C.parse_times("1, 2.5") == [1.0, 2.5] and C.parse_times(None) is None
+    with pytest.raises(ConfigError, match="--mode"):
+        C.resolve_mode("hybrid")
+    assert C.resolve_mode("replay") == "replay"
+    sp = short_scenario(tmp_path)
+    assert flightsim_main(["campaign", str(sp), "--runs", "0", "--out", str(tmp_path / "c")]) == 2
+    assert "--runs must be an integer >= 1" in capsys.readouterr().err
+    assert flightsim_main(["campaign", str(tmp_path / "nope.toml"), "--runs", "1", "--out", str(tmp_path / "c")]) == 2
+    assert "no such scenario file" in capsys.readouterr().err
+    assert flightsim_main(["campaign", str(sp), "--runs", "1", "--out", str(tmp_path / "c"), "--times", "a"]) == 2
+    assert not (tmp_path / "c" / "campaign.json").exists()

@@ -1,0 +1,314 @@
+"""flightsim sitl (issue 5): a real companion process against the simulated autopilot and camera.
+
+The loop runs in lockstep with ``python -m companion run --clock sim`` as a subprocess over real
+sockets on 127.0.0.1: messages arrive and decode (OBSTACLE_DISTANCE with the DESIGN §5 fields,
+DISTANCE_SENSOR, HEARTBEAT from component 196), the companion asked for its streams and got
+TIMESYNC answers, it stops cleanly on SIGTERM, the published ranges agree with the truth within
+loose bounds, and two runs with one seed give the same messages at the same simulated instants.
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.mavlink.dialect import mavlink, mavutil  # first: MAVLink 2 + ardupilotmega
+from companion.errors import ConfigError
+from companion.simclock import SimClock
+from flightsim.autopilot import AutopilotLogic, UdpEndpoint
+from flightsim.cli import main as flightsim_main
+from flightsim.sitl import SitlError, run_sitl
+
+ROOT = Path(__file__).resolve().parents[1]
+DURATION_S = 3.5
+
+
+def short_scenario(tmp_path: Path, duration_s: float = DURATION_S) -> Path:
+    """quad_approach cut to a few seconds (world path made absolute)."""
+    text = (ROOT / "configs" / "scenarios" / "quad_approach.toml").read_text()
+    text = re.sub(r'^world = "\.\./worlds/', f'world = "{(ROOT / "configs" / "worlds").as_posix()}/', text, flags=re.M)
+    text, n = re.subn(r"^duration_s = .*$", f"duration_s = {duration_s}", text, count=1, flags=re.M)
+    assert n == 1
+    p = tmp_path / "quad_short.toml"
+    p.write_text(text)
+    return p
+
+
+def read_tlog(path: Path) -> list:
+    m = mavutil.mavlink_connection(str(path))
+    out = []
+    while (msg := m.recv_match()) is not None:
+        out.append(msg)
+    return out
+
+
+def ranges_sequence(msgs) -> list:
+    return [(round(m._timestamp, 6), tuple(m.distances)) for m in msgs if m.get_type() == "OBSTACLE_DISTANCE"]
+
+
+@pytest.fixture(scope="module")
+def lockstep_runs(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("sitl")
+    scen = short_scenario(tmp)
+    a = run_sitl(scen, tmp / "a", seed=1)
+    b = run_sitl(scen, tmp / "b", seed=1, score=False)
+    return scen, a, tmp / "a", b, tmp / "b"
+
+
+def test_lockstep_loop_messages_arrive_and_decode(lockstep_runs):
+    _scen, s, out, _b, _ = lockstep_runs
+    n_frames = int(DURATION_S * 30) + 1
+    # every frame but the last (captured at the final step, its bracketing ATTITUDE never leaves) went out
+    assert s["frames"] == n_frames - 1 and s["frames_unsent"] == 1
+    assert sum(s["acks"].values()) == s["frames"]
+    assert s["acks"].get("processed", 0) > 0.7 * s["frames"]
+    for name in ("truth.npz", "frames.csv", "camera.toml", "telemetry.tlog", "received.tlog", "companion.log", "sitl.json"):
+        assert (out / name).is_file(), name
+    rx = read_tlog(out / "received.tlog")
+    kinds = {m.get_type() for m in rx}
+    assert {"HEARTBEAT", "OBSTACLE_DISTANCE", "DISTANCE_SENSOR", "TIMESYNC", "COMMAND_LONG"} <= kinds
+    assert {(m.get_srcSystem(), m.get_srcComponent()) for m in rx} == {(1, 196)}
+    hb = [m for m in rx if m.get_type() == "HEARTBEAT"]
+    assert all(m.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER and m.autopilot == mavlink.MAV_AUTOPILOT_INVALID for m in hb)
+    od = [m for m in rx if m.get_type() == "OBSTACLE_DISTANCE"]
+    assert len(od) >= 0.8 * 15 * (DURATION_S - 0.5)  # 15 Hz once the vehicle is known
+    for m in od:  # DESIGN §5
+        assert len(m.distances) == 72 and m.increment == 5 and m.increment_f == 5.0 and m.angle_offset == 0
+        assert m.frame == mavlink.MAV_FRAME_BODY_FRD and m.min_distance > 0 and m.max_distance > m.min_distance
+        assert 0 not in m.distances  # 0 is "touching", never a filler
+    assert any(d != 65535 for m in od for d in m.distances), "no sector was ever claimed"
+    ds = [m for m in rx if m.get_type() == "DISTANCE_SENSOR"]
+    assert ds and all(m.orientation == mavlink.MAV_SENSOR_ROTATION_NONE for m in ds)
+    assert s["checks"].get("obstacle_distance_bad_fields", 0) == 0
+    # arrivals are on the truth clock: inside the flight (plus the companion's processing time)
+    t_truth = np.load(out / "truth.npz")["t_s"]
+    stamps = np.array([m._timestamp for m in rx])
+    assert np.all(np.diff(stamps) >= 0)
+    assert stamps[0] >= t_truth[0] and stamps[-1] <= t_truth[-1] + 0.2
+    # the lockstep clock: every DISTANCE_SENSOR time_boot_ms is where the simulator dated its arrival
+    assert s["checks"].get("clock_mismatches", 0) == 0
+
+
+def test_companion_requested_streams_and_got_timesync(lockstep_runs):
+    _scen, s, out, _b, _ = lockstep_runs
+    req = {r["stream"]: r for r in s["stream_requests"]}
+    assert {"ATTITUDE", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT"} <= set(req)
+    assert all(r["how"] == "SET_MESSAGE_INTERVAL" for r in req.values())
+    assert s["streams"]["ATTITUDE"] == pytest.approx(50.0) and s["streams"]["LOCAL_POSITION_NED"] == pytest.approx(20.0)
+    assert s["streams"]["GLOBAL_POSITION_INT"] == pytest.approx(5.0)
+    tx = read_tlog(out / "telemetry.tlog")
+    att = [m for m in tx if m.get_type() == "ATTITUDE"]
+    span = DURATION_S - req["ATTITUDE"]["t_s"]
+    assert abs(len(att) - 50 * span) <= 3  # the requested rate, on the simulation clock
+    assert all(m.get_srcComponent() == 1 and m.get_srcSystem() == 1 for m in tx)
+    acks = [m for m in tx if m.get_type() == "COMMAND_ACK"]
+    assert len(acks) == 3 and all(m.result == mavlink.MAV_RESULT_ACCEPTED and m.target_component == 196 for m in acks)
+    assert s["timesync_answered"] >= 2
+    log = (out / "companion.log").read_text()
+    m = re.search(r"TIMESYNC: (\d+) requests, (\d+) answers accepted", log)
+    assert m and int(m.group(2)) >= 2, log[-2000:]
+
+
+def test_companion_stopped_cleanly(lockstep_runs):
+    _scen, s, out, b, _ = lockstep_runs
+    for run in (s, b):
+        assert run["companion_exit_code"] == 0 and not run["companion"]["killed"]
+    assert "SIGTERM received: stopping" in (out / "companion.log").read_text()
+
+
+def test_published_ranges_agree_with_truth(lockstep_runs):
+    """Loose bounds: the conservative published range of a claimed sector is rarely beyond the truth."""
+    _scen, s, out, _b, _ = lockstep_runs
+    z = np.load(out / "truth.npz")
+    t_s, sector_m = z["t_s"], z["sector_m"]
+    n = over = 0
+    err = []
+    for m in read_tlog(out / "received.tlog"):
+        if m.get_type() != "OBSTACLE_DISTANCE":
+            continue
+        i = np.searchsorted(t_s, m._timestamp, side="right") - 1  # truth of the moment it arrived
+        d = np.asarray(m.distances)
+        for k in np.flatnonzero((d != 65535) & (d <= m.max_distance)):
+            true = sector_m[i, k]
+            if np.isnan(true):
+                continue
+            n += 1
+            r = d[k] / 100.0
+            if np.isfinite(true):
+                err.append(r - true)
+            if r > true + max(2.0, 0.3 * true):
+                over += 1
+    assert n >= 10, "too few claimed sectors to judge"
+    assert over / n <= 0.05  # a range beyond the obstacle is the dangerous direction
+    assert err and np.median(np.abs(err)) < 10.0
+    score = s["score"]
+    if score is not None:  # flightsim/score.py present: its verdict within loose bounds
+        assert score["messages"]["obstacle_distance_scored"] == s["messages_received"]["OBSTACLE_DISTANCE"]
+        assert score["rates"]["dangerous_clear"] <= 0.05
+        assert (out / "score.json").is_file() and (out / "score.md").is_file()
+
+
+def test_lockstep_is_deterministic(lockstep_runs):
+    _scen, a, out_a, b, out_b = lockstep_runs
+    seq_a, seq_b = ranges_sequence(read_tlog(out_a / "received.tlog")), ranges_sequence(read_tlog(out_b / "received.tlog"))
+    assert len(seq_a) > 20
+    assert seq_a == seq_b  # same distances at the same simulated arrival instants
+    assert (out_a / "received.tlog").read_bytes() == (out_b / "received.tlog").read_bytes()
+    assert (out_a / "telemetry.tlog").read_bytes() == (out_b / "telemetry.tlog").read_bytes()
+    assert (out_a / "truth.npz").read_bytes() == (out_b / "truth.npz").read_bytes()
+
+
+def test_realtime_clock(tmp_path):
+    s = run_sitl(short_scenario(tmp_path, 2.0), tmp_path / "rt", clock="realtime", score=False)
+    assert s["companion_exit_code"] == 0
+    assert 0.5 < s["realtime_factor"] <= 1.05  # paced by the wall clock (never faster)
+    assert s["messages_received"].get("OBSTACLE_DISTANCE", 0) >= 10
+    assert s["timesync_answered"] >= 2 and s["acks"] == {}  # nobody waits for acknowledgements
+
+
+def test_companion_that_cannot_start_is_a_clear_error(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[harris]\nno_such_key = 1\n")
+    rc = flightsim_main(["sitl", str(short_scenario(tmp_path, 1.0)), "--out", str(tmp_path / "o"), "--config", str(bad),
+                         "--mavlink-port", "0", "--camera-port", "0"])
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert "exited with code 2 before connecting" in err and str(tmp_path / "o" / "companion.log") in err
+    assert "no_such_key" in err  # the tail of its log says why
+    with pytest.raises(SitlError, match="companion.log"):
+        run_sitl(short_scenario(tmp_path, 1.0), tmp_path / "o2", companion_config=bad)
+
+
+def test_busy_port_is_a_usage_error(tmp_path, capsys):
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    try:
+        port = sock.getsockname()[1]
+        rc = flightsim_main(["sitl", str(short_scenario(tmp_path, 1.0)), "--out", str(tmp_path / "o"),
+                             "--mavlink-port", str(port), "--camera-port", "0"])
+    finally:
+        sock.close()
+    assert rc == 2
+    assert f"UDP port {port}" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="clock must be"):
+        run_sitl(short_scenario(tmp_path, 1.0), tmp_path / "o3", clock="fast")
+
+
+def test_companion_run_clock_sim_needs_the_simulator_camera(capsys):
+    from companion.cli import main as companion_main
+
+    assert companion_main(["run", "--mavlink", "udpout:127.0.0.1:14999", "--camera", "0", "--clock", "sim"]) == 2
+    assert "--clock sim needs" in capsys.readouterr().err
+    assert companion_main(["run", "--mavlink", "udpout:127.0.0.1:14999", "--camera", "sim://127.0.0.1:5999",
+                           "--sim-processing-ms", "5"]) == 2
+
+
+# ---------------------------------------------------------------------- pure pieces ---------------
+def test_sim_clock_follows_heard_time_and_work():
+    c = SimClock(processing_s=0.025)
+    assert c() == 0.0 and not c.started
+    c.observe(20.0)
+    c.observe(19.5)  # older stamps never move it back
+    assert c() == 20.0 and c.started
+    assert c.work(0.9) == 0.025  # fixed processing time, whatever was measured
+    assert c() == pytest.approx(20.025)
+    c.observe(20.01)  # heard time behind the companion's own work: the clock stays
+    assert c() == pytest.approx(20.025)
+    c.observe(20.033)
+    assert c() == pytest.approx(20.033)
+    c.observe(float("nan"))
+    assert c() == pytest.approx(20.033)
+    m = SimClock()  # measured processing time
+    m.observe(5.0)
+    assert m.work(0.012) == 0.012 and m() == pytest.approx(5.012)
+    with pytest.raises(ConfigError):
+        SimClock(processing_s=-1)
+
+
+class _Periods:
+    def __init__(self):
+        self.calls = []
+
+    def __call__(self, name, period, t):
+        self.calls.append((name, period, t))
+
+
+def _logic():
+    periods = _Periods()
+    defaults = {"ATTITUDE": 0.02, "LOCAL_POSITION_NED": 0.05, "GLOBAL_POSITION_INT": 0.2, "SYSTEM_TIME": 1.0}
+    return AutopilotLogic(1, periods, defaults, lambda t: 20.0 + t), periods
+
+
+def _from_companion(msg):
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=196)
+    return mav.parse_char(msg.pack(mav))
+
+
+def test_autopilot_answers_set_message_interval_and_request_data_stream():
+    logic, periods = _logic()
+    cmd = mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                               mavlink.MAVLINK_MSG_ID_ATTITUDE, 20000.0, 0, 0, 0, 0, 0)
+    (ack,) = logic.handle(_from_companion(cmd), 0.5)
+    assert ack.get_type() == "COMMAND_ACK" and ack.result == mavlink.MAV_RESULT_ACCEPTED
+    assert (ack.command, ack.target_system, ack.target_component) == (mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 1, 196)
+    assert periods.calls[-1] == ("ATTITUDE", pytest.approx(0.02), 0.5)
+    default = mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                                   mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 0.0, 0, 0, 0, 0, 0)
+    assert logic.handle(_from_companion(default), 0.6)[0].result == mavlink.MAV_RESULT_ACCEPTED
+    assert periods.calls[-1] == ("LOCAL_POSITION_NED", 0.05, 0.6)  # interval 0 = the default rate
+    stop = mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                                mavlink.MAVLINK_MSG_ID_ATTITUDE, -1.0, 0, 0, 0, 0, 0)
+    logic.handle(_from_companion(stop), 0.7)
+    assert periods.calls[-1] == ("ATTITUDE", None, 0.7)
+    unknown = mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 147.0, 1e5, 0, 0, 0, 0, 0)
+    assert logic.handle(_from_companion(unknown), 0.8)[0].result == mavlink.MAV_RESULT_DENIED
+    other_cmd = mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+    assert logic.handle(_from_companion(other_cmd), 0.8)[0].result == mavlink.MAV_RESULT_UNSUPPORTED
+    for_others = mavlink.MAVLink_command_long_message(2, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                                      mavlink.MAVLINK_MSG_ID_ATTITUDE, 1e4, 0, 0, 0, 0, 0)
+    n = len(periods.calls)
+    assert logic.handle(_from_companion(for_others), 0.9) == [] and len(periods.calls) == n
+    rds = mavlink.MAVLink_request_data_stream_message(1, 1, mavlink.MAV_DATA_STREAM_POSITION, 10, 1)
+    assert logic.handle(_from_companion(rds), 1.0) == []
+    assert periods.calls[-2:] == [("LOCAL_POSITION_NED", 0.1, 1.0), ("GLOBAL_POSITION_INT", 0.1, 1.0)]
+    rds_stop = mavlink.MAVLink_request_data_stream_message(1, 1, mavlink.MAV_DATA_STREAM_EXTRA1, 10, 0)
+    logic.handle(_from_companion(rds_stop), 1.1)
+    assert periods.calls[-1] == ("ATTITUDE", None, 1.1)
+
+
+def test_autopilot_answers_timesync_on_its_boot_clock():
+    logic, _ = _logic()
+    (reply,) = logic.handle(_from_companion(mavlink.MAVLink_timesync_message(0, 123456789)), 2.5)
+    assert reply.tc1 == int(22.5e9) and reply.ts1 == 123456789
+    assert logic.handle(_from_companion(mavlink.MAVLink_timesync_message(5, 7)), 2.6) == []  # a reply: not ours to answer
+    assert logic.counters["timesync_answered"] == 1
+
+
+def test_udp_endpoint_learns_its_peer_and_survives_garbage():
+    ep = UdpEndpoint(0, system_id=1)
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        peer.bind(("127.0.0.1", 0))
+        assert ep.send(mavlink.MAVLink_timesync_message(0, 1)) is None  # nobody to talk to yet
+        mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=196)
+        peer.sendto(b"\xfd\x09garbage", ("127.0.0.1", ep.port))
+        peer.sendto(bytes(mavlink.MAVLink_heartbeat_message(18, 8, 0, 0, 3, 3).pack(mav)), ("127.0.0.1", ep.port))
+        got = []
+        for _ in range(50):
+            ep.wait_readable(0.05)
+            got += ep.receive()
+            if got:
+                break
+        assert [m.get_type() for _, m in got] == ["HEARTBEAT"]
+        assert ep.peer == peer.getsockname()
+        assert ep.send(mavlink.MAVLink_timesync_message(0, 1)) is not None
+        peer.settimeout(2.0)
+        data = peer.recv(1024)
+        assert mavlink.MAVLink(None).parse_char(data).get_type() == "TIMESYNC"
+    finally:
+        peer.close()
+        ep.close()
