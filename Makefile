@@ -13,9 +13,10 @@ $(VENV): pyproject.toml
 	$(BIN)/python -m pip install -e '.[dev]'
 	touch $(VENV)
 
-# Main job. Until the simulator lands this reproduces the seed-004 scenario (DESIGN §4) and prints its table.
+# Main job: fly quad_approach in JSBSim with the companion in the loop (lockstep SITL over MAVLink on
+# free loopback ports), score its messages against truth and print the score table.
 demo: $(VENV)
-	$(BIN)/python -m companion.bench seed004 --runs 100
+	$(BIN)/flightsim sitl configs/scenarios/quad_approach.toml --out out/demo --mavlink-port 0 --camera-port 0
 
 test: $(VENV)
 	$(BIN)/python -m pytest -q

@@ -91,7 +91,14 @@ def cmd_sitl(args) -> int:
     else:
         print("companion attached (not started by flightsim): " + shlex.join(s["companion_command"]))
     if s["score"] is not None:
-        print(f"score: {Path(args.out) / 'score.md'}")
+        md = Path(args.out) / "score.md"
+        text = md.read_text(encoding="utf-8") if md.is_file() else ""
+        cut = text.find("## Range error")
+        if text:
+            print()
+            print((text[:cut] if cut > 0 else text).strip())
+            print()
+        print(f"score: {md} (full report: range error by bin, time to first range, latency, NEES)")
     else:
         print(f"not scored: {s['score_note']}")
     print(f"files in {args.out}: " + ", ".join(Path(p).name for p in s["paths"].values()))
