@@ -78,6 +78,18 @@ def cmd_pipeline004(args, runs: int) -> dict:
         logging.disable(logging.NOTSET)
 
 
+def cmd_sitl(args) -> dict:
+    from companion.bench import sitl_bench
+
+    import logging
+
+    logging.disable(logging.WARNING)
+    try:
+        return sitl_bench.run_all(quad_runs=8, fixedwing_runs=2)
+    finally:
+        logging.disable(logging.NOTSET)
+
+
 def cmd_timing(args) -> dict:
     from companion.bench import timing
 
@@ -135,7 +147,7 @@ def main(argv=None) -> int:
 
         res = {"seed004": cmd_seed004(args), "seed000": cmd_seed000(args), "timing": cmd_timing(args),
                "latency": latency.run_all(), "pipeline004": cmd_pipeline004(args, max(5, args.runs // 10)),
-               "flightsim": flightsim_bench.run_all()}
+               "flightsim": flightsim_bench.run_all(), "sitl": cmd_sitl(args)}
         if args.json:
             print(json.dumps(res))
         else:

@@ -185,6 +185,10 @@ def full_markdown(res: dict, runs: int, repeats: int) -> str:
         "",
         flightsim_markdown(res["flightsim"]),
         "",
+        "## Software in the loop (flightsim sitl, companion as a separate process)",
+        "",
+        sitl_markdown(res["sitl"]),
+        "",
     ])
 
 
@@ -200,6 +204,12 @@ def pipeline004_markdown(res: dict) -> str:
 
 def latency_markdown(res: dict) -> str:
     from companion.bench.latency import markdown
+
+    return markdown(res)
+
+
+def sitl_markdown(res: dict) -> str:
+    from companion.bench.sitl_bench import markdown
 
     return markdown(res)
 
