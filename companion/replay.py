@@ -349,6 +349,7 @@ def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str
                 last_state = rep.health.state
                 trace.states.append((t_send, last_state.value))
             now = t_send
+            tick(now)  # periodic duties (HEARTBEAT, diagnostics) also when frames arrive back to back
             if progress:
                 progress(done, total)
         # let the last result age out like a camera that stopped: a final second of periodic duties

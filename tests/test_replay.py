@@ -184,3 +184,14 @@ def test_cli_replay_missing_inputs_exit_2(recording, tmp_path, capsys):
     bad[8] = str(tmp_path / "no" / "dir" / "r.tlog")
     assert main(bad) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_periodic_duties_run_when_processing_outlasts_the_frame_period(recording, tmp_path):
+    """40 ms per frame at 30 fps: frames queue back to back, yet HEARTBEAT stays at 1 Hz."""
+    rc = load_config(None, None, str(recording / "camera.toml"))
+    out = tmp_path / "slow.tlog"
+    s = replay(recording / "telemetry.tlog", recording / "video.avi", recording / "frames.csv", out, small(rc.companion),
+               pipeline=rc.pipeline, fixed_processing_s=0.040)
+    assert s.superseded > 0  # the core really was busy
+    hb = [m for m in read_out(out) if m.get_type() == "HEARTBEAT"]
+    assert len(hb) >= int(s.recording_s + 1.0)  # 2.5 s of flight + the final second
