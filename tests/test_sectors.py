@@ -224,3 +224,31 @@ def test_sectors_rotated_helper_and_config_validation():
         SectorConfig(max_distance_m=700)  # max + 1 cm would collide with UINT16_MAX
     with pytest.raises(ConfigError):
         SectorConfig(band_mode="feet")
+
+
+def test_rotation_rebins_obstacle_points_instead_of_smearing_them():
+    # a mast 3 m right at 30 m (bearing 5.7°, well inside sector 1) seen through a tiny yaw jitter
+    s = run([[30.0, 3.0, 0.0], [30.0, 3.05, 0.2]], sigma=0.5)
+    assert s.state[1] == SectorState.OBSTACLE and s.distances_cm[0] == UNKNOWN_CM and s.distances_cm[2] == UNKNOWN_CM
+    for dyaw_deg in (0.1, -0.1, 0.7, -0.7):
+        r = s.rotated(math.radians(dyaw_deg))
+        assert r[1] == s.distances_cm[1]
+        assert r[0] == UNKNOWN_CM and r[2] == UNKNOWN_CM, dyaw_deg  # no phantom beside it
+    # turned far enough, the point itself crosses into the next sector: exactly one sector holds it
+    r = s.rotated(math.radians(-2.0))  # turned left 2°: bearing now 7.7° → sector 2
+    assert r[2] == s.distances_cm[1] and r[1] == UNKNOWN_CM
+    # a turn moves the clear sectors conservatively and keeps the obstacle where its points are
+    far = wall(60.0, np.arange(-25.0, 25.5, 0.5))
+    s = run(np.concatenate([far, [[30.0, 3.0, 0.0]]]), sigma=0.5)
+    assert s.state[1] == SectorState.OBSTACLE and s.state[0] == SectorState.CLEAR
+    r = s.rotated(math.radians(1.0))
+    assert r[1] == s.distances_cm[1]
+    assert r[0] in (CLEAR, UNKNOWN_CM) and r[2] in (CLEAR, UNKNOWN_CM)
+    assert np.all(s.rotated(math.nan) == UNKNOWN_CM)
+
+
+def test_rotated_with_min_points_obstacle_uses_the_nth_nearest_point():
+    cfg = SectorConfig(min_points_obstacle=2)
+    s = run([[10.0, 0.0, 0.0], [12.0, 0.1, 0.0], [15.0, 0.2, 0.0]], sigma=0.5, config=cfg)
+    assert s.distances_cm[0] == 1100  # second nearest: 12 − 2·0.5
+    assert s.rotated(math.radians(0.3))[0] == 1100

@@ -32,8 +32,11 @@ Rules (DESIGN §5, issue 4)
 * 0 ("touching") only when the estimate itself is at or below ``touching_distance_m`` (off by
   default: ArduPilot ignores 0).
 
-:func:`rotate_sectors` turns the sectors by the yaw change between exposure and sending (DESIGN §5:
-the autopilots stamp with arrival time), combining conservatively and never inventing "clear".
+:meth:`Sectors.rotated` turns the sectors by the yaw change between exposure and sending (DESIGN §5:
+the autopilots stamp with arrival time): obstacle *points* are re-binned at their turned bearings
+(an obstacle inside one sector stays in one sector; turning a whole sector array would smear every
+obstacle into a neighbour on any fractional yaw change, a phantom beside every real obstacle), while
+"clear" and "unknown" are turned with :func:`rotate_sectors`, which never invents "clear".
 """
 
 from __future__ import annotations
@@ -161,6 +164,10 @@ class Sectors:
     max_distance_cm: int
     points_used: int  # points that passed validity, convergence and the band
     points_rejected: int  # points with NaN/inf/negative σ/zero range (bad input, ignored)
+    # obstacle points behind the OBSTACLE sectors, for re-binning in :meth:`rotated`
+    obstacle_bearing_rad: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))  # levelled body bearing
+    obstacle_cm: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))  # published value of each
+    obstacle_rank: int = 1  # the n-th nearest point of a sector is published (``min_points_obstacle``)
 
     @property
     def clear_cm(self) -> int:
@@ -178,8 +185,40 @@ class Sectors:
         return float(r.min()) if r.size else math.nan
 
     def rotated(self, yaw_change_rad: float) -> np.ndarray:
-        """``distances_cm`` turned by the yaw change since exposure (see :func:`rotate_sectors`)."""
-        return rotate_sectors(self.distances_cm, yaw_change_rad, self.max_distance_cm)
+        """``distances_cm`` as seen after the vehicle turned by ``yaw_change_rad`` since exposure.
+
+        Obstacle points are re-binned at bearing − Δψ (the same n-th-nearest rule as at exposure);
+        "clear" and "unknown" sectors are turned by :func:`rotate_sectors` (clear only where every
+        overlapped sector was clear).  An obstacle point always wins over clear or unknown.
+        """
+        if not math.isfinite(yaw_change_rad):
+            return np.full(SECTOR_COUNT, UNKNOWN_CM, dtype=np.uint16)
+        base = np.where(self.state == SectorState.OBSTACLE, UNKNOWN_CM, self.distances_cm.astype(np.int64))
+        out = rotate_sectors(base, yaw_change_rad, self.max_distance_cm).astype(np.int64)
+        if self.obstacle_cm.size:
+            idx = sector_index(self.obstacle_bearing_rad - yaw_change_rad)
+            pick, _ = nth_nearest_per_sector(idx, self.obstacle_cm, self.obstacle_rank)
+            has = pick >= 0
+            out[has] = self.obstacle_cm[pick[has]]
+        return out.astype(np.uint16)
+
+
+def sector_index(bearing_rad) -> np.ndarray:
+    """Sector of each bearing (rad, clockwise from forward): sector ``i`` spans ``i·5° ± 2.5°``."""
+    return np.mod(np.rint(np.degrees(np.asarray(bearing_rad, float)) / SECTOR_DEG).astype(np.int64), SECTOR_COUNT)
+
+
+def nth_nearest_per_sector(idx: np.ndarray, value: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per sector: the index of the ``k``-th smallest ``value`` among the points in it (−1 if fewer
+    than ``k``), and the point count.  Vectorized: one sort by (sector, value)."""
+    idx = np.asarray(idx, np.int64)
+    count = np.bincount(idx, minlength=SECTOR_COUNT)
+    order = np.lexsort((value, idx))
+    starts = np.searchsorted(idx[order], np.arange(SECTOR_COUNT), side="left")
+    pick = np.full(SECTOR_COUNT, -1, dtype=np.int64)
+    has = count >= k
+    pick[has] = order[starts[has] + k - 1]
+    return pick, count
 
 
 def _R_level_body(roll: float, pitch: float) -> np.ndarray:
@@ -317,7 +356,7 @@ def compute_sectors(
         in_band = np.abs(elev - gamma) <= math.radians(config.band_half_angle_deg)
     in_band &= usable
     bearing = np.arctan2(p_level[:, 1], p_level[:, 0])
-    idx = np.mod(np.rint(np.degrees(bearing) / SECTOR_DEG).astype(np.int64), SECTOR_COUNT)
+    idx = sector_index(bearing)
     in_band &= in_view[idx]
 
     r_cons = np.maximum(r - config.sigma_k * np.where(usable, sig, 0.0), 0.0)
@@ -336,13 +375,11 @@ def compute_sectors(
     # n-th nearest conservative range per sector (vectorized: sort by (sector, range))
     k = config.min_points_obstacle
     sel = np.flatnonzero(obs_pts)
-    order = sel[np.lexsort((d_cons[sel], idx[sel]))]
-    starts = np.searchsorted(idx[order], np.arange(SECTOR_COUNT), side="left")
+    pick_s, _ = nth_nearest_per_sector(idx[sel], d_cons[sel], k)
+    near_s, _ = nth_nearest_per_sector(idx[sel], d_cons[sel], 1)
+    pick = np.where(pick_s >= 0, sel[np.maximum(pick_s, 0)], -1) if sel.size else np.full(SECTOR_COUNT, -1, np.int64)
+    nearest_pick = np.where(near_s >= 0, sel[np.maximum(near_s, 0)], -1) if sel.size else np.full(SECTOR_COUNT, -1, np.int64)
     has_obs = n_obs >= k
-    pick = np.full(SECTOR_COUNT, -1, dtype=np.int64)
-    pick[has_obs] = order[starts[has_obs] + k - 1]
-    nearest_pick = np.full(SECTOR_COUNT, -1, dtype=np.int64)
-    nearest_pick[n_obs > 0] = order[starts[n_obs > 0]]
 
     state = np.full(SECTOR_COUNT, SectorState.UNKNOWN, dtype=np.int8)
     dist = np.full(SECTOR_COUNT, UNKNOWN_CM, dtype=np.int64)
@@ -350,14 +387,15 @@ def compute_sectors(
     sigma_m = np.full(SECTOR_COUNT, np.nan)
     min_cm, max_cm = config.min_distance_cm, config.max_distance_cm
 
+    # published value of every obstacle point (clamped to [min, max]; 0 = touching if enabled)
+    pt_cm = np.clip(np.rint(np.clip(d_cons, config.min_distance_m, max_m) * 100).astype(np.int64), min_cm, max_cm)
+    if config.touching_distance_m > 0:
+        pt_cm = np.where(d_h <= config.touching_distance_m, 0, pt_cm)
     obs_sec = np.flatnonzero(has_obs & in_view)
     if obs_sec.size:
         pts = pick[obs_sec]
         vals = np.clip(d_cons[pts], config.min_distance_m, max_m)
-        cm = np.clip(np.rint(vals * 100).astype(np.int64), min_cm, max_cm)
-        if config.touching_distance_m > 0:
-            cm = np.where(d_h[pts] <= config.touching_distance_m, 0, cm)
-        dist[obs_sec] = cm
+        dist[obs_sec] = pt_cm[pts]
         state[obs_sec] = SectorState.OBSTACLE
         range_m[obs_sec] = vals
         sigma_m[obs_sec] = sig[pts]
@@ -408,6 +446,9 @@ def compute_sectors(
         max_distance_cm=max_cm,
         points_used=int(np.count_nonzero(in_band & conv)),
         points_rejected=rejected,
+        obstacle_bearing_rad=bearing[obs_pts],
+        obstacle_cm=pt_cm[obs_pts],
+        obstacle_rank=k,
     )
 
 
