@@ -12,6 +12,9 @@ scenario's own ``[scenario] seed`` unless given), each in a worker process
 * then :func:`flightsim.score_io.score_run` (obstacles named from the scenario's world) writes
   ``score.json``, ``score.md`` and ``score_series.npz``.
 
+The companion configuration of every run (and of the scoring: its ``sigma_k``) is the one given,
+else the scenario's ``[scenario] companion_config``, else ``configs/companion.toml``.
+
 A run that raises is recorded (``status = "failed"``, the error, ``error.txt`` with the traceback)
 and the campaign goes on; each run logs into its own ``run.log``.  Afterwards the runs are pooled
 (:func:`aggregate`) into ``out/campaign.json`` and ``out/report/`` (:mod:`flightsim.report`).
@@ -288,6 +291,8 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     base = sc.meta.seed if seed0 is None else int(seed0)
     if base < 0:
         raise ConfigError(f"--seed0 must be >= 0, got {base}")
+    if companion_config is None:  # the scenario's [scenario] companion_config (validated by load_scenario), else ours
+        companion_config = sc.companion_config_path
     if companion_config is None and DEFAULT_COMPANION_CONFIG.is_file():
         companion_config = DEFAULT_COMPANION_CONFIG
     if companion_config is not None:
@@ -303,8 +308,8 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     jobs = [RunJob(str(scenario), base + i, str(out / "runs" / f"seed_{base + i:04d}"), mode,
                    None if companion_config is None else str(companion_config), cfg, float(fixed_processing_ms), keep_video)
             for i in range(runs)]
-    log.info("campaign %s: %d runs (seeds %d…%d), mode %s, %d workers → %s", sc.meta.name, runs, base, base + runs - 1,
-             mode, workers, out)
+    log.info("campaign %s: %d runs (seeds %d…%d), mode %s, %d workers, companion config %s → %s", sc.meta.name, runs, base,
+             base + runs - 1, mode, workers, companion_config or "built-in defaults", out)
     wall0 = time.perf_counter()
     results: dict[int, dict] = {}
     failed = 0

@@ -59,15 +59,19 @@ def cmd_fly(args) -> int:
 def cmd_sitl(args) -> int:
     import shlex
 
+    from flightsim.scenario import default_companion_config
     from flightsim.sitl import SitlConfig, run_sitl
 
     cfg = SitlConfig(processing_ms=args.processing_ms, connect_timeout_s=args.connect_timeout)
-    log.info("SITL %s (%s clock) into %s", args.scenario, args.clock, args.out)
+    # --config, else the scenario's [scenario] companion_config, else (None) run_sitl's configs/companion.toml
+    companion_config = default_companion_config(args.scenario, args.config)
+    log.info("SITL %s (%s clock) into %s, companion config %s", args.scenario, args.clock, args.out,
+             companion_config or "configs/companion.toml")
     bar, tick = _progress_bar(f"sitl {args.clock}")
     if bar:
         bar.start()
     try:
-        s = run_sitl(args.scenario, args.out, seed=args.seed, clock=args.clock, companion_config=args.config,
+        s = run_sitl(args.scenario, args.out, seed=args.seed, clock=args.clock, companion_config=companion_config,
                      attach=args.attach, video=args.video, progress=tick, mavlink_port=args.mavlink_port,
                      camera_port=args.camera_port, config=cfg, score=not args.no_score)
     finally:
@@ -112,18 +116,66 @@ def cmd_sitl(args) -> int:
     return 0
 
 
-def _world_for_names(scenario: str | None, run_dir: Path | None):
-    """The world that names the obstacles: ``--scenario``, else the one flight.json names (best effort)."""
+def _run_record(run_dir: Path | None) -> dict:
+    """What a run directory says about itself (best effort): ``scenario_file`` (flight.json, sitl.json or,
+    for a campaign's ``runs/seed_NNNN``, the campaign.json two levels up) and ``companion_config``, the
+    companion TOML the run was made with (sitl.json's companion command, campaign.json)."""
+    rec: dict = {"scenario_file": None, "companion_config": None}
+    if run_dir is None:
+        return rec
+    files = [run_dir / "sitl.json", run_dir / "flight.json"]
+    if run_dir.parent.name == "runs":
+        files.append(run_dir.parent.parent / "campaign.json")
+    for f in files:
+        if not f.is_file():
+            continue
+        try:
+            d = json.loads(f.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            log.warning("%s unreadable: %s", f, exc)
+            continue
+        rec["scenario_file"] = rec["scenario_file"] or d.get("scenario_file") or (d.get("scenario") if f.name == "campaign.json" else None)
+        used = d.get("companion_config") if f.name == "campaign.json" else None
+        cmd = d.get("companion_command") if f.name == "sitl.json" else None
+        if isinstance(cmd, list) and "--config" in cmd[:-1]:
+            used = cmd[cmd.index("--config") + 1]
+        rec["companion_config"] = rec["companion_config"] or used
+    return rec
+
+
+def _score_companion_config(given: str | None, scenario: str | None, rec: dict) -> str | Path | None:
+    """The companion TOML whose ``sigma_k`` the score undoes: ``--companion-config``, else the one the run
+    recorded using, else the scenario's ``[scenario] companion_config`` (``--scenario``, else the recorded
+    scenario file), else None (the score's built-in defaults)."""
+    from flightsim.scenario import default_companion_config
+
+    if given is not None:
+        return given
+    used = rec.get("companion_config")
+    if used and Path(used).is_file():
+        log.info("companion config %s (the one the run used)", used)
+        return used
+    path = scenario or rec.get("scenario_file")
+    if path and (scenario or Path(path).is_file()):
+        found = default_companion_config(path)  # ConfigError if it names a missing file
+        if found is not None:
+            log.info("companion config %s (the scenario's [scenario] companion_config)", found)
+        return found
+    return None
+
+
+def _world_for_names(scenario: str | None, run_dir: Path | None, rec: dict | None = None):
+    """The world that names the obstacles: ``--scenario``, else the one the run directory names (best effort)."""
     from flightsim.scenario import load_scenario
 
     if scenario:
         return load_scenario(scenario).world
-    if run_dir is not None and (run_dir / "flight.json").is_file():
+    path = (rec or _run_record(run_dir)).get("scenario_file")
+    if path:
         try:
-            path = json.loads((run_dir / "flight.json").read_text()).get("scenario_file")
-            if path and Path(path).is_file():
+            if Path(path).is_file():
                 return load_scenario(path).world
-            log.info("obstacles are not named: %s (from flight.json) not found; give --scenario", path)
+            log.info("obstacles are not named: %s (from the run's records) not found; give --scenario", path)
         except Exception as exc:  # naming is optional: never fail the score for it
             log.warning("obstacles are not named: %s", exc)
     return None
@@ -148,9 +200,11 @@ def cmd_score(args) -> int:
         raise ConfigError("--truth is required without a run directory")
     out = Path(args.out) if args.out else (run_dir or ranges.parent)
     cfg = load_score_config(args.config)
-    world = _world_for_names(args.scenario, run_dir)
+    rec = _run_record(run_dir)
+    companion_config = _score_companion_config(args.companion_config, args.scenario, rec)
+    world = _world_for_names(args.scenario, run_dir, rec)
     log.info("scoring %s against %s", ranges, truth)
-    score = score_run(ranges, truth, config=cfg, companion_config=args.companion_config, world=world,
+    score = score_run(ranges, truth, config=cfg, companion_config=companion_config, world=world,
                       series_out=None if args.no_series else out / "score_series.npz")
     write_score(out, score)
     r = score["rates"]
@@ -218,7 +272,8 @@ def main(argv=None) -> int:
     q.add_argument("--seed", type=int, default=None, help="override the scenario's [scenario] seed")
     q.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep", help="lockstep (default) or realtime")
     q.add_argument("--config", metavar="TOML", default=None,
-                   help="companion configuration (default: configs/companion.toml of this repository)")
+                   help="companion configuration (default: the scenario's [scenario] companion_config, else "
+                        "configs/companion.toml of this repository)")
     q.add_argument("--attach", action="store_true",
                    help="do not start the companion: print the command line to run and wait for it to connect")
     q.add_argument("--video", action="store_true", help="also write video.avi (MJPG)")
@@ -247,7 +302,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", help="where score.json / score.md go (default DIR, else the tlog's directory)")
     p.add_argument("--config", help="TOML with a [score] table (default: built-in defaults, as configs/score.toml)")
     p.add_argument("--companion-config", help="companion TOML the run used: its [sectors] sigma_k and [outputs] "
-                                              "quality_zero_rel_sigma undo the conservative offset")
+                                              "quality_zero_rel_sigma undo the conservative offset (default: the one "
+                                              "sitl.json / campaign.json record, else the scenario's [scenario] "
+                                              "companion_config, else built-in defaults)")
     p.add_argument("--scenario", help="scenario TOML whose world names the obstacles (default: the one flight.json names)")
     p.add_argument("--no-series", action="store_true", help="do not write score_series.npz (per-message arrays)")
     p = sub.add_parser("campaign", help="Monte Carlo over seeds in worker processes, scored, with a report",
@@ -268,7 +325,8 @@ def main(argv=None) -> int:
                         "ports); auto (default): sitl if available, else replay")
     p.add_argument("--seed0", type=int, default=None, help="first seed (default: the scenario's [scenario] seed)")
     p.add_argument("--companion-config", default=None,
-                   help="companion TOML for the runs and for undoing k·σ (default configs/companion.toml if present)")
+                   help="companion TOML for the runs and for undoing k·σ (default: the scenario's [scenario] "
+                        "companion_config, else configs/companion.toml if present)")
     p.add_argument("--score-config", default=None, help="TOML with a [score] table (default: built-in defaults)")
     p.add_argument("--fixed-processing-ms", type=float, default=30.0,
                    help="processing time per frame, ms: replay stamps it on every frame, SITL lockstep advances the "

@@ -3,7 +3,8 @@
 A scenario names everything a flight needs, one table per part, each filled into the frozen config
 dataclass of its module (unknown or misspelt keys stop with an error naming them):
 
-* ``[scenario]`` — name, duration, the one random seed, the world file, frame rate, recording clock;
+* ``[scenario]`` — name, duration, the one random seed, the world file, frame rate, recording clock,
+  and optionally the companion configuration the scenario is meant for (``companion_config``);
 * ``[vehicle]`` — :class:`flightsim.dynamics.DynamicsConfig` (aircraft, start, route, atmosphere);
 * ``[camera]`` — :class:`companion.core.camera.CameraConfig`, the companion's own camera table;
 * ``[render]`` — :class:`flightsim.render.RenderOptions` (pixel noise, blur, exposure);
@@ -12,7 +13,11 @@ dataclass of its module (unknown or misspelt keys stop with an error naming them
 The ``[scenario] seed`` seeds everything (turbulence, gyro bias, GPS noise, pixel noise); the
 tables may not carry seeds of their own, so one number reproduces a flight.  Every check that
 can fail before take-off runs in :func:`load_scenario`: TOML keys, the aircraft, a start inside or
-too close to an obstacle, a camera that sees nothing but sky.
+too close to an obstacle, a camera that sees nothing but sky, a ``companion_config`` that names no file.
+
+``companion_config`` (a path relative to the scenario file, like ``world``) is the companion TOML
+that ``flightsim sitl``, ``flightsim campaign`` and ``flightsim score`` use when none is given on
+the command line (:func:`default_companion_config`); without it they use ``configs/companion.toml``.
 """
 
 from __future__ import annotations
@@ -54,6 +59,7 @@ class ScenarioMeta:
     epoch_s: float = EPOCH_2026  # recording clock (Unix seconds) at simulation time 0
     sector_max_distance_m: float = 40.0  # farthest range of the sector truth (OBSTACLE_DISTANCE max), m
     video_quality: int = 95  # MJPG quality of video.avi (1–100)
+    companion_config: str = ""  # companion TOML for this scenario, relative to the scenario file ("" = the default)
 
     def __post_init__(self) -> None:
         require(bool(self.world), "world must name a world TOML file")
@@ -65,6 +71,7 @@ class ScenarioMeta:
         require_finite("epoch_s", self.epoch_s, nonnegative=True)
         require_finite("sector_max_distance_m", self.sector_max_distance_m, positive=True)
         require(isinstance(self.video_quality, int) and 1 <= self.video_quality <= 100, "video_quality must be in 1..100")
+        require(isinstance(self.companion_config, str), f"companion_config must be a path string, got {self.companion_config!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,6 +90,11 @@ class Scenario:
     def telemetry_seed(self) -> int:
         return self.meta.seed * 3 + 2
 
+    @property
+    def companion_config_path(self) -> Path | None:
+        """The companion TOML named by ``[scenario] companion_config`` (absolute), or None."""
+        return companion_config_of(self.path, self.meta)
+
 
 _TABLES = {"scenario": ScenarioMeta, "vehicle": DynamicsConfig, "camera": CameraConfig,
            "render": RenderOptions, "telemetry": TelemetryConfig}
@@ -92,6 +104,40 @@ def start_pose(vehicle: DynamicsConfig) -> tuple[np.ndarray, np.ndarray]:
     """(R_world_body, p_ned) at take-off: level, on the start heading."""
     R = euler_zyx_to_R(0.0, 0.0, math.radians(vehicle.start_heading_deg))
     return R, np.asarray(vehicle.start_ned_m, float)
+
+
+def companion_config_of(path: str | os.PathLike, meta: ScenarioMeta) -> Path | None:
+    """``meta.companion_config`` resolved against the scenario file's folder; ConfigError if it names no file."""
+    if not meta.companion_config:
+        return None
+    p = (Path(path).parent / meta.companion_config).resolve()
+    if not p.is_file():
+        raise ConfigError(f"{path}: [scenario] companion_config = {meta.companion_config!r}: no such file ({p})")
+    return p
+
+
+def default_companion_config(scenario_path: str | os.PathLike, given: str | os.PathLike | None = None) -> Path | None:
+    """The companion TOML a command should use: ``given`` (the user's option) when not None, else the
+    scenario's ``[scenario] companion_config``, else None (the caller's own default).
+
+    Reads only the ``[scenario]`` table (no world, no pre-flight checks) but validates it: a missing
+    or unreadable scenario, or a ``companion_config`` that names no file, raises ConfigError.
+    """
+    if given is not None:
+        return Path(given)
+    path = Path(scenario_path)
+    try:
+        with path.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such scenario file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    try:
+        meta = from_mapping(ScenarioMeta, data.get("scenario"), "scenario")
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    return companion_config_of(path, meta)
 
 
 def load_scenario(path: str | os.PathLike, seed: int | None = None) -> Scenario:
@@ -125,6 +171,7 @@ def load_scenario(path: str | os.PathLike, seed: int | None = None) -> Scenario:
     world_path = (path.parent / meta.world).resolve()
     if not world_path.is_file():
         raise ConfigError(f"{path}: [scenario] world = {meta.world!r}: no such file ({world_path})")
+    companion_config_of(path, meta)  # a companion_config that names no file stops here, before take-off
     world = load_world(world_path)
     # pre-flight checks: the start must be clear and the camera must see something
     R_wb, p0 = start_pose(vehicle)
