@@ -149,6 +149,8 @@ def test_published_ranges_agree_with_truth(lockstep_runs):
     if score is not None:  # flightsim/score.py present: its verdict within loose bounds
         assert score["messages"]["obstacle_distance_scored"] == s["messages_received"]["OBSTACLE_DISTANCE"]
         assert score["rates"]["dangerous_clear"] <= 0.05
+        # no phantom beside the mast (a yaw-jitter smear of its sector once put one in ~4 of 10 messages)
+        assert (score["rates"]["false_obstacle_clear_cells"] or 0.0) <= 0.05
         assert (out / "score.json").is_file() and (out / "score.md").is_file()
 
 
