@@ -5,6 +5,9 @@
 * campaigns (:func:`flightsim.campaign.run_campaign`, SITL mode) of ``quad_approach`` and
   ``fixedwing_pass``: pooled detection, false-obstacle and dangerous-clear rates against the issue's
   targets, range error by bin, latency and NEES.  Reports (plots + index.md) go to ``out/bench/``.
+  Each campaign runs the companion configuration its scenario names (``[scenario]
+  companion_config``: ``fixedwing_pass`` flies ``configs/companion_fixedwing.toml``, max_distance
+  150 m), else ``configs/companion.toml``.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ def campaign(scenario: str, runs: int, workers: int = 2) -> dict:
 
     out = OUT / f"campaign_{scenario}"
     t0 = time.perf_counter()
+    # no companion_config: run_campaign takes the scenario's [scenario] companion_config, else configs/companion.toml
     c = run_campaign(SCEN / f"{scenario}.toml", out, runs=runs, workers=workers, mode="sitl")
     c["_wall_s"] = time.perf_counter() - t0
     return c
@@ -53,6 +57,18 @@ def run_all(quad_runs: int = 8, fixedwing_runs: int = 4) -> dict:
     return {"lockstep": lockstep_speed("quad_approach"),
             "campaigns": {"quad_approach": campaign("quad_approach", quad_runs),
                           "fixedwing_pass": campaign("fixedwing_pass", fixedwing_runs)}}
+
+
+def _config_label(path) -> str:
+    """``companion_fixedwing.toml (150 m)``: the campaign's companion config and its [sectors] max_distance_m."""
+    if not path:
+        return "built-in defaults"
+    try:
+        from companion.io.config_files import load_companion_config
+
+        return f"`{Path(path).name}` ({load_companion_config(path).sectors.max_distance_m:g} m)"
+    except Exception:  # a report line must not fail the bench
+        return f"`{Path(path).name}`"
 
 
 def _num(v, d: int = 2) -> str:
@@ -80,8 +96,8 @@ def markdown(res: dict) -> str:
         "`flightsim campaign configs/scenarios/X.toml --runs N --workers 2 --mode sitl --out out/bench/campaign_X` "
         "(plots and index.md in `out/bench/campaign_X/report/`). Pooled over the runs; cell definitions in `flightsim/score.py`.",
         "",
-        "| scenario | runs ok | detection | valid range | too near | false obstacles in clear cells | messages with no false obstacle (≥ 95 %) | dangerous clears (≤ 1 %) | obstacle cells | forward estimate mean abs error | latency p50 / p99 ms | NEES |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scenario | companion config (max_distance) | runs ok | detection | valid range | too near | false obstacles in clear cells | messages with no false obstacle (≥ 95 %) | dangerous clears (≤ 1 %) | obstacle cells | forward estimate mean abs error | latency p50 / p99 ms | NEES |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, c in res["campaigns"].items():
         a = c.get("aggregate", {})
@@ -101,7 +117,7 @@ def markdown(res: dict) -> str:
         nees = a.get("nees", {})
         lo_hi = nees.get("band") or [float("nan"), float("nan")]
         lines.append(
-            f"| {name} | {a.get('runs_ok', '?')}/{a.get('runs', '?')} | {_pct(p.get('detection'))} | {_pct(p.get('valid_range'))} | "
+            f"| {name} | {_config_label(c.get('companion_config'))} | {a.get('runs_ok', '?')}/{a.get('runs', '?')} | {_pct(p.get('detection'))} | {_pct(p.get('valid_range'))} | "
             f"{_pct(p.get('too_near'))} | {_pct(p.get('false_obstacle_clear_cells'))} | {tcell(t_nf)} | {tcell(t_dc)} | "
             f"{t_dc['n'] if t_dc else '–'} | {fe} | "
             f"{_num(lat.get('p50_ms'), 0)} / {_num(lat.get('p99_ms'), 0)} | "
@@ -109,7 +125,7 @@ def markdown(res: dict) -> str:
     for name, c in res["campaigns"].items():
         t_dc = next((t for t in c.get("aggregate", {}).get("targets", []) if "dangerous" in t["name"]), None)
         if t_dc is not None and not t_dc.get("n"):
-            lines += ["", f"{name}: no obstacle came within the companion's max_distance ([sectors] max_distance_m = 40 m) "
+            lines += ["", f"{name}: no obstacle came within the companion's max_distance ({_config_label(c.get('companion_config'))}) "
                       "of the flight path, so detection and the dangerous-clear target are not exercised on this route."]
     return "\n".join(lines)
 
