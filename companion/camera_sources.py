@@ -779,22 +779,31 @@ class _ProtocolError(Exception):
     pass
 
 
+_SOCK_BUF = 1 << 22  # frame transport socket buffers: a whole frame fits, the sender never waits for the reader
+
+
 def _recv_exact(sock: socket.socket, n: int, stop: threading.Event) -> bytes | None:
     """n bytes, or None when the peer closed / we are stopping; socket timeouts just retry."""
-    buf = bytearray()
-    while len(buf) < n:
+    buf = bytearray(n)
+    return bytes(buf) if _recv_into(sock, memoryview(buf), stop) else None
+
+
+def _recv_into(sock: socket.socket, view: memoryview, stop: threading.Event) -> bool:
+    """Fill ``view`` from the socket (no intermediate copies); False when the peer closed / we are stopping."""
+    got, n = 0, len(view)
+    while got < n:
         if stop.is_set():
-            return None
+            return False
         try:
-            chunk = sock.recv(min(n - len(buf), 1 << 20))
+            k = sock.recv_into(view[got:], n - got)
         except socket.timeout:
             continue
         except OSError:
-            return None
-        if not chunk:
-            return None
-        buf += chunk
-    return bytes(buf)
+            return False
+        if not k:
+            return False
+        got += k
+    return True
 
 
 class SimFrameSource(FrameSource):
@@ -831,9 +840,20 @@ class SimFrameSource(FrameSource):
             self._thread.start()
 
     def _connect(self) -> socket.socket | None:
+        s = None
         try:
-            s = socket.create_connection((self.host, self.port), timeout=self.config.open_timeout_s)
+            infos = socket.getaddrinfo(self.host, self.port, 0, socket.SOCK_STREAM)
+            af, kind, proto, _, addr = infos[0]
+            s = socket.socket(af, kind, proto)
+            try:  # before connect, so the receive window can open to a whole frame at once
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _SOCK_BUF)
+            except OSError:
+                pass
+            s.settimeout(self.config.open_timeout_s)
+            s.connect(addr)
         except OSError as exc:
+            if s is not None:
+                s.close()
             self._error = f"connect failed: {exc}"
             return None
         s.settimeout(0.2)
@@ -892,8 +912,8 @@ class SimFrameSource(FrameSource):
                 return
             if n != w * h or n > self.config.sim_max_pixels:
                 raise _ProtocolError(f"payload of {n} bytes for {w}×{h}")
-            payload = _recv_exact(sock, n, self._stop) if n else b""
-            if payload is None:
+            payload = np.empty(n, np.uint8)  # the frame's own buffer (handed on to the consumer)
+            if n and not _recv_into(sock, memoryview(payload), self._stop):
                 return
             if fmt != PIXEL_GRAY8:
                 self._reject("corrupt", f"pixel format {fmt}")
@@ -920,7 +940,7 @@ class SimFrameSource(FrameSource):
                 self._reject("corrupt", f"unknown clock {clk}")
                 self._ack_code(index, ACK_REJECTED)
                 continue
-            img = np.frombuffer(payload, np.uint8).reshape(h, w)
+            img = payload.reshape(h, w)
             frame = self._accept(index, t, img)
             if frame is None:
                 self._ack_code(index, ACK_REJECTED)
@@ -999,6 +1019,10 @@ class SimFrameServer:
                 return
             conn.settimeout(self.send_timeout_s)
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            try:
+                conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _SOCK_BUF)
+            except OSError:
+                pass
             with self._cv:
                 old, self._client = self._client, conn
                 self.clients += 1
@@ -1061,16 +1085,19 @@ class SimFrameServer:
         if img.ndim != 2:
             raise ValueError(f"gray must be a 2-D uint8 image, got shape {img.shape}")
         h, w = img.shape
-        return self.send_raw(pack_sim_header(index, t_ns, w, h, clock) + img.tobytes())
+        return self._send_parts(pack_sim_header(index, t_ns, w, h, clock), memoryview(img).cast("B"))
 
     def send_raw(self, data: bytes) -> bool:
         """Write raw bytes to the client (tests use it for malformed frames)."""
+        return self._send_parts(data)
+
+    def _send_parts(self, *parts) -> bool:
         with self._cv:
             conn = self._client
         if conn is None:
             return False
         try:
-            conn.sendall(data)
+            _sendall_parts(conn, parts)
         except OSError:
             with self._cv:
                 if self._client is conn:
@@ -1119,6 +1146,18 @@ class SimFrameServer:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _sendall_parts(conn: socket.socket, parts) -> None:
+    """``sendall`` of the concatenated ``parts`` without concatenating them (one ``sendmsg`` as a rule)."""
+    views = [memoryview(p).cast("B") for p in parts if len(p)]
+    while views:
+        sent = conn.sendmsg(views)
+        while views and sent >= len(views[0]):
+            sent -= len(views[0])
+            views.pop(0)
+        if views and sent:
+            views[0] = views[0][sent:]
 
 
 # ---------------------------------------------------------------------- factory ---------------
