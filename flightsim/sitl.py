@@ -129,7 +129,13 @@ class CompanionProcess:
         self.cmd = cmd
         self.log_path = log_path
         self._log = log_path.open("wb")
+        # One thread per library: the simulator needs the other core, and OpenBLAS / OpenCV worker
+        # threads on these small matrices and images only spin against it (same results, less CPU).
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        for var in _SINGLE_THREAD_ENV:
+            env.setdefault(var, "1")
+        self._cpu0 = _children_cpu_s()
+        self.cpu_s: float | None = None  # user + system CPU of the companion, s (after stop)
         try:
             self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                          env=env, start_new_session=True,  # Ctrl-C reaches us; we stop it cleanly
@@ -173,8 +179,32 @@ class CompanionProcess:
             except ProcessLookupError:
                 pass
         self.exit_code = self.proc.returncode
+        self.cpu_s = _children_cpu_s() - self._cpu0  # the only child waited for in between
         self._log.close()
         return self.exit_code
+
+
+_SINGLE_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
+
+
+def _children_cpu_s() -> float:
+    try:
+        import resource
+
+        r = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return r.ru_utime + r.ru_stime
+    except (ImportError, OSError):  # pragma: no cover - not POSIX
+        return math.nan
+
+
+def _self_cpu_s() -> float:
+    try:
+        import resource
+
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+    except (ImportError, OSError):  # pragma: no cover - not POSIX
+        return math.nan
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
@@ -477,6 +507,7 @@ class _Run:
         self.ahead: collections.deque = collections.deque()
         self.pending: collections.deque = collections.deque()
         self.wall0 = time.perf_counter()
+        cpu0 = _self_cpu_s()
         next_alive_check = 0.0
         while self.ahead or self._physics_one():
             state, frame = self.ahead.popleft()
@@ -491,6 +522,7 @@ class _Run:
                 self._pace(t + fl.dt, self.wall0)
         self.frames_unsent += len(self.pending)  # captured too late in the flight to be delivered
         self.wall_loop = time.perf_counter() - self.wall0
+        self.cpu_loop = _self_cpu_s() - cpu0
         if not self.lockstep:  # the last messages still on their way
             self._pace(self.t_now + cfg.tail_s, self.wall0)
         while self.inbox:  # arrived after the last step: counted, no longer answered
@@ -622,6 +654,9 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
         "realtime_factor": round(sim_s / run.wall_loop, 3) if run.wall_loop > 0 else None,
         "timing_s": timing,  # wall seconds per part of the simulator (ipc_wait_ack: waiting for the companion)
         "sim_work_s": round(sim_work, 3),
+        "cpu_s": {  # user + system CPU: the simulator's flight loop (all its threads) and the whole companion process
+            "simulator_loop": _round_or_none(run.cpu_loop),
+            "companion": None if run.companion is None else _round_or_none(run.companion.cpu_s)},
         "companion": None if run.companion is None else {
             "command": run.cmd, "pid": run.companion.pid, "exit_code": run.companion.exit_code,
             "killed": run.companion.killed, "log": str(run.companion.log_path)},
@@ -638,6 +673,10 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
                 "no HEARTBEAT received")
         raise SitlError(f"{what}; see {run.companion.log_path}" if run.companion is not None else what)
     return summary
+
+
+def _round_or_none(v: float | None, nd: int = 3) -> float | None:
+    return None if v is None or not math.isfinite(v) else round(v, nd)
 
 
 def _json_default(o):
