@@ -145,6 +145,7 @@ class Pipeline:
         self.last_ok: FrameResult | None = None
         self._reset_seen = telemetry.counters.get("reset", 0)
         self._offset: float | None = None
+        self._yaw_memo: tuple | None = None
         self._new_state()
 
     # -- state -------------------------------------------------------------------------------------
@@ -184,14 +185,26 @@ class Pipeline:
         tb = tel.newest_boot_s("attitude")
         if tb is None or tel.age(now, "attitude") > tel.config.max_age_s:
             return None
+        # Publishing and the periodic duties ask twice for the same instant: answer from the memo
+        # while the newest sample, the clock mapping and the buffer's reset count are unchanged.
+        key = (now, tb, tel.clock_offset_s, tel.attitude_count, tel.counters.get("reset", 0))
+        if self._yaw_memo is not None and self._yaw_memo[0] == key:
+            return self._yaw_memo[1]
+        yaw = self._yaw_now(now, tb)
+        self._yaw_memo = (key, yaw)
+        return yaw
+
+    def _yaw_now(self, now: float, tb: float) -> float | None:
+        tel = self.telemetry
         r = tel.pose_at_boot(tb, need_position=False)
         if not r.ok:
             return None
-        yaw = r.pose.yaw
+        rpy = r.pose.rpy  # once (R from the quaternion, then Euler angles)
+        yaw = float(rpy[2])
         rates = r.pose.rates_body
         dt = now - (tb + tel.clock_offset_s)
         if 0 < dt < 0.1 and np.all(np.isfinite(rates)):  # bridge the telemetry latency with the yaw rate
-            roll, pitch = r.pose.rpy[:2]
+            roll, pitch = rpy[:2]
             if abs(math.cos(pitch)) > 1e-3:
                 yaw_rate = (rates[1] * math.sin(roll) + rates[2] * math.cos(roll)) / math.cos(pitch)
                 yaw += yaw_rate * dt

@@ -95,6 +95,10 @@ class TimesyncEstimator:
         self._last_tc1: int | None = None
         self._disagree = 0
         self._arrivals: collections.deque[tuple[float, float]] = collections.deque()
+        # sliding minimum of the arrival offsets: (insertion number, offset), offsets increasing
+        self._arr_min: collections.deque[tuple[int, float]] = collections.deque()
+        self._arr_in = 0  # arrivals appended so far
+        self._arr_out = 0  # ... and expired from the front
         self.last_rtt_s: float = math.nan
 
     # ------------------------------------------------------------------ state ----------------
@@ -117,7 +121,7 @@ class TimesyncEstimator:
         if self.converged:
             return self._offset
         if self.config.arrival_fallback and self._arrivals:
-            return min(v for _, v in self._arrivals)
+            return self._arrival_min()
         return None
 
     @property
@@ -148,7 +152,7 @@ class TimesyncEstimator:
         self._offset = None
         self._last_tc1 = None
         self._disagree = 0
-        self._arrivals.clear()
+        self._clear_arrivals()
 
     # ------------------------------------------------------------------ requests -------------
     def request_due(self, now: float) -> bool:
@@ -242,13 +246,30 @@ class TimesyncEstimator:
         if not (math.isfinite(t_autopilot_s) and math.isfinite(arrival)):
             return
         v = arrival - t_autopilot_s
-        if self._arrivals and abs(v - min(x for _, x in self._arrivals)) > 10 * self.config.reset_threshold_s + 1.0:
+        if self._arrivals and abs(v - self._arrival_min()) > 10 * self.config.reset_threshold_s + 1.0:
             # a stamp far off the envelope: stale data from before a reboot or garbage; restart the envelope
-            self._arrivals.clear()
+            self._clear_arrivals()
             self.counters["arrival_restart"] += 1
         self._arrivals.append((arrival, v))
+        mins = self._arr_min
+        while mins and mins[-1][1] >= v:
+            mins.pop()
+        mins.append((self._arr_in, v))
+        self._arr_in += 1
         while self._arrivals and arrival - self._arrivals[0][0] > self.config.arrival_window_s:
             self._arrivals.popleft()
+            self._arr_out += 1
+        while mins and mins[0][0] < self._arr_out:
+            mins.popleft()
+
+    def _arrival_min(self) -> float:
+        """min of the offsets in ``_arrivals`` (kept incrementally: O(1) per stamp, not O(window))."""
+        return self._arr_min[0][1]
+
+    def _clear_arrivals(self) -> None:
+        self._arrivals.clear()
+        self._arr_min.clear()
+        self._arr_out = self._arr_in
 
 
 # ---------------------------------------------------------------------- message glue -------------
