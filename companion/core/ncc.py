@@ -213,9 +213,10 @@ def _ncc_batch(img: np.ndarray, tpl: np.ndarray, centres: np.ndarray, sb: int, h
     f = f / np.sqrt(np.einsum("nk,nk->n", f, f))[:, None]
     num = np.empty((nb, rb, rb), np.float32)
     item = win.itemsize
+    cols = np.empty((nb, size, t), np.float32)  # reused for every column offset
+    blocks = np.ndarray((nb, rb, t * t), np.float32, cols, 0, (size * t * item, t * item, item))  # view of cols
     for j in range(rb):
-        cols = np.ascontiguousarray(win[:, :, j : j + t])  # (B, size, t)
-        blocks = np.lib.stride_tricks.as_strided(cols, shape=(nb, rb, t * t), strides=(size * t * item, t * item, item))
+        np.copyto(cols, win[:, :, j : j + t])  # (B, size, t)
         num[:, :, j] = np.einsum("nik,nk->ni", blocks, f)
     wide = np.ascontiguousarray(win.transpose(1, 0, 2)).reshape(size, nb * size)
     s1 = cv2.boxFilter(wide, -1, (t, t), normalize=False, borderType=cv2.BORDER_REPLICATE)
