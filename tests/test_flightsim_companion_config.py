@@ -150,3 +150,27 @@ def test_score_finds_the_companion_config_of_the_run(tmp_path):
     assert fcli._score_companion_config(None, None, rec) == str(mine)
     # nothing recorded: built-in defaults
     assert fcli._score_companion_config(None, None, fcli._run_record(tmp_path)) is None
+
+
+def test_fixed_wing_config_differs_from_the_default_only_where_a_fixed_wing_needs_it():
+    import dataclasses
+
+    from companion.io.config_files import load_companion_config
+
+    base, fw = load_companion_config(ROOT / "configs" / "companion.toml"), load_companion_config(FIXEDWING_CFG)
+
+    def flat(obj, prefix=""):
+        if dataclasses.is_dataclass(obj):
+            out = {}
+            for f in dataclasses.fields(obj):
+                out.update(flat(getattr(obj, f.name), f"{prefix}{f.name}."))
+            return out
+        return {prefix[:-1]: obj}
+
+    a, b = flat(base), flat(fw)
+    changed = {k for k in a if a[k] != b[k]}
+    assert changed == {"sectors.max_distance_m", "sectors.band_half_height_m", "ekf_anchored.position_sigma_m",
+                       "triangulation.min_baseline_m", "triangulation.min_depth_m", "prediction.depth_min_m"}
+    assert fw.sectors.max_distance_m == 150.0 and round(fw.sectors.max_distance_m * 100) + 1 < 65535
+    sc = load_scenario(SCEN / "fixedwing_pass.toml")
+    assert sc.meta.sector_max_distance_m > fw.sectors.max_distance_m  # the truth reaches beyond the companion's range
