@@ -39,7 +39,13 @@ from companion.core.frames import R_to_euler_zyx, R_to_quat, euler_zyx_to_R, qua
 log = logging.getLogger(__name__)
 
 
+#: Resolution of the autopilot's time_boot_ms stamps: an exposure less than this after the newest
+#: sample is not after it (a sample stamped 20133 ms may describe any instant up to 20133.999 ms).
+STAMP_RESOLUTION_S = 0.001
+
+
 @dataclasses.dataclass(frozen=True)
+
 class TelemetryConfig:
     """The ``[telemetry]`` table."""
 
@@ -153,6 +159,8 @@ class _Stream:
         if t < self.t[0]:
             return None, "before_buffer"
         if t > self.t[-1]:
+            if t - self.t[-1] <= STAMP_RESOLUTION_S:  # within the 1 ms quantum of time_boot_ms: the newest sample
+                return (n - 1, n - 1, 0.0), "ok"
             if t - self.t[-1] <= max_extrap:
                 return (n - 1, n - 1, t - self.t[-1]), "extrapolate"
             return None, "after_buffer"

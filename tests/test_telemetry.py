@@ -133,3 +133,14 @@ def test_config_validation():
         TelemetryConfig(capacity=1)
     with pytest.raises(ConfigError):
         TelemetryConfig(max_age_s=0)
+
+
+def test_exposure_within_the_millisecond_of_the_newest_stamp_is_not_after_it():
+    # time_boot_ms has 1 ms resolution: a sample stamped 10 980 ms may describe 10.98033 s, the
+    # exposure of a 30 fps frame (the SITL lockstep rejected every third frame before this)
+    buf = filled()  # newest attitude 10.980 s, newest position 10.960 s
+    r = buf.pose_at_boot(10.98033, need_position=False)
+    assert r.ok and r.pose.yaw == pytest.approx(0.5 * 0.98)
+    assert buf.pose_at_boot(10.9815, need_position=False).reason == "after_buffer"  # past the quantum: still refused
+    assert buf.pose_at_boot(10.9615).reason == "position:after_buffer"  # position holds the same rule
+    assert buf.pose_at_boot(10.9603).ok
