@@ -121,6 +121,10 @@ def main(argv=None) -> int:
                        description="seed004_straight flown in flightsim and replayed through the whole pipeline")
     p.add_argument("--runs", type=int, default=20, help="flights (seeds) (default 20)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    p = sub.add_parser("sitl", help="lockstep SITL speed and the SITL campaigns (quad_approach 8 runs, fixedwing_pass 2)",
+                       description="lockstep SITL speed and the SITL campaigns scored against truth; prints the "
+                                   "'Software in the loop' section of docs/BENCHMARKS.md")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
     p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")
     p.add_argument("--repeats", type=int, default=50, help="repeats per measurement; the median is reported")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
@@ -139,6 +143,9 @@ def main(argv=None) -> int:
 
         res = cmd_pipeline004(args, args.runs)
         print(json.dumps(res) if args.json else pipeline_seed004.markdown(res))
+    elif args.cmd == "sitl":
+        res = cmd_sitl(args)
+        print(json.dumps(res, default=str) if args.json else report.sitl_markdown(res))
     elif args.cmd == "timing":
         res = cmd_timing(args)
         print(json.dumps(report.timing_json(res)) if args.json else report.timing_markdown(res))
