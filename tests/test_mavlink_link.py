@@ -607,3 +607,19 @@ def test_serial_link_over_a_pty_and_device_loss():
         if master is not None:
             os.close(master)
         os.close(slave)
+
+
+def test_heartbeat_goes_out_under_the_vehicle_sysid_as_soon_as_it_is_learnt(pair):
+    # a ground station must see component 196 under the vehicle's system at once, not a period later
+    link, vehicle, clock = pair("accept")
+    vehicle.heartbeats = False  # the vehicle's first packet is not its HEARTBEAT: we answer under the provisional id
+    vehicle.send(mavlink.MAVLink_system_time_message(0, 1000))
+    run(link, vehicle, clock, 0.2)
+    assert link.system_id is None and vehicle.received("HEARTBEAT")[-1].get_srcSystem() == LinkConfig().provisional_system_id
+    vehicle.heartbeats = True
+    t_end = clock.t + 3.0
+    while link.system_id is None and clock.t < t_end:
+        run(link, vehicle, clock, DT)
+    assert link.system_id == VEHICLE_SYSID
+    run(link, vehicle, clock, 0.1)
+    assert any(m.get_srcSystem() == VEHICLE_SYSID for m in vehicle.received("HEARTBEAT"))

@@ -694,6 +694,7 @@ class MavLink:
                 self._conn.mav.srcSystem = src
             self._event(mavlink.MAV_SEVERITY_INFO, f"Vehicle system id {src}")
             log.info("vehicle system id %d learnt from its HEARTBEAT", src)
+            self._hb_limiter.reset()  # announce ourselves under the vehicle's system id now, not a period later
         elif src != self._sysid:
             self.counters["rx_heartbeat_other_vehicle"] += 1
             return
