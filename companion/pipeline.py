@@ -145,7 +145,6 @@ class Pipeline:
         self.last_ok: FrameResult | None = None
         self._reset_seen = telemetry.counters.get("reset", 0)
         self._offset: float | None = None
-        self._yaw_memo: tuple | None = None
         self._new_state()
 
     # -- state -------------------------------------------------------------------------------------
@@ -185,17 +184,6 @@ class Pipeline:
         tb = tel.newest_boot_s("attitude")
         if tb is None or tel.age(now, "attitude") > tel.config.max_age_s:
             return None
-        # Publishing and the periodic duties ask twice for the same instant: answer from the memo
-        # while the newest sample, the clock mapping and the buffer's reset count are unchanged.
-        key = (now, tb, tel.clock_offset_s, tel.attitude_count, tel.counters.get("reset", 0))
-        if self._yaw_memo is not None and self._yaw_memo[0] == key:
-            return self._yaw_memo[1]
-        yaw = self._yaw_now(now, tb)
-        self._yaw_memo = (key, yaw)
-        return yaw
-
-    def _yaw_now(self, now: float, tb: float) -> float | None:
-        tel = self.telemetry
         r = tel.pose_at_boot(tb, need_position=False)
         if not r.ok:
             return None

@@ -45,7 +45,6 @@ STAMP_RESOLUTION_S = 0.001
 
 
 @dataclasses.dataclass(frozen=True)
-
 class TelemetryConfig:
     """The ``[telemetry]`` table."""
 

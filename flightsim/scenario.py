@@ -25,7 +25,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -34,15 +33,12 @@ from companion.config import from_mapping, require, require_finite
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.frames import euler_zyx_to_R
 from companion.errors import ConfigError
+from companion.io.config_files import read_toml
 from flightsim.dynamics import DynamicsConfig
 from flightsim.render import RenderOptions
 from flightsim.telemetry import TelemetryConfig
 from flightsim.world import World, check_camera_sees_something, load_world
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 EPOCH_2026 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
 
@@ -126,13 +122,7 @@ def default_companion_config(scenario_path: str | os.PathLike, given: str | os.P
     if given is not None:
         return Path(given)
     path = Path(scenario_path)
-    try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such scenario file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, "scenario")
     try:
         meta = from_mapping(ScenarioMeta, data.get("scenario"), "scenario")
     except ConfigError as exc:
@@ -143,13 +133,7 @@ def default_companion_config(scenario_path: str | os.PathLike, given: str | os.P
 def load_scenario(path: str | os.PathLike, seed: int | None = None) -> Scenario:
     """Read, validate and pre-flight-check a scenario; ``seed`` overrides ``[scenario] seed``."""
     path = Path(path)
-    try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such scenario file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, "scenario")
     unknown = sorted(set(data) - set(_TABLES))
     if unknown:
         raise ConfigError(f"{path}: unknown table(s) {', '.join(map(repr, unknown))}; known: {', '.join(_TABLES)}")

@@ -134,7 +134,7 @@ class CompanionProcess:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         for var in _SINGLE_THREAD_ENV:
             env.setdefault(var, "1")
-        self._cpu0 = _children_cpu_s()
+        self._cpu0 = _cpu_s(children=True)
         self.cpu_s: float | None = None  # user + system CPU of the companion, s (after stop)
         try:
             self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -179,7 +179,7 @@ class CompanionProcess:
             except ProcessLookupError:
                 pass
         self.exit_code = self.proc.returncode
-        self.cpu_s = _children_cpu_s() - self._cpu0  # the only child waited for in between
+        self.cpu_s = _cpu_s(children=True) - self._cpu0  # the only child waited for in between
         self._log.close()
         return self.exit_code
 
@@ -187,21 +187,12 @@ class CompanionProcess:
 _SINGLE_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
 
 
-def _children_cpu_s() -> float:
+def _cpu_s(children: bool = False) -> float:
+    """User + system CPU seconds of this process (all its threads), or of its waited-for children."""
     try:
         import resource
 
-        r = resource.getrusage(resource.RUSAGE_CHILDREN)
-        return r.ru_utime + r.ru_stime
-    except (ImportError, OSError):  # pragma: no cover - not POSIX
-        return math.nan
-
-
-def _self_cpu_s() -> float:
-    try:
-        import resource
-
-        r = resource.getrusage(resource.RUSAGE_SELF)
+        r = resource.getrusage(resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF)
         return r.ru_utime + r.ru_stime
     except (ImportError, OSError):  # pragma: no cover - not POSIX
         return math.nan
@@ -507,7 +498,7 @@ class _Run:
         self.ahead: collections.deque = collections.deque()
         self.pending: collections.deque = collections.deque()
         self.wall0 = time.perf_counter()
-        cpu0 = _self_cpu_s()
+        cpu0 = _cpu_s()
         next_alive_check = 0.0
         while self.ahead or self._physics_one():
             state, frame = self.ahead.popleft()
@@ -522,7 +513,7 @@ class _Run:
                 self._pace(t + fl.dt, self.wall0)
         self.frames_unsent += len(self.pending)  # captured too late in the flight to be delivered
         self.wall_loop = time.perf_counter() - self.wall0
-        self.cpu_loop = _self_cpu_s() - cpu0
+        self.cpu_loop = _cpu_s() - cpu0
         if not self.lockstep:  # the last messages still on their way
             self._pace(self.t_now + cfg.tail_s, self.wall0)
         while self.inbox:  # arrived after the last step: counted, no longer answered

@@ -197,7 +197,7 @@ class Sectors:
         out = rotate_sectors(base, yaw_change_rad, self.max_distance_cm).astype(np.int64)
         if self.obstacle_cm.size:
             idx = sector_index(self.obstacle_bearing_rad - yaw_change_rad)
-            pick, _ = nth_nearest_per_sector(idx, self.obstacle_cm, self.obstacle_rank)
+            pick = SectorRanking(idx, self.obstacle_cm).nth(self.obstacle_rank)
             has = pick >= 0
             out[has] = self.obstacle_cm[pick[has]]
         return out.astype(np.uint16)
@@ -208,17 +208,24 @@ def sector_index(bearing_rad) -> np.ndarray:
     return np.mod(np.rint(np.degrees(np.asarray(bearing_rad, float)) / SECTOR_DEG).astype(np.int64), SECTOR_COUNT)
 
 
-def nth_nearest_per_sector(idx: np.ndarray, value: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per sector: the index of the ``k``-th smallest ``value`` among the points in it (−1 if fewer
-    than ``k``), and the point count.  Vectorized: one sort by (sector, value)."""
-    idx = np.asarray(idx, np.int64)
-    count = np.bincount(idx, minlength=SECTOR_COUNT)
-    order = np.lexsort((value, idx))
-    starts = np.searchsorted(idx[order], np.arange(SECTOR_COUNT), side="left")
-    pick = np.full(SECTOR_COUNT, -1, dtype=np.int64)
-    has = count >= k
-    pick[has] = order[starts[has] + k - 1]
-    return pick, count
+class SectorRanking:
+    """Points sorted by (sector, value) once: :meth:`nth` picks the ``k``-th smallest per sector.
+
+    ``ids`` names the points in the caller's numbering (default 0..N−1)."""
+
+    def __init__(self, idx: np.ndarray, value: np.ndarray, ids: np.ndarray | None = None):
+        idx = np.asarray(idx, np.int64)
+        order = np.lexsort((value, idx))
+        self.count = np.bincount(idx, minlength=SECTOR_COUNT)
+        self.starts = np.searchsorted(idx[order], np.arange(SECTOR_COUNT), side="left")
+        self.order = order if ids is None else np.asarray(ids, np.int64)[order]
+
+    def nth(self, k: int) -> np.ndarray:
+        """(72,) id of each sector's ``k``-th smallest point, −1 where it has fewer than ``k``."""
+        pick = np.full(SECTOR_COUNT, -1, dtype=np.int64)
+        has = self.count >= k
+        pick[has] = self.order[self.starts[has] + k - 1]
+        return pick
 
 
 def _R_level_body(roll: float, pitch: float) -> np.ndarray:
@@ -368,17 +375,15 @@ def compute_sectors(
     clr_pts = in_band & conv & ~near
     veto_pts = in_band & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)
 
-    n_obs = np.bincount(idx[obs_pts], minlength=SECTOR_COUNT)
     n_clr = np.bincount(idx[clr_pts], minlength=SECTOR_COUNT)
     n_veto = np.bincount(idx[veto_pts], minlength=SECTOR_COUNT)
 
     # n-th nearest conservative range per sector (vectorized: sort by (sector, range))
     k = config.min_points_obstacle
     sel = np.flatnonzero(obs_pts)
-    pick_s, _ = nth_nearest_per_sector(idx[sel], d_cons[sel], k)
-    near_s, _ = nth_nearest_per_sector(idx[sel], d_cons[sel], 1)
-    pick = np.where(pick_s >= 0, sel[np.maximum(pick_s, 0)], -1) if sel.size else np.full(SECTOR_COUNT, -1, np.int64)
-    nearest_pick = np.where(near_s >= 0, sel[np.maximum(near_s, 0)], -1) if sel.size else np.full(SECTOR_COUNT, -1, np.int64)
+    ranking = SectorRanking(idx[sel], d_cons[sel], ids=sel)
+    n_obs = ranking.count
+    pick, nearest_pick = ranking.nth(k), ranking.nth(1)
     has_obs = n_obs >= k
 
     state = np.full(SECTOR_COUNT, SectorState.UNKNOWN, dtype=np.int8)

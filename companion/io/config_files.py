@@ -59,14 +59,15 @@ class CompanionConfig:
     pipeline: PipelineConfig = PipelineConfig()
 
 
-def read_toml(path: str | os.PathLike) -> dict:
-    """Parse a TOML file; a missing file or a syntax error becomes a ConfigError naming the file."""
+def read_toml(path: str | os.PathLike, what: str = "configuration") -> dict:
+    """Parse a TOML file; a missing file or a syntax error becomes a ConfigError naming the file
+    (``what``: the kind of file in the message, e.g. "scenario", "world")."""
     path = Path(path)
     try:
         with path.open("rb") as fh:
             return tomllib.load(fh)
     except FileNotFoundError:
-        raise ConfigError(f"{path}: no such configuration file") from None
+        raise ConfigError(f"{path}: no such {what} file") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
 

@@ -94,11 +94,10 @@ class TimesyncEstimator:
         self._offset: float | None = None
         self._last_tc1: int | None = None
         self._disagree = 0
+        # lower envelope of the arrival offsets over the window, as a monotonic deque of
+        # (arrival, offset) with offsets increasing: the front is the window's minimum, the back the
+        # newest stamp (so it is empty exactly when no stamp lies in the window); O(1) per stamp
         self._arrivals: collections.deque[tuple[float, float]] = collections.deque()
-        # sliding minimum of the arrival offsets: (insertion number, offset), offsets increasing
-        self._arr_min: collections.deque[tuple[int, float]] = collections.deque()
-        self._arr_in = 0  # arrivals appended so far
-        self._arr_out = 0  # ... and expired from the front
         self.last_rtt_s: float = math.nan
 
     # ------------------------------------------------------------------ state ----------------
@@ -121,7 +120,7 @@ class TimesyncEstimator:
         if self.converged:
             return self._offset
         if self.config.arrival_fallback and self._arrivals:
-            return self._arrival_min()
+            return self._arrivals[0][1]
         return None
 
     @property
@@ -152,7 +151,7 @@ class TimesyncEstimator:
         self._offset = None
         self._last_tc1 = None
         self._disagree = 0
-        self._clear_arrivals()
+        self._arrivals.clear()
 
     # ------------------------------------------------------------------ requests -------------
     def request_due(self, now: float) -> bool:
@@ -246,30 +245,16 @@ class TimesyncEstimator:
         if not (math.isfinite(t_autopilot_s) and math.isfinite(arrival)):
             return
         v = arrival - t_autopilot_s
-        if self._arrivals and abs(v - self._arrival_min()) > 10 * self.config.reset_threshold_s + 1.0:
+        if self._arrivals and abs(v - self._arrivals[0][1]) > 10 * self.config.reset_threshold_s + 1.0:
             # a stamp far off the envelope: stale data from before a reboot or garbage; restart the envelope
-            self._clear_arrivals()
+            self._arrivals.clear()
             self.counters["arrival_restart"] += 1
-        self._arrivals.append((arrival, v))
-        mins = self._arr_min
-        while mins and mins[-1][1] >= v:
-            mins.pop()
-        mins.append((self._arr_in, v))
-        self._arr_in += 1
-        while self._arrivals and arrival - self._arrivals[0][0] > self.config.arrival_window_s:
-            self._arrivals.popleft()
-            self._arr_out += 1
-        while mins and mins[0][0] < self._arr_out:
-            mins.popleft()
-
-    def _arrival_min(self) -> float:
-        """min of the offsets in ``_arrivals`` (kept incrementally: O(1) per stamp, not O(window))."""
-        return self._arr_min[0][1]
-
-    def _clear_arrivals(self) -> None:
-        self._arrivals.clear()
-        self._arr_min.clear()
-        self._arr_out = self._arr_in
+        env = self._arrivals
+        while env and env[-1][1] >= v:  # never the minimum again while v is in the window
+            env.pop()
+        env.append((arrival, v))
+        while arrival - env[0][0] > self.config.arrival_window_s:
+            env.popleft()
 
 
 # ---------------------------------------------------------------------- message glue -------------

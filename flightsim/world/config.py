@@ -18,18 +18,14 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from companion.config import from_mapping, require, require_finite
 from companion.errors import ConfigError
+from companion.io.config_files import read_toml
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - Python 3.10 only
-    import tomli as tomllib
 
 #: Procedural texture styles of obstacle faces (see :mod:`flightsim.world.textures`).
 OBSTACLE_TEXTURES = ("blocks", "facade", "plain")
@@ -263,11 +259,5 @@ def world_config_from_mapping(data: dict, where: str = "") -> WorldConfig:
 def load_world_config(path: str | os.PathLike) -> WorldConfig:
     """Parse and validate a world TOML; every problem is a :class:`ConfigError` naming the file."""
     path = Path(path)
-    try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such world file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, "world")
     return world_config_from_mapping(data, str(path))
