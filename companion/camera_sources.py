@@ -272,10 +272,15 @@ class FrameSource(abc.ABC):
 
     def _publish(self, frame: Frame) -> None:
         with self._cv:
-            if self._slot is not None:
+            old, self._slot = self._slot, frame
+            if old is not None:
                 self._dropped += 1
-            self._slot = frame
             self._cv.notify_all()
+        if old is not None:
+            self._superseded(old)
+
+    def _superseded(self, frame: Frame) -> None:
+        """``frame`` was overwritten by a newer one before the caller read it (hook; see SimFrameSource)."""
 
     def _set_connected(self, connected: bool, why: str = "") -> None:
         with self._cv:
@@ -961,6 +966,9 @@ class SimFrameSource(FrameSource):
 
     def done(self, frame: Frame, status: str = "processed") -> None:
         self._ack_code(frame.index, _ACK_CODES.get(status, ACK_PROCESSED))
+
+    def _superseded(self, frame: Frame) -> None:
+        self._ack_code(frame.index, ACK_DROPPED)  # every frame is acknowledged, also one nobody read
 
     def close(self) -> None:
         self._stop.set()

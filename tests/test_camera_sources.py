@@ -329,6 +329,25 @@ def test_sim_transport_round_trip_with_both_clocks_and_acks():
             src.close()
 
 
+def test_sim_frames_nobody_read_are_acknowledged_dropped():
+    # a frame overwritten by a newer one before the pipeline read it still gets its acknowledgement
+    from companion.camera_sources import ACK_DROPPED
+
+    with SimFrameServer() as server:
+        src = SimFrameSource(server.address, W, H, FAST, clock_map=lambda tb: tb)
+        try:
+            assert server.wait_client(3.0)
+            for k in range(3):  # nobody reads: 0 and 1 are superseded
+                assert server.send(frame_img(k), k, (10 + k) * 1_000_000_000, CLOCK_AUTOPILOT_BOOT)
+            assert server.wait_ack(0, 2.0) == ACK_DROPPED and server.wait_ack(1, 2.0) == ACK_DROPPED
+            f = read_n(src, 1)[0]
+            assert f.index == 2 and src.status().dropped == 2
+            src.done(f, "processed")
+            assert server.wait_ack(2, 2.0) == ACK_PROCESSED
+        finally:
+            src.close()
+
+
 def test_sim_transport_rejects_bad_frames_and_resyncs_after_garbage():
     with SimFrameServer() as server:
         src = SimFrameSource(server.address, W, H, FAST)  # no clock map: clock-1 frames cannot be placed
