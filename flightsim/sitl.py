@@ -34,8 +34,12 @@ a processed frame (``+ 0`` for a frame dropped as stale); requests are handled a
 physics step at or after that instant.  Every DISTANCE_SENSOR's ``time_boot_ms`` is checked
 against this model (``clock_mismatches`` in the summary).  While the companion works on a
 frame the simulator already runs the physics and renders the next frame (nothing in them depends
-on the companion; the telemetry model advances later, in step order, so its random draws are
-unchanged), so on two cores the processes overlap; no fixed sleeps lie in this path.  Determinism
+on the companion) and builds the telemetry of those steps, in step order, as if no request came
+in between; a step at which a stream request is handled (or a new companion's HEARTBEAT restart)
+rewinds the telemetry model and the stream schedule to that step and builds again, so the random
+draws and messages are those of the step-by-step loop (``telemetry_ahead`` in the summary counts
+both).  After the acknowledgement only the requests and the sending are left before the next
+frame goes out; on two cores the processes overlap; no fixed sleeps lie in this path.  Determinism
 rests on loopback ordering: a datagram sent before the frame (or the acknowledgement) is queued at
 the receiver before the frame (acknowledgement) is — true of Linux loopback, where ``sendto``
 delivers before it returns.
@@ -76,7 +80,7 @@ from companion.mavlink.dialect import mavlink  # first: MAVLink 2 + ardupilotmeg
 from companion.camera_sources import ACK_DROPPED, ACK_PROCESSED, ACK_REJECTED, SimFrameServer
 from companion.config import require, require_finite
 from companion.errors import CompanionError, ConfigError
-from flightsim.autopilot import AutopilotLogic, PortBusyError, UdpEndpoint
+from flightsim.autopilot import STREAM_COMMANDS, AutopilotLogic, PortBusyError, UdpEndpoint
 from flightsim.fly import EPS_T, Flight, StreamSchedule, camera_toml, open_video
 from flightsim.scenario import Scenario, load_scenario
 from flightsim.tlog import TlogWriter
@@ -100,6 +104,7 @@ class SitlConfig:
     ack_timeout_s: float = 30.0  # lockstep: a frame not acknowledged within this long (wall) is a failure, s
     stop_timeout_s: float = 5.0  # SIGTERM, then SIGKILL after this long (wall), s
     tail_s: float = 0.5  # realtime: keep listening this long (wall) after the flight for the last messages, s
+    build_ahead: bool = True  # lockstep: build the telemetry of the steps ahead while the companion works (same messages; False = step by step, for tests)
 
     def __post_init__(self) -> None:
         require_finite("processing_ms", self.processing_ms, nonnegative=True)
@@ -254,6 +259,8 @@ class _Run:
         self.frames_sent = 0
         self.frames_unsent = 0
         self.att_state_sent = -math.inf  # state time of the newest ATTITUDE sent
+        self.speculated = 0  # lockstep: steps whose telemetry was built ahead (_speculate) ...
+        self.rewound = 0  # ... and how many of those were rebuilt after a request changed the streams
         self.t_now = 0.0  # the autopilot's step (simulation time)
         self._ack_wall: float | None = None
         self._last_rx_t = -math.inf
@@ -284,6 +291,7 @@ class _Run:
         peers = self.endpoint.counters["peers"]
         got = self.endpoint.receive()
         if self.endpoint.counters["peers"] != peers:  # a new companion: HEARTBEAT at once, then every second
+            self._unspeculate()
             self.streams.restart_at("HEARTBEAT", arrival)
         for raw, msg in got:
             t = max(arrival, self._last_rx_t)
@@ -441,7 +449,7 @@ class _Run:
             w0 = time.perf_counter()
             self.video.write(frame.image)
             self.timing["video"] += time.perf_counter() - w0
-        self.ahead.append((state, frame))
+        self.ahead.append([state, frame, None])
         return True
 
     def _run_ahead(self) -> None:
@@ -452,24 +460,84 @@ class _Run:
         margin = cfg.frame_latency_s if period is None else self.tel.latency_s + period + dt
         margin = min(max(margin, cfg.frame_latency_s), cfg.frame_wait_max_s)
         while True:
-            nxt = next((f for _, f in self.ahead if f is not None), None)
+            nxt = next((e[1] for e in self.ahead if e[1] is not None), None)
             if nxt is not None and self.ahead[-1][0].time_s + EPS_T >= nxt.t_s + margin:
-                return
+                break
             if not self._physics_one():
-                return
+                break
+        if self.cfg.build_ahead:
+            self._speculate()
 
-    def _play(self, state, frame) -> None:
-        """The autopilot's side of one step: requests due, telemetry, frames ready to leave."""
+    def _speculate(self) -> None:
+        """Lockstep, while the companion works: advance the telemetry model and build the stream
+        messages of the steps computed ahead, as if no request changed the streams in between —
+        so that after the acknowledgement only the sending is left (the companion waits for that).
+
+        Each step keeps the telemetry model's and the schedule's state from before it; a step
+        whose requests may change the streams (:data:`STREAM_COMMANDS`) and a new companion
+        (HEARTBEAT restart) rewind to it (:meth:`_unspeculate`) and build again, so every message,
+        random draw and stamp is the one the step-by-step loop gives."""
+        fl, streams = self.flight, self.streams
+        for entry in self.ahead:
+            if entry[2] is not None:
+                continue
+            state = entry[0]
+            snap = (fl.tm.snapshot(), streams.snapshot())
+            fl.advance_telemetry(state)
+            w0 = time.perf_counter()
+            entry[2] = (snap, streams.due(state))
+            self.timing["telemetry_build"] += time.perf_counter() - w0
+            self.speculated += 1
+
+    def _unspeculate(self, spec=None) -> None:
+        """Drop the telemetry built ahead: back to the state before the step of ``spec`` (the step
+        being played) or, without it, before the first step not yet played."""
+        if spec is None:
+            first = next((e for e in self.ahead if e[2] is not None), None)
+            if first is None:
+                return
+            spec = first[2]
+        else:
+            self.rewound += 1
+        tm_snap, streams_snap = spec[0]
+        self.flight.tm.restore(tm_snap)
+        self.streams.restore(streams_snap)
+        for e in self.ahead:
+            if e[2] is not None:
+                e[2] = None
+                self.rewound += 1
+
+    def _stream_command_due(self, t: float) -> bool:
+        for item in self.inbox:
+            if item.t > t + EPS_T:
+                return False
+            if item.msg.get_type() in STREAM_COMMANDS:
+                return True
+        return False
+
+    def _play(self, state, frame, spec=None) -> None:
+        """The autopilot's side of one step: requests due, telemetry (built ahead in ``spec`` by
+        :meth:`_speculate`, or now), frames ready to leave."""
         cfg, fl = self.cfg, self.flight
         t = state.time_s
         self.t_now = t
+        if spec is not None and self._stream_command_due(t):
+            self._unspeculate(spec)
+            spec = None
+        changes = self.streams.changes
         self._handle_inbox(t)
-        fl.advance_telemetry(state)
-        w0 = time.perf_counter()
-        for t_emit, name, msg in self.streams.due(state):
+        if spec is None:
+            fl.advance_telemetry(state)
+            w0 = time.perf_counter()
+            due = self.streams.due(state)
+            self.timing["telemetry_build"] += time.perf_counter() - w0
+        else:
+            if self.streams.changes != changes:  # only STREAM_COMMANDS may change the streams
+                raise RuntimeError(f"t = {t:.3f} s: the stream schedule changed under telemetry built ahead")
+            due = spec[1]
+        for t_emit, name, msg in due:
             heapq.heappush(self.outq, (t_emit, self._seq, name, t, msg))
             self._seq += 1
-        self.timing["telemetry_build"] += time.perf_counter() - w0
         if frame is not None:
             self.pending.append(frame)
         w0 = time.perf_counter()
@@ -501,8 +569,8 @@ class _Run:
         cpu0 = _cpu_s()
         next_alive_check = 0.0
         while self.ahead or self._physics_one():
-            state, frame = self.ahead.popleft()
-            self._play(state, frame)
+            state, frame, spec = self.ahead.popleft()
+            self._play(state, frame, spec)
             if not self.lockstep:
                 t = state.time_s
                 if t >= next_alive_check:
@@ -561,6 +629,26 @@ def _score(out: Path, companion_config: Path | None, world) -> tuple[dict | None
     return score, "scored"
 
 
+def _one_opencv_thread() -> int | None:
+    """OpenCV on one thread in the simulator for the run (as the companion is started with);
+    returns the previous setting.  Its worker threads split each warp of the renderer across both
+    cores and then preempt the companion's process; the results are the same row by row."""
+    try:
+        import cv2
+    except ImportError:  # pragma: no cover - the renderer needs it anyway
+        return None
+    prev = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    return prev
+
+
+def _restore_opencv_threads(prev: int | None) -> None:
+    if prev is not None:
+        import cv2
+
+        cv2.setNumThreads(prev)
+
+
 def _free_or(port: int | None) -> int:
     return 0 if port is None else int(port)
 
@@ -602,6 +690,7 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
     run = _Run(sc, out, clock, cfg, companion_config, attach, video, progress, _free_or(mavlink_port), _free_or(camera_port))
     wall0 = time.perf_counter()
     failure: BaseException | None = None
+    cv_threads = _one_opencv_thread()
     try:
         run.setup()
         run.loop()
@@ -610,6 +699,7 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
         raise
     finally:
         run.close()
+        _restore_opencv_threads(cv_threads)
         if failure is not None and run.companion is not None:
             log.info("companion log: %s", run.companion.log_path)
     wall = time.perf_counter() - wall0
@@ -639,6 +729,7 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
         "stream_requests": [{"t_s": round(t, 4), "how": how, "stream": s, "rate_hz": None if p is None else round(1.0 / p, 3)}
                             for t, how, s, p in run.logic.requests],
         "timesync_answered": run.logic.counters["timesync_answered"],
+        "telemetry_ahead": {"steps": run.speculated, "rebuilt": run.rewound},
         "autopilot_counters": dict(sorted(run.logic.counters.items())),
         "endpoint_counters": dict(sorted(run.endpoint.counters.items())),
         "wall_s": round(wall, 3), "loop_wall_s": round(run.wall_loop, 3),

@@ -92,6 +92,17 @@ class TelemetryModel:
             a = math.exp(-dt / cfg.position_noise_tau_s)
             self.pos_err = a * self.pos_err + cfg.position_noise_m * math.sqrt(1 - a * a) * self.rng.standard_normal(3)
 
+    def snapshot(self) -> tuple:
+        """The error states and the random generator's state, for :meth:`restore` (the SITL
+        builds telemetry ahead while the companion works and rewinds when a request changes it)."""
+        return (self.rng.bit_generator.state, self.w_err.copy(), self.gyro_noise.copy(), self.pos_err.copy(), self.t)
+
+    def restore(self, snap: tuple) -> None:
+        """Return to a :meth:`snapshot`: the following draws and messages repeat exactly."""
+        rng_state, w_err, gyro_noise, pos_err, t = snap
+        self.rng.bit_generator.state = rng_state
+        self.w_err, self.gyro_noise, self.pos_err, self.t = w_err.copy(), gyro_noise.copy(), pos_err.copy(), t
+
     # -- what the autopilot believes --------------------------------------------------------------
     def reported_rpy(self, state) -> np.ndarray:
         R = so3_exp(self.w_err) @ state.R_world_body

@@ -21,7 +21,7 @@ from companion.errors import ConfigError
 from companion.simclock import SimClock
 from flightsim.autopilot import AutopilotLogic, UdpEndpoint
 from flightsim.cli import main as flightsim_main
-from flightsim.sitl import SitlError, run_sitl
+from flightsim.sitl import SitlConfig, SitlError, run_sitl
 
 ROOT = Path(__file__).resolve().parents[1]
 DURATION_S = 4.5
@@ -55,7 +55,7 @@ def lockstep_runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("sitl")
     scen = short_scenario(tmp)
     a = run_sitl(scen, tmp / "a", seed=1)
-    b = run_sitl(scen, tmp / "b", seed=1, score=False)
+    b = run_sitl(scen, tmp / "b", seed=1, score=False, config=SitlConfig(build_ahead=False))  # telemetry step by step
     return scen, a, tmp / "a", b, tmp / "b"
 
 
@@ -164,6 +164,10 @@ def test_lockstep_is_deterministic(lockstep_runs):
     assert (out_a / "received.tlog").read_bytes() == (out_b / "received.tlog").read_bytes()
     assert (out_a / "telemetry.tlog").read_bytes() == (out_b / "telemetry.tlog").read_bytes()
     assert (out_a / "truth.npz").read_bytes() == (out_b / "truth.npz").read_bytes()
+    # run a built its telemetry ahead while the companion worked and rebuilt it after the stream
+    # requests; run b built it step by step: the bytes above are the same
+    assert a["telemetry_ahead"]["steps"] > 0 and a["telemetry_ahead"]["rebuilt"] > 0
+    assert b["telemetry_ahead"] == {"steps": 0, "rebuilt": 0}
 
 
 def test_realtime_clock(tmp_path):

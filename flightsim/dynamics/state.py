@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -41,10 +42,13 @@ class VehicleState:
             a.flags.writeable = False
             object.__setattr__(self, name, a)
 
-    @property
+    @functools.cached_property
     def R_world_body(self) -> np.ndarray:
-        """Rotation body FRD → world NED."""
-        return euler_zyx_to_R(*self.rpy)
+        """Rotation body FRD → world NED (computed from ``rpy`` once per state, read-only: the
+        simulator asks for it several times a step — telemetry, camera pose, truth)."""
+        R = euler_zyx_to_R(*self.rpy)
+        R.flags.writeable = False
+        return R
 
     @property
     def altitude_m(self) -> float:
