@@ -124,18 +124,34 @@ class LandmarkEstimates:
     valid: np.ndarray  # (N,) bool: not diverged, ρ not significantly negative
 
 
+def ray_columns(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """[∂m/∂θ, ∂m/∂φ, m(θ, φ)] of DESIGN §3.4 as the columns of one (N, 3, 3) array.
+
+    One array so that a single batched product rotates the ray and both its derivatives.
+    """
+    ct, st, cp = np.cos(theta), np.sin(theta), np.cos(phi)
+    nsp = -np.sin(phi)
+    T = np.empty(np.shape(theta) + (3, 3))
+    np.multiply(cp, ct, out=T[..., 0, 0])  # ∂m/∂θ = (cos φ cos θ, 0, −cos φ sin θ)
+    T[..., 1, 0] = 0.0
+    np.multiply(cp, st, out=T[..., 0, 2])  # m = (cos φ sin θ, −sin φ, cos φ cos θ)
+    np.negative(T[..., 0, 2], out=T[..., 2, 0])
+    np.multiply(nsp, st, out=T[..., 0, 1])  # ∂m/∂φ = (−sin φ sin θ, −cos φ, −sin φ cos θ)
+    np.negative(cp, out=T[..., 1, 1])
+    np.multiply(nsp, ct, out=T[..., 2, 1])
+    T[..., 1, 2] = nsp
+    T[..., 2, 2] = T[..., 0, 0]
+    return T
+
+
 def ray(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """m(θ, φ) of DESIGN §3.4, (N, 3)."""
-    cp, sp, ct, st = np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta)
-    return np.stack([cp * st, -sp, cp * ct], -1)
+    return ray_columns(theta, phi)[..., 2]
 
 
 def ray_jacobian(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """[∂m/∂θ, ∂m/∂φ] as (N, 3, 2)."""
-    cp, sp, ct, st = np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta)
-    dth = np.stack([cp * ct, np.zeros_like(cp), -cp * st], -1)
-    dph = np.stack([-sp * st, -cp, -sp * ct], -1)
-    return np.stack([dth, dph], -1)
+    return ray_columns(theta, phi)[..., :2]
 
 
 def angles_of(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -152,33 +168,117 @@ def inverse_depth_state(p_world: np.ndarray, R_world_camA: np.ndarray, p_world_c
     return np.stack([th, ph, 1.0 / np.linalg.norm(v, axis=-1)], -1)
 
 
-def _exp_and_left_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exp(φ) and the left Jacobian of SO(3) from one [φ]× (N, 3, 3) each:
+def _ray_products(angles: np.ndarray) -> np.ndarray:
+    """(N, 6) products (cos φ cos θ, cos φ sin θ, cos φ, sin φ cos θ, sin φ sin θ, sin φ) of angles
+    (θ, φ) (N, 2): every entry of m(θ, φ), ∂m/∂θ and ∂m/∂φ is one of them up to sign."""
+    f = np.empty((len(angles), 2, 3))  # rows θ, φ; columns cos, sin, 1
+    np.cos(angles, out=f[:, :, 0])
+    np.sin(angles, out=f[:, :, 1])
+    f[:, :, 2] = 1.0
+    return (f[:, 1, :2, None] * f[:, 0, None, :]).reshape(-1, 6)
 
-    Exp(φ) = I + sin θ/θ K + (1 − cos θ)/θ² K²,   J_l(φ) = I + (1 − cos θ)/θ² K + (θ − sin θ)/θ³ K².
+
+def _ray_basis() -> np.ndarray:
+    """(6, 3, 4): [m, ∂m/∂θ, ∂m/∂φ, 0] (columns, DESIGN §3.4) as a linear map of :func:`_ray_products`."""
+    M = np.zeros((6, 3, 4))
+    cc, cs, c, sc, ss, s = range(6)  # cos φ cos θ, cos φ sin θ, cos φ, sin φ cos θ, sin φ sin θ, sin φ
+    M[cs, 0, 0], M[s, 1, 0], M[cc, 2, 0] = 1, -1, 1  # m = (cos φ sin θ, −sin φ, cos φ cos θ)
+    M[cc, 0, 1], M[cs, 2, 1] = 1, -1  # ∂m/∂θ = (cos φ cos θ, 0, −cos φ sin θ)
+    M[ss, 0, 2], M[c, 1, 2], M[sc, 2, 2] = -1, -1, -1  # ∂m/∂φ = (−sin φ sin θ, −cos φ, −sin φ cos θ)
+    return M
+
+
+_RAY_FROM_PRODUCTS = _ray_basis()
+#: [v]× = v @ _LEVI (flattened, row-major): (2,1) = v0, (0,2) = v1, (1,0) = v2 and the opposite entries negated
+_LEVI = np.zeros((3, 9))
+_LEVI[0, 7], _LEVI[1, 2], _LEVI[2, 3] = 1, 1, 1
+_LEVI[0, 5], _LEVI[1, 6], _LEVI[2, 1] = -1, -1, -1
+_I3 = np.eye(3)
+
+
+def _exp_and_left_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exp(φ) and the left Jacobian of SO(3) (N, 3, 3) each, as one product [[1, a, b], [1, b, d]] · [I, K, K²]:
+
+    Exp(φ) = I + sin θ/θ K + (1 − cos θ)/θ² K²,   J_l(φ) = I + (1 − cos θ)/θ² K + (θ − sin θ)/θ³ K²,
+
+    K = [φ]×, θ = |φ|, with the Taylor series of the three coefficients below θ = 1e-6.
     """
-    th = np.linalg.norm(phi, axis=-1)[:, None, None]
-    K = skew(phi)
-    K2 = K @ K
+    n = len(phi)
+    th2 = np.einsum("ni,ni->n", phi, phi)
+    th = np.sqrt(th2)
     small = th < 1e-6
-    ths = np.where(small, 1.0, th)
-    s, c = np.sin(ths), np.cos(ths)
-    a = np.where(small, 1.0 - th**2 / 6, s / ths)
-    b = np.where(small, 0.5 - th**2 / 24, (1 - c) / ths**2)
-    d = np.where(small, 1.0 / 6 - th**2 / 120, (ths - s) / ths**3)
-    eye = np.eye(3)
-    return eye + a * K + b * K2, eye + b * K + d * K2
+    n_small = np.count_nonzero(small)
+    if n_small == n:  # every angle small (e.g. all biases still at their zero prior)
+        a, b, d = 1.0 - th2 / 6, 0.5 - th2 / 24, 1.0 / 6 - th2 / 120
+    else:
+        ths = np.where(small, 1.0, th) if n_small else th
+        s, c = np.sin(ths), np.cos(ths)
+        ths2 = ths * ths
+        a, b, d = s / ths, (1 - c) / ths2, (ths - s) / (ths2 * ths)
+        if n_small:
+            a = np.where(small, 1.0 - th2 / 6, a)
+            b = np.where(small, 0.5 - th2 / 24, b)
+            d = np.where(small, 1.0 / 6 - th2 / 120, d)
+    basis = np.empty((n, 3, 3, 3))  # I, K, K²
+    basis[:, 0] = _I3
+    basis[:, 1] = (phi @ _LEVI).reshape(n, 3, 3)
+    np.matmul(basis[:, 1], basis[:, 1], out=basis[:, 2])
+    coef = np.empty((n, 2, 3))
+    coef[:, :, 0] = 1.0
+    coef[:, 0, 1] = a
+    coef[:, 0, 2] = b
+    coef[:, 1, 1] = b
+    coef[:, 1, 2] = d
+    EJ = (coef @ basis.reshape(n, 3, 9)).reshape(n, 2, 3, 3)
+    return EJ[:, 0], EJ[:, 1]
+
+
+def _ray_map(R_world_camA: np.ndarray) -> np.ndarray:
+    """(N, 6, 12): products of :func:`_ray_products` → R_world_camA [m, ∂m/∂θ, ∂m/∂φ, 0] (flattened)."""
+    n = len(R_world_camA)
+    RM = (R_world_camA @ _RAY_FROM_PRODUCTS_L).reshape(n, 3, 6, 4)  # [n, i, k, c] = Σ_l R[n, i, l] M[k, l, c]
+    return np.ascontiguousarray(RM.transpose(0, 2, 1, 3)).reshape(n, 6, 12)
+
+
+_RAY_FROM_PRODUCTS_L = np.ascontiguousarray(_RAY_FROM_PRODUCTS.transpose(1, 0, 2)).reshape(3, 24)  # [l, (k, c)]
+
+
+def _predict(x, ray_map, a, R_cam_world, D):
+    """h_c (N,3), z (N,2) and H (N,2,n) of the module docstring at states x (N,n).
+
+    ``ray_map`` = :func:`_ray_map` of the anchor rotations, ``a`` = p_world_camA − C (N,3),
+    ``R_cam_world`` (3,3) or (N,3,3) and the drift integral ``D`` (N,3,3; None without drift
+    states): the parts that stay fixed over the iterated-EKF relinearizations, computed once per
+    update by the caller.
+    """
+    n = len(x)
+    # W = [g | ∂g/∂(θ, φ, ρ)] with g = ρ a + R_world_camA m, ∂g/∂θ = R ∂m/∂θ, ∂g/∂φ = R ∂m/∂φ, ∂g/∂ρ = a
+    W = (_ray_products(x[:, :2])[:, None, :] @ ray_map).reshape(n, 3, 4)
+    W[:, :, 3] = a
+    W[:, :, 0] += x[:, 2:3] * a
+    if D is not None:  # [Exp(w) g | Exp(w) ∂g/∂(θ, φ, ρ) | −[Exp(w) g]× J_l(w) D]
+        E, J_l = _exp_and_left_jacobian((D @ x[:, 3:, None])[:, :, 0])
+        W7 = np.empty((n, 3, 7))
+        np.matmul(E, W, out=W7[:, :, :4])
+        np.matmul((W7[:, :, 0] @ -_LEVI).reshape(n, 3, 3), J_l @ D, out=W7[:, :, 4:])
+        W = W7
+    V = R_cam_world @ W  # [h | ∂h/∂x]
+    h = V[:, :, 0]
+    hz = h[:, 2]
+    inv_hz = 1.0 / np.where(np.abs(hz) > 1e-12, hz, 1e-12)
+    z = h[:, :2] * inv_hz[:, None]
+    # ∂z/∂h = (1/h_z) [I₂ | −z], applied row-wise without forming it
+    H = (V[:, :2, 1:] - z[:, :, None] * V[:, 2:3, 1:]) * inv_hz[:, None, None]
+    return h, z, H
 
 
 def _inv2(S: np.ndarray) -> np.ndarray:
-    a, b, c, d = S[:, 0, 0], S[:, 0, 1], S[:, 1, 0], S[:, 1, 1]
-    det = a * d - b * c
-    out = np.empty_like(S)
-    out[:, 0, 0] = d / det
-    out[:, 0, 1] = -b / det
-    out[:, 1, 0] = -c / det
-    out[:, 1, 1] = a / det
-    return out
+    """Inverse of 2×2 matrices (N, 2, 2): adjugate [[d, −b], [−c, a]] over the determinant."""
+    det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+    return np.swapaxes(S[:, ::-1, ::-1], 1, 2) * _ADJ_SIGN / det[:, None, None]
+
+
+_ADJ_SIGN = np.array([[1.0, -1.0], [-1.0, 1.0]])
 
 
 def _as_batch(name: str, a, n: int, tail: tuple[int, ...]) -> np.ndarray:
@@ -279,24 +379,35 @@ class AnchoredInverseDepthEKF:
             sb = np.radians(cfg.attitude_drift_deg_s)
             P0[:, 3:, 3:] = sb**2 * np.eye(3)
             x0 = np.concatenate([x0, np.zeros((m, 3))], 1)
-        order = np.argsort(np.concatenate([self.ids, ids]), kind="stable")
-        self.ids = np.concatenate([self.ids, ids])[order]
-        self.x = np.concatenate([self.x, x0])[order]
-        self.P = np.concatenate([self.P, P0])[order]
-        self.R_world_camA = np.concatenate([self.R_world_camA, R])[order]
-        self.p_world_camA = np.concatenate([self.p_world_camA, p])[order]
-        self.t_anchor = np.concatenate([self.t_anchor, t])[order]
-        self.n_updates = np.concatenate([self.n_updates, np.zeros(m, np.int64)])[order]
-        self.n_rejects = np.concatenate([self.n_rejects, np.zeros(m, np.int64)])[order]
-        self.diverged = np.concatenate([self.diverged, np.zeros(m, bool)])[order]
-        self.nis_avg = np.concatenate([self.nis_avg, np.zeros(m)])[order]
-        self.nis_count = np.concatenate([self.nis_count, np.zeros(m, np.int64)])[order]
+        zi = np.zeros(m, np.int64)
+        self._insert(dict(ids=ids, x=x0, P=P0, R_world_camA=R, p_world_camA=p, t_anchor=t, n_updates=zi,
+                          n_rejects=zi, diverged=np.zeros(m, bool), nis_avg=np.zeros(m), nis_count=zi))
+
+    #: per-landmark arrays, all aligned with ``ids`` (kept sorted ascending)
+    _FIELDS = ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged", "nis_avg", "nis_count")
+
+    def _insert(self, rows: dict) -> None:
+        """Merge new landmarks (every field of :data:`_FIELDS`, ids not yet present) keeping ids sorted."""
+        order = np.argsort(np.concatenate([self.ids, rows["ids"]]), kind="stable")
+        for name in self._FIELDS:
+            setattr(self, name, np.concatenate([getattr(self, name), rows[name]])[order])
 
     def remove(self, ids) -> None:
         keep = np.ones(len(self.ids), bool)
         keep[self.index_of(ids)] = False
-        for name in ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged", "nis_avg", "nis_count"):
+        for name in self._FIELDS:
             setattr(self, name, getattr(self, name)[keep])
+
+    def move_to(self, other: "AnchoredInverseDepthEKF", ids) -> None:
+        """Hand landmarks over, state and history unchanged, to another bank of the same configuration."""
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        if len(ids) == 0:
+            return
+        if other.n != self.n or np.any(other.contains(ids)):
+            raise InputError("move_to: the other bank must have the same state size and none of the ids")
+        rows = self.index_of(ids)
+        other._insert({name: getattr(self, name)[rows] for name in self._FIELDS})
+        self.remove(ids)
 
     # -- model ----------------------------------------------------------------------------------
     @staticmethod
@@ -306,37 +417,19 @@ class AnchoredInverseDepthEKF:
         The current pose may be shared, (3,3) and (3,), or per landmark, (N,3,3) and (N,3).
         With n = 6 the last three states are the gyro bias b and ``dt`` (N,) is t − t_anchor.
         """
-        a = p_world_camA - p_world_cam
-        th, ph = x[:, 0], x[:, 1]
-        mw = (R_world_camA @ ray(th, ph)[:, :, None])[:, :, 0]
-        g = x[:, 2:3] * a + mw
-        dg = np.concatenate([R_world_camA @ ray_jacobian(th, ph), a[:, :, None]], 2)  # ∂g/∂(θ,φ,ρ)
         R_cam_world = np.swapaxes(R_world_cam, -1, -2)
-        if x.shape[1] == 6:
-            D = (0.5 * dt)[:, None, None] * (R_world_camA + R_world_cam)
-            phi = (D @ x[:, 3:, None])[:, :, 0]
-            E, J_l = _exp_and_left_jacobian(phi)
-            gr = (E @ g[:, :, None])[:, :, 0]
-            dh_dx = R_cam_world @ np.concatenate([E @ dg, -skew(gr) @ J_l @ D], 2)
-        else:
-            gr = g
-            dh_dx = R_cam_world @ dg
-        h = (R_cam_world @ gr[:, :, None])[:, :, 0]
-        hz = h[:, 2]
-        inv_hz = 1.0 / np.where(np.abs(hz) > 1e-12, hz, 1e-12)
-        z = h[:, :2] * inv_hz[:, None]
-        # ∂z/∂h = (1/h_z) [I₂ | −z], applied row-wise without forming it
-        H = (dh_dx[:, :2, :] - z[:, :, None] * dh_dx[:, 2:3, :]) * inv_hz[:, None, None]
-        return h, z, H
+        D = (0.5 * dt)[:, None, None] * (R_world_camA + R_world_cam) if x.shape[1] == 6 else None
+        return _predict(x, _ray_map(R_world_camA), p_world_camA - p_world_cam, R_cam_world, D)
 
-    def measurement_noise(self, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """R (M,2,2): pixel noise plus the white attitude noise of the telemetry (normalized units)."""
+    def measurement_variance(self, x: np.ndarray) -> np.ndarray:
+        """Diagonal of R (M,2) at states x (M,n): pixel noise, white attitude noise of the telemetry
+        and 2 (ρ σ_p)² for the anchor and current position errors ⟂ to the ray (normalized units)."""
         att = np.radians(self.config.attitude_sigma_deg) ** 2
-        var = np.broadcast_to(self.sigma_xy[None, :] ** 2 + att, (len(rows), 2))
-        R = np.zeros((len(rows), 2, 2))
-        R[:, 0, 0] = var[:, 0]
-        R[:, 1, 1] = var[:, 1]
-        return R
+        var = self.sigma_xy**2 + att
+        if self.config.position_sigma_m > 0:
+            pos = 2.0 * (np.maximum(x[:, 2], 0.0) * self.config.position_sigma_m) ** 2
+            return var + pos[:, None]
+        return np.broadcast_to(var, (len(x), 2))
 
     # -- update ---------------------------------------------------------------------------------
     def update(self, ids, xy, R_world_cam, p_world_cam, t) -> UpdateResult:
@@ -351,57 +444,108 @@ class AnchoredInverseDepthEKF:
         Rc = _shared_or_batch("R_world_cam", R_world_cam, m, (3, 3))
         C = _shared_or_batch("p_world_cam", p_world_cam, m, (3,))
         t = _as_batch("t", np.asarray(t, float).reshape(-1) if np.ndim(t) else t, m, ())
+        return UpdateResult(ids, *self._update_rows(rows, z, Rc, C, t))
+
+    def update_sequence(self, ids, xy, R_world_cam, p_world_cam, t, count) -> np.ndarray:
+        """Fuse a buffer of observations per landmark, in order (e.g. a track replayed after :meth:`add`).
+
+        ``xy`` (M,K,2), ``R_world_cam`` (M,K,3,3), ``p_world_cam`` (M,K,3), ``t`` (M,K); landmark i
+        uses its first ``count[i]`` ≤ K entries.  The same as calling :meth:`update` once per slot
+        with the landmarks that have it; returns the number of accepted updates per landmark (M,).
+        """
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        m = len(ids)
+        count = np.asarray(count).reshape(-1)
+        if len(count) != m or (m and not np.issubdtype(count.dtype, np.integer)):
+            raise InputError(f"count must be {m} integers, got shape {count.shape} dtype {count.dtype}")
+        xy, R, p, t = (np.asarray(a, float) for a in (xy, R_world_cam, p_world_cam, t))
+        k = xy.shape[1] if xy.ndim == 3 else -1
+        if xy.shape != (m, k, 2) or R.shape != (m, k, 3, 3) or p.shape != (m, k, 3) or t.shape != (m, k):
+            raise InputError(
+                f"update_sequence: xy, R_world_cam, p_world_cam, t must be (M,K,2), (M,K,3,3), (M,K,3), (M,K) "
+                f"with M = {m}, got {xy.shape}, {R.shape}, {p.shape}, {t.shape}"
+            )
+        if np.any(count < 0) or np.any(count > k):
+            raise InputError(f"count must lie in 0..{k}")
+        accepted = np.zeros(m, np.int64)
+        if m == 0:
+            return accepted
+        rows = self.index_of(ids)
+        used = np.arange(k)[None, :] < count[:, None]
+        for name, a in (("xy", xy), ("R_world_cam", R), ("p_world_cam", p), ("t", t)):
+            if not np.all(np.isfinite(a[used])):
+                raise InputError(f"{name} contains NaN or inf")
+        for j in range(int(count.max())):
+            sel = np.flatnonzero(count > j)
+            good = self._update_rows(rows[sel], xy[sel, j], R[sel, j], p[sel, j], t[sel, j])[0]
+            accepted[sel] += good
+        return accepted
+
+    def _update_rows(self, rows, z, Rc, C, t):
+        """The iterated EKF update of bank rows ``rows`` (validated inputs): (accepted, nis, reason)."""
+        cfg = self.config
         x0 = self.x[rows]
         P0 = self.P[rows]
-        RA, pA = self.R_world_camA[rows], self.p_world_camA[rows]
-        Rn = self.measurement_noise(t, rows)
-        if self.config.position_sigma_m > 0:  # anchor and current position errors, ⟂ to the ray: 2 (ρ σ_p)²
-            pos = 2.0 * (np.maximum(x0[:, 2], 0.0) * self.config.position_sigma_m) ** 2
-            Rn = Rn + pos[:, None, None] * np.eye(2)
-        dt = t - self.t_anchor[rows]
+        RA = self.R_world_camA[rows]
+        ray_map = _ray_map(RA)
+        var = self.measurement_variance(x0)
+        R_cam_world = np.swapaxes(Rc, -1, -2)
+        a = self.p_world_camA[rows] - C
+        D = (0.5 * (t - self.t_anchor[rows]))[:, None, None] * (RA + Rc) if self.n == 6 else None
 
-        h, zhat, H = self.measure(x0, RA, pA, Rc, C, dt)
-        reason = np.zeros(m, np.int8)
-        reason[h[:, 2] <= 1e-9] = BEHIND
+        def gain(H):
+            """P0 Hᵀ (M,n,2) and S⁻¹ (M,2,2), S = H P0 Hᵀ + R."""
+            PHt = P0 @ np.swapaxes(H, 1, 2)
+            S = H @ PHt
+            S[:, 0, 0] += var[:, 0]
+            S[:, 1, 1] += var[:, 1]
+            return PHt, _inv2(S)
+
+        h, zhat, H = _predict(x0, ray_map, a, R_cam_world, D)
+        behind = h[:, 2] <= 1e-9
         y = z - zhat
-        PHt = P0 @ np.swapaxes(H, 1, 2)
-        Si = _inv2(H @ PHt + Rn)
+        PHt, Si = gain(H)
         nis = np.einsum("ni,nij,nj->n", y, Si, y)
-        nis = np.where(reason == BEHIND, np.inf, nis)
-        reason[(reason == UPDATED) & ~(nis <= self.config.gate_threshold)] = GATED
+        nis[behind] = np.inf
+        reason = np.where(nis <= cfg.gate_threshold, UPDATED, GATED).astype(np.int8)
+        reason[behind] = BEHIND
         ok = reason == UPDATED
 
         # iterated EKF: x_{i+1} = x0 + K_i (z − h(x_i) − H_i (x0 − x_i)), K_i = P0 H_iᵀ S_i⁻¹
         xi = x0
         K = PHt @ Si
-        for it in range(self.config.iterations):
+        innov = y  # at x_0 the H_0 (x0 − x_0) term vanishes
+        for it in range(cfg.iterations):
             if it > 0:
-                h, zhat, H = self.measure(xi, RA, pA, Rc, C, dt)
-                PHt = P0 @ np.swapaxes(H, 1, 2)
-                K = PHt @ _inv2(H @ PHt + Rn)
+                h, zhat, H = _predict(xi, ray_map, a, R_cam_world, D)
+                PHt, Si = gain(H)
+                K = PHt @ Si
                 ok &= h[:, 2] > 1e-9
-            innov = z - zhat - (H @ (x0 - xi)[:, :, None])[:, :, 0]
+                innov = z - zhat - (H @ (x0 - xi)[:, :, None])[:, :, 0]
             x_new = x0 + (K @ innov[:, :, None])[:, :, 0]
             xi = np.where(ok[:, None], x_new, xi)
         # P = (I − K H) P0 = P0 − K (P0 Hᵀ)ᵀ at the last linearization, symmetrized
         P_new = P0 - K @ np.swapaxes(PHt, 1, 2)
         P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
-        good = ok & np.all(np.isfinite(xi), 1) & np.all(np.isfinite(P_new), (1, 2))
+        good = ok & np.isfinite(xi).all(1) & np.isfinite(P_new).all((1, 2))
         reason[ok & ~good] = GATED
         self.x[rows] = np.where(good[:, None], xi, x0)
         self.P[rows] = np.where(good[:, None, None], P_new, P0)
         self.n_updates[rows] += good
-        self.n_rejects[rows] = np.where(good, 0, self.n_rejects[rows] + 1)
-        self.diverged[rows] |= self.n_rejects[rows] >= self.config.max_consecutive_rejects
-        cap = 2.0 * self.config.gate_threshold
+        n_rejects = np.where(good, 0, self.n_rejects[rows] + 1)
+        self.n_rejects[rows] = n_rejects
+        self.diverged[rows] |= n_rejects >= cfg.max_consecutive_rejects
+        cap = 2.0 * cfg.gate_threshold
         nis_c = np.where(np.isfinite(nis), np.minimum(nis, cap), cap)
-        self.nis_count[rows] += 1
-        alpha = 1.0 / np.minimum(self.nis_count[rows], self.config.nis_window)  # running mean, then exponential
-        self.nis_avg[rows] += alpha * (nis_c - self.nis_avg[rows])
-        if self.config.max_mean_nis > 0:
-            full = self.nis_count[rows] >= self.config.nis_window
-            self.diverged[rows] |= full & (self.nis_avg[rows] > self.config.max_mean_nis)
-        return UpdateResult(ids, good, nis, reason)
+        nis_count = self.nis_count[rows] + 1
+        self.nis_count[rows] = nis_count
+        alpha = 1.0 / np.minimum(nis_count, cfg.nis_window)  # running mean, then exponential
+        nis_avg = self.nis_avg[rows] + alpha * (nis_c - self.nis_avg[rows])
+        self.nis_avg[rows] = nis_avg
+        if cfg.max_mean_nis > 0:
+            full = nis_count >= cfg.nis_window
+            self.diverged[rows] |= full & (nis_avg > cfg.max_mean_nis)
+        return good, nis, reason
 
     # -- output ---------------------------------------------------------------------------------
     def estimates(self, p_world_cam) -> LandmarkEstimates:

@@ -16,7 +16,10 @@ Life of a landmark (the "combined method" of seeds 000 and 004):
    inverse-depth prior that includes infinity.
 3. *filtering*: the anchored EKF (§3.4) is anchored at the first observation and replays the
    buffered observations, so no measurement is lost; the seed-000 EKF (§3.5) starts in the
-   current frame and is then propagated with the camera twist between frames.
+   current frame and is then propagated with the camera twist between frames.  The replay from
+   the wide prior needs nothing learnt at initialization, so it runs as the observations arrive
+   (one batch per frame in a second bank of pending filters) and a landmark that times out moves
+   over unchanged; a triangulated start replays its buffer from the triangulated prior.
 4. a landmark unseen for ``max_unseen_s``, or flagged diverged or invalid, is dropped.
 """
 
@@ -158,6 +161,10 @@ class RangeEstimator:
         # measurement σ in normalized units, used by the triangulation's uncertainty gate
         self.sigma_xy = self.ekf.config.sigma_px / min(fx, fy)
         self.pending = _Pending(self.config.init_max_frames)
+        #: anchored filters of the pending landmarks from the wide prior, fed as observations arrive
+        self.prior_bank = (
+            AnchoredInverseDepthEKF(self.ekf.config, fx, fy) if isinstance(self.ekf, AnchoredInverseDepthEKF) else None
+        )
         self.t_seen = np.zeros(0)  # last observation time of each filtered landmark, aligned with ekf.ids
         self._seen_ids = np.zeros(0, np.int64)
         self.t_prev: float | None = None
@@ -224,10 +231,14 @@ class RangeEstimator:
         rest = ~in_ekf
         in_pend, prow = self.pending.rows_of(ids[rest])
         self.pending.append(prow[in_pend], t, xy[rest][in_pend], R, p)
+        if self.prior_bank is not None:
+            self.prior_bank.update(ids[rest][in_pend], xy[rest][in_pend], R, p, t)
         room = self.config.max_landmarks - len(self.ekf) - len(self.pending)
         new_ids = ids[rest][~in_pend][: max(room, 0)]
         new_xy = xy[rest][~in_pend][: max(room, 0)]
         self.pending.add(new_ids, t, new_xy, R, p)
+        if self.prior_bank is not None:
+            self.prior_bank.add(new_ids, new_xy, R, p, t, self.config.prior_inv_depth, self.config.prior_inv_depth_sigma)
         n_tri, n_prior, reasons = self._initialize(t, R, p)
 
         # 3. forget what is no longer seen
@@ -251,7 +262,14 @@ class RangeEstimator:
         if np.any(present):
             keep = np.ones(len(self.pending), bool)
             keep[rows[present]] = False
-            self.pending.keep(keep)
+            self._keep_pending(keep)
+
+    def _keep_pending(self, keep: np.ndarray) -> None:
+        """Keep the pending landmarks of mask ``keep``; the others also leave the prior bank (if still there)."""
+        if self.prior_bank is not None and not np.all(keep):
+            gone = self.pending.ids[~keep]
+            self.prior_bank.remove(gone[self.prior_bank.contains(gone)])
+        self.pending.keep(keep)
 
     def _update(self, ids, xy, R, p, t) -> np.ndarray:
         if isinstance(self.ekf, AnchoredInverseDepthEKF):
@@ -282,11 +300,15 @@ class RangeEstimator:
         rho_tri = 1.0 / d_anchor
         srho_tri = self.config.tri_sigma_scale * tri.range_sigma[ok] / d_anchor**2
         self._start(start_tri, rho_tri, srho_tri, tri.p[ok], R, p)
-        self._start(start_prior, None, None, None, R, p)
+        if self.prior_bank is not None:  # already replayed from the wide prior, one frame at a time
+            self.prior_bank.move_to(self.ekf, pend.ids[start_prior])
+            self._set_seen(pend.ids[start_prior], pend.t_last[start_prior])
+        else:
+            self._start(start_prior, None, None, None, R, p)
         done = np.zeros(len(pend), bool)
         done[start_tri] = True
         done[start_prior] = True
-        pend.keep(~done)
+        self._keep_pending(~done)
         return len(start_tri), len(start_prior), reasons
 
     def _start(self, rows, rho, srho, p_world_tri, R, p) -> None:
@@ -298,13 +320,11 @@ class RangeEstimator:
         if rho is None:  # the wide prior, identical for every landmark
             rho = np.full(len(rows), cfg.prior_inv_depth)
             srho = np.full(len(rows), cfg.prior_inv_depth_sigma)
-        if isinstance(self.ekf, AnchoredInverseDepthEKF):
+        if isinstance(self.ekf, AnchoredInverseDepthEKF):  # anchor at the first view, replay the others
             self.ekf.add(ids, pend.xy[rows, 0], pend.R[rows, 0], pend.p[rows, 0], pend.t[rows, 0], rho, srho)
-            cnt = pend.count[rows]
-            for j in range(1, int(cnt.max())):  # replay buffered observations, vectorized per slot
-                sel = cnt > j
-                r = rows[sel]
-                self.ekf.update(ids[sel], pend.xy[r, j], pend.R[r, j], pend.p[r, j], pend.t[r, j])
+            self.ekf.update_sequence(
+                ids, pend.xy[rows, 1:], pend.R[rows, 1:], pend.p[rows, 1:], pend.t[rows, 1:], pend.count[rows] - 1
+            )
         else:
             last = pend.count[rows] - 1
             xy_now = pend.xy[rows, last]
@@ -341,7 +361,7 @@ class RangeEstimator:
             if np.any(gone):
                 self.drop(self.ekf.ids[gone])
         if len(self.pending):
-            self.pending.keep((t - self.pending.t_last) <= cfg.max_unseen_s)
+            self._keep_pending((t - self.pending.t_last) <= cfg.max_unseen_s)
 
     def _output(self, t, R, p, n_tri, n_prior, n_rej, reasons) -> RangeOutput:
         if isinstance(self.ekf, AnchoredInverseDepthEKF):

@@ -31,15 +31,14 @@ def _finite(name: str, a: np.ndarray) -> np.ndarray:
 def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrix ``[v]x`` with ``[v]x @ w == v × w``; shape (..., 3, 3)."""
     v = np.asarray(v, dtype=float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack(
-        [
-            np.stack([z, -v[..., 2], v[..., 1]], -1),
-            np.stack([v[..., 2], z, -v[..., 0]], -1),
-            np.stack([-v[..., 1], v[..., 0], z], -1),
-        ],
-        -2,
-    )
+    K = np.zeros(v.shape[:-1] + (9,))
+    K[..., _SKEW_POS] = v  # (2,1) = v0, (0,2) = v1, (1,0) = v2
+    K[..., _SKEW_NEG] = -v  # (1,2) = −v0, (2,0) = −v1, (0,1) = −v2
+    return K.reshape(v.shape[:-1] + (3, 3))
+
+
+_SKEW_POS = np.array([7, 2, 3])  # flat indices in a row-major 3×3 matrix
+_SKEW_NEG = np.array([5, 6, 1])
 
 
 def euler_zyx_to_R(roll, pitch, yaw) -> np.ndarray:
