@@ -264,7 +264,7 @@ class Flight:
         R_wb = state.R_world_body
         R_wc, p_wc = self.cam.camera_pose(R_wb, state.p_ned)
         frame = self.renderer.render(R_wc, p_wc, v_world_cam=state.v_ned, w_cam=self.R_cam_body @ state.pqr,
-                                     frame_index=self.next_frame)
+                                     frame_index=self.next_frame, depth=False)
         w1 = time.perf_counter()
         tt = target_truth(sc.world, p_wc, R_wc, cam_cfg)
         truth = self.truth

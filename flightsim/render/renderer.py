@@ -105,11 +105,12 @@ class RenderOptions:
 @dataclass(frozen=True, eq=False)
 class Frame:
     """One rendered frame: ``image`` uint8 (H, W) grey; ``depth`` float32 (H, W) metres along the
-    optical axis of the surface seen at each pixel centre (``inf`` for sky); the pose it was
+    optical axis of the surface seen at each pixel centre (``inf`` for sky; None when not asked
+    for); the pose it was
     rendered at (mid-exposure), the gain applied and the number of motion-blur sub-frames."""
 
     image: np.ndarray
-    depth: np.ndarray
+    depth: np.ndarray | None
     R_world_cam: np.ndarray
     p_world_cam: np.ndarray
     gain: float = 1.0
@@ -274,6 +275,7 @@ class Renderer:
         w_cam: np.ndarray | None = None,
         gain: float | None = None,
         frame_index: int | None = None,
+        depth: bool = True,
     ) -> Frame:
         """Render the frame whose mid-exposure camera pose is (``R_world_cam``, ``p_world_cam``).
 
@@ -281,6 +283,7 @@ class Renderer:
         motion during the exposure, used for motion blur when ``options.exposure_s`` > 0.
         ``gain`` multiplies ``options.gain`` for this frame.  ``frame_index`` selects the noise and
         jitter draws (default: a counter of calls), so a frame can be re-rendered identically.
+        ``depth=False`` leaves :attr:`Frame.depth` None (the simulator's camera only needs the image).
         """
         R = np.asarray(R_world_cam, float)
         p = np.asarray(p_world_cam, float).reshape(-1)
@@ -319,15 +322,17 @@ class Renderer:
             f = image.astype(_F32) if image.dtype != _F32 else image
             if g != 1.0:
                 f = f * _F32(g)
+            noise = 0.0
             if opt.noise_sigma > 0:
                 noise = np.empty(f.shape, _F32)
                 cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
                 cv2.randn(noise, 0.0, float(opt.noise_sigma))
-                f = f + noise
-            image = cv2.add(f, 0.0, dtype=cv2.CV_8U)  # rounds and saturates to 0..255
-        with np.errstate(divide="ignore"):
-            depth = _F32(1.0) / invz  # the z-buffer is >= 0: sky (0) becomes inf
-        return Frame(image, depth, R.copy(), p.copy(), g, n_sub, index)
+            image = cv2.add(f, noise, dtype=cv2.CV_8U)  # f + noise in float32, rounded and saturated to 0..255
+        depth_m = None
+        if depth:
+            with np.errstate(divide="ignore"):
+                depth_m = _F32(1.0) / invz  # the z-buffer is >= 0: sky (0) becomes inf
+        return Frame(image, depth_m, R.copy(), p.copy(), g, n_sub, index)
 
     # ------------------------------------------------------------------------------ output
     def _blur_subframes(self, v: np.ndarray, w: np.ndarray, invz: np.ndarray) -> int:
@@ -417,7 +422,12 @@ class Renderer:
         Hr, Wr = y1 - y0, x1 - x0
         lam = cv2.resize(lam_c, (Wc, Hc), interpolation=cv2.INTER_LINEAR)[y0:y1, x0:x1]
         dD_f = rows[2][:, x0:x1] + cols[2][y0:y1]
-        alpha = np.clip(dD_f * _F32(1.0 / gD) + _F32(0.5), 0.0, 1.0) if gD > 1e-12 else (dD_f > 0).astype(_F32)
+        if gD > 1e-12:  # α = clip(dD / gD + ½, 0, 1), in place
+            alpha = dD_f * _F32(1.0 / gD)
+            alpha += _F32(0.5)
+            np.clip(alpha, 0.0, 1.0, out=alpha)
+        else:
+            alpha = (dD_f > 0).astype(_F32)
         acc = np.zeros((Hr, Wr), _F32)
         tile_m = s0 * tex[0].shape[0]
         A = Kc @ R.T
@@ -434,10 +444,14 @@ class Renderer:
             ya, yb = y0 + int(rr_[0]), y0 + int(rr_[-1]) + 1
             xa, xb = x0 + int(cc_[0]), x0 + int(cc_[-1]) + 1
             sl = (slice(ya - y0, yb - y0), slice(xa - x0, xb - x0))
-            w = np.maximum(_F32(1.0) - np.abs(lam[sl] - _F32(L)), _F32(0.0))
+            w = lam[sl] - _F32(L)  # w = max(1 − |λ − L|, 0), in place
+            np.abs(w, out=w)
+            np.subtract(_F32(1.0), w, out=w)
+            np.maximum(w, _F32(0.0), out=w)
             t, reps = self._ground_tiles[L]
             if tex[L].shape[0] <= 4:  # a few texels per period: only the mean grey is left
-                acc[sl] += w * _F32(tex[L].mean())
+                w *= _F32(tex[L].mean())
+                acc[sl] += w
                 continue
             s = tile_m / tex[L].shape[0]
             # tile origin (a multiple of the period) that puts the camera near the middle of t
@@ -446,12 +460,20 @@ class Renderer:
             M = np.array([[0.0, s, N0 + 0.5 * s - p[0]], [s, 0.0, E0 + 0.5 * s - p[1]], [0.0, 0.0, h]])
             Hm = np.array([[1, 0, -xa], [0, 1, -ya], [0, 0, 1.0]]) @ A @ M
             warped = cv2.warpPerspective(t, Hm, (xb - xa, yb - ya), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-            acc[sl] += w * warped
-        # blend ground over sky with the horizon coverage; 1/Z of the plane where the centre sees it
+            w *= warped
+            acc[sl] += w
+        # blend ground over sky with the horizon coverage (sky + α (acc − sky), in place in acc);
+        # 1/Z of the plane where the centre sees it
         region = img[y0:y1, x0:x1]
         sky = region.astype(_F32)
-        region[...] = cv2.add(sky + alpha * (acc - sky), 0.0, dtype=cv2.CV_8U)
-        invz[y0:y1, x0:x1] = np.where(alpha >= 0.5, np.abs(dD_f * _F32(1.0 / h)), _F32(0.0))  # abs: no −0 (1/−0 = −inf)
+        acc -= sky
+        acc *= alpha
+        acc += sky
+        region[...] = cv2.add(acc, 0.0, dtype=cv2.CV_8U)
+        iz = invz[y0:y1, x0:x1]
+        np.multiply(dD_f, _F32(1.0 / h), out=iz)
+        np.abs(iz, out=iz)  # abs: no −0 (1/−0 = −inf)
+        iz[alpha < 0.5] = _F32(0.0)
         if self._ids is not None:
             self._ids[y0:y1, x0:x1] = (alpha >= 0.5).astype(_F32)
 
@@ -661,7 +683,11 @@ class Renderer:
         zbuf = invz[y0:y1, x0:x1]
         # dst ← dst + α (layer − dst) where the solid is in front (α = 1 inside: a plain copy)
         d = dst.astype(_F32)
-        blend = cv2.add(d + alpha * (layer.astype(_F32) - d), 0.0, dtype=cv2.CV_8U)
+        blend = layer.astype(_F32)  # d + α (layer − d), in place
+        blend -= d
+        blend *= alpha
+        blend += d
+        blend = cv2.add(blend, 0.0, dtype=cv2.CV_8U)
         cv2.copyTo(blend, zpass.view(np.uint8), dst)
         zw = (zpass & (alpha >= 0.5)).view(np.uint8)
         cv2.copyTo(layer_inv, zw, zbuf)
@@ -739,7 +765,7 @@ class Renderer:
         side_sel = zpass if use_cap is None else (zpass & ~use_cap)
         bx, by, bw, bh = cv2.boundingRect(side_sel.view(np.uint8)) if t_side is not None else (0, 0, 0, 0)
         if bw > 0:
-            L = int(np.clip(round(lam), 0, len(side_m) - 1))
+            L = min(max(round(lam), 0), len(side_m) - 1)
             t = side_m[L]
             th, tw = t.shape[0], t.shape[1] - 2
             b = (slice(by, by + bh), slice(bx, bx + bw))
@@ -752,7 +778,7 @@ class Renderer:
             cap_sel = zpass & use_cap
             if cap_sel.any():
                 cap = top_m if cap_key == "top" else bot_m
-                L = int(np.clip(round(lam), 0, len(cap) - 1))
+                L = min(max(round(lam), 0), len(cap) - 1)
                 t = cap[L]
                 th, tw = t.shape
                 mx = (ce + _F32(r)) * _F32(tw / (2 * r)) - _F32(0.5)
