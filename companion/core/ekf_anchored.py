@@ -197,11 +197,11 @@ _I3 = np.eye(3)
 
 
 def _exp_and_left_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exp(φ) and the left Jacobian of SO(3) (N, 3, 3) each, as one product [[1, a, b], [1, b, d]] · [I, K, K²]:
+    """Exp(φ) and the left Jacobian of SO(3) (N, 3, 3) each:
 
     Exp(φ) = I + sin θ/θ K + (1 − cos θ)/θ² K²,   J_l(φ) = I + (1 − cos θ)/θ² K + (θ − sin θ)/θ³ K²,
 
-    K = [φ]×, θ = |φ|, with the Taylor series of the three coefficients below θ = 1e-6.
+    K = [φ]×, K² = φ φᵀ − θ² I, θ = |φ|, with the Taylor series of the three coefficients below θ = 1e-6.
     """
     n = len(phi)
     th2 = np.einsum("ni,ni->n", phi, phi)
@@ -219,18 +219,10 @@ def _exp_and_left_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             a = np.where(small, 1.0 - th2 / 6, a)
             b = np.where(small, 0.5 - th2 / 24, b)
             d = np.where(small, 1.0 / 6 - th2 / 120, d)
-    basis = np.empty((n, 3, 3, 3))  # I, K, K²
-    basis[:, 0] = _I3
-    basis[:, 1] = (phi @ _LEVI).reshape(n, 3, 3)
-    np.matmul(basis[:, 1], basis[:, 1], out=basis[:, 2])
-    coef = np.empty((n, 2, 3))
-    coef[:, :, 0] = 1.0
-    coef[:, 0, 1] = a
-    coef[:, 0, 2] = b
-    coef[:, 1, 1] = b
-    coef[:, 1, 2] = d
-    EJ = (coef @ basis.reshape(n, 3, 9)).reshape(n, 2, 3, 3)
-    return EJ[:, 0], EJ[:, 1]
+    K = (phi @ _LEVI).reshape(n, 3, 3)
+    K2 = phi[:, :, None] * phi[:, None, :] - th2[:, None, None] * _I3
+    a, b, d = a[:, None, None], b[:, None, None], d[:, None, None]
+    return a * K + b * K2 + _I3, b * K + d * K2 + _I3
 
 
 def _ray_map(R_world_camA: np.ndarray) -> np.ndarray:
@@ -262,7 +254,11 @@ def _predict(x, ray_map, a, R_cam_world, D):
         np.matmul(E, W, out=W7[:, :, :4])
         np.matmul((W7[:, :, 0] @ -_LEVI).reshape(n, 3, 3), J_l @ D, out=W7[:, :, 4:])
         W = W7
-    V = R_cam_world @ W  # [h | ∂h/∂x]
+    if R_cam_world.ndim == 2:  # one pose for all: a single (3,3)·(3, N·k) product
+        k = W.shape[2]
+        V = (R_cam_world @ W.transpose(1, 0, 2).reshape(3, n * k)).reshape(3, n, k).transpose(1, 0, 2)
+    else:
+        V = R_cam_world @ W  # [h | ∂h/∂x]
     h = V[:, :, 0]
     hz = h[:, 2]
     inv_hz = 1.0 / np.where(np.abs(hz) > 1e-12, hz, 1e-12)

@@ -33,7 +33,7 @@ from companion.config import require, require_finite
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.ekf_anchored import AnchoredEKFConfig, AnchoredInverseDepthEKF
 from companion.core.ekf_landmark import LandmarkEKFBank, LandmarkEKFConfig
-from companion.core.frames import se3_twist
+from companion.core.frames import is_orthonormal, se3_twist
 from companion.core.triangulation import Reject, TriangulationConfig, triangulate_multiview
 from companion.errors import InputError
 
@@ -184,7 +184,7 @@ class RangeEstimator:
             raise InputError(f"camera pose must be R (3,3) and p (3,), got {R.shape} and {p.shape}")
         if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p))):
             raise InputError("camera pose contains NaN or inf")
-        if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        if not is_orthonormal(R) or np.linalg.det(R) < 0:
             raise InputError("R_world_cam is not a rotation matrix")
         ids = np.asarray(ids)
         if ids.ndim != 1 or (len(ids) and not np.issubdtype(ids.dtype, np.integer)):

@@ -41,6 +41,15 @@ _SKEW_POS = np.array([7, 2, 3])  # flat indices in a row-major 3×3 matrix
 _SKEW_NEG = np.array([5, 6, 1])
 
 
+def is_orthonormal(R: np.ndarray) -> bool:
+    """Rᵀ R = I to the tolerance of ``np.allclose(Rᵀ R, I, atol=1e-6)`` (its default rtol 1e-5), for one (3, 3) R."""
+    return bool(np.all(np.abs(R.T @ R - _I3) <= _ORTHONORMAL_TOL))
+
+
+_I3 = np.eye(3)
+_ORTHONORMAL_TOL = 1e-6 + 1e-5 * _I3
+
+
 def euler_zyx_to_R(roll, pitch, yaw) -> np.ndarray:
     """``R_world_body`` from ZYX Euler angles (yaw about z, then pitch about y, then roll about x).
 
@@ -50,14 +59,10 @@ def euler_zyx_to_R(roll, pitch, yaw) -> np.ndarray:
     cr, sr = np.cos(roll), np.sin(roll)
     cp, sp = np.cos(pitch), np.sin(pitch)
     cy, sy = np.cos(yaw), np.sin(yaw)
-    R = np.stack(
-        [
-            np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
-            np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
-            np.stack([-sp, cp * sr, cp * cr], -1),
-        ],
-        -2,
-    )
+    R = np.empty(np.broadcast_shapes(cr.shape, cp.shape, cy.shape) + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    R[..., 1, 0], R[..., 1, 1], R[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = -sp, cp * sr, cp * cr
     return R
 
 
@@ -77,14 +82,11 @@ def quat_to_R(q: np.ndarray) -> np.ndarray:
     if np.any(n < 1e-12):
         raise InputError("quaternion has zero norm")
     w, x, y, z = np.moveaxis(q / n, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    R[..., 1, 0], R[..., 1, 1], R[..., 1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    return R
 
 
 def R_to_quat(R: np.ndarray) -> np.ndarray:

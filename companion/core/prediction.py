@@ -33,6 +33,7 @@ import numpy as np
 
 from companion.config import require, require_finite
 from companion.core.camera import CameraModel
+from companion.core.frames import is_orthonormal
 from companion.errors import InputError
 
 #: :attr:`PixelPrediction.status` codes.
@@ -85,7 +86,7 @@ def _rotation(name: str, R) -> np.ndarray:
         raise InputError(f"{name} must have shape (3, 3), got {R.shape}")
     if not np.all(np.isfinite(R)):
         raise InputError(f"{name} contains NaN or inf")
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+    if not is_orthonormal(R):
         raise InputError(f"{name} is not a rotation matrix (Rᵀ R ≠ I)")
     return R
 
