@@ -295,6 +295,28 @@ class Pipeline:
         """The estimator's output for the latest processed frame (world points, ranges, σ)."""
         return self._out_prev
 
+    def _points_on_current_rays(self, out: RangeOutput, tf, R_wc: np.ndarray, p_wc: np.ndarray) -> np.ndarray:
+        """World points for the sectors: each landmark observed in this frame is placed at its
+        estimated range along the ray measured now (its pixel in this frame), the others stay where
+        the filter puts them.
+
+        The filter's point lies on the *anchor* ray (DESIGN §3.4), so a range error moves it
+        sideways as seen from the current camera (≈ range error × baseline / range): on a fast pass
+        a mast edge's point drifts into the neighbouring sector.  The current pixel measures the
+        bearing directly (to ~σ_px/f); only the range is the filter's.
+        """
+        p_world = out.p_world.copy()
+        if len(out.ids) == 0 or len(tf.ids) == 0:
+            return p_world
+        pos = np.minimum(np.searchsorted(tf.ids, out.ids), len(tf.ids) - 1)  # both sorted by id
+        seen = tf.ids[pos] == out.ids
+        if np.any(seen):
+            xy = self.camera.pixels_to_normalized(tf.uv[pos[seen]])
+            d_cam = np.concatenate([xy, np.ones((len(xy), 1))], 1)
+            d_cam /= np.linalg.norm(d_cam, axis=1, keepdims=True)
+            p_world[seen] = p_wc + (d_cam @ R_wc.T) * out.range[seen][:, None]
+        return p_world
+
     def _process(self, res: FrameResult, gray, now: float) -> None:
         cfg, tel = self.pcfg, self.telemetry
         t = res.t_capture
@@ -350,7 +372,7 @@ class Pipeline:
             self.tracks.kill(out.retired_ids)
         self._t_prev, self._cam_prev, self._out_prev = t, (R_wc, p_wc), out
 
-        p_body = (out.p_world - p_wb) @ R_wb  # R_body_world (p − p_vehicle), row form
+        p_body = (self._points_on_current_rays(out, tf, R_wc, p_wc) - p_wb) @ R_wb  # R_body_world (p − p_vehicle), row form
         v_body = R_wb.T @ v_w
         sectors = compute_sectors(
             p_body, out.range_sigma, out.converged, out.valid, self.hfov, self._R_cam_body, self.config.sectors,

@@ -186,3 +186,40 @@ def test_bad_input_names_the_problem(scene):
         NCCConfig(k_min=1.5)
     with pytest.raises(ConfigError, match="subpixel_method"):
         NCCConfig(subpixel_method="gauss")
+
+
+def test_structure_tensor_ratio_of_known_patches():
+    """λmin/λmax: 1 for a rotationally balanced bowl, 0 for straight edges at any angle."""
+    T = 2 * NCCConfig().template_half + 3  # matched patch plus its rim
+    v, u = np.mgrid[0:T, 0:T].astype(float)
+    c = (T - 1) / 2
+    bowl = 50 + (u - c) ** 2 + (v - c) ** 2  # ∂I/∂u odd in u, ∂I/∂v odd in v: M = a·I
+    step = np.where(u > c, 180.0, 60.0)  # vertical edge
+    diagonal = np.where(u + v > 2 * c, 180.0, 60.0)  # I(u + v): gradients all along (1, 1)
+    ramp = 40 + 7 * u + 3 * v  # one constant gradient: rank 1
+    flat = np.full((T, T), 90.0)
+    tpl = np.stack([bowl, step, diagonal, ramp, flat]).round().astype(np.uint8)
+    ratio = ncc.template_eigen_ratio(tpl)
+    assert ratio[0] == pytest.approx(1.0, abs=1e-12)
+    assert np.all(ratio[1:] == 0.0)
+
+
+def test_a_template_on_a_straight_edge_is_refused():
+    """On an edge the NCC peak is a ridge: the match would slide along it (aperture problem)."""
+    rng = np.random.default_rng(3)
+    img = np.full((120, 160), 70.0)
+    img[60:, :] = 170.0  # a long horizontal edge
+    img = np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).round().astype(np.uint8)
+    pts = np.array([[50.0, 60.0], [90.0, 59.5]])
+    res = match_ncc(img, img, pts, pts + [2.0, 0.0], NCCConfig())
+    assert np.all(res.reason == ncc.EDGE_TEMPLATE) and not res.ok.any()
+    # the verdict comes from the template alone, before any scoring: off, it is never given
+    loose = match_ncc(img, img, pts, pts + [2.0, 0.0], NCCConfig(min_eigen_ratio=0.0))
+    assert not np.any(loose.reason == ncc.EDGE_TEMPLATE)
+    # a corner of the same contrast passes
+    img2 = np.full((120, 160), 70, np.uint8)
+    img2[60:, 80:] = 170
+    ok = match_ncc(img2, img2, np.array([[80.0, 60.0]]), np.array([[81.0, 61.0]]), NCCConfig())
+    assert ok.ok.all()
+    with pytest.raises(ConfigError, match="min_eigen_ratio"):
+        NCCConfig(min_eigen_ratio=1.0)

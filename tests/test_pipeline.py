@@ -571,3 +571,35 @@ def test_obstacle_distance_3d_when_enabled_turns_with_the_vehicle():
     # seen 10 m ahead (minus 2σ), the vehicle has since turned 90° right: now on its left
     assert m.x == pytest.approx(0.0, abs=1e-6) and m.y == pytest.approx(-9.8, abs=1e-3) and m.z == pytest.approx(0.0)
     assert m.min_distance == pytest.approx(0.5) and m.max_distance == pytest.approx(40.0)
+
+
+def test_sector_points_lie_on_the_rays_measured_now():
+    """A landmark seen in this frame is placed at its estimated range along its current ray (the
+    filter's point sits on the anchor ray, off the current one when the range is wrong); a landmark
+    not seen in this frame keeps the filter's point."""
+    from types import SimpleNamespace
+
+    from companion.core.camera import CameraModel
+    from companion.core.estimator import RangeOutput
+    from companion.core.frames import euler_zyx_to_R
+
+    cam = CameraModel(CameraConfig(width=320, height=240, fx=277.1, fy=277.1, cx=159.5, cy=119.5))
+    R_body_cam = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # camera z forward, x right, y down
+    R_wc = euler_zyx_to_R(0.1, -0.2, 0.7) @ R_body_cam
+    p_wc = np.array([3.0, -2.0, -10.0])
+    X = np.array([[40.0, 20.0, -12.0], [30.0, 25.0, -6.0], [35.0, 18.0, -9.0]])  # true points, all in view
+    Xc = (X - p_wc) @ R_wc  # camera frame
+    assert np.all(Xc[:, 2] > 0)
+    uv = cam.project(Xc)
+    p_est = X + np.array([[4.0, -3.0, 1.0], [-2.0, 2.0, 0.5], [1.0, 1.0, 1.0]])  # off the rays
+    rng = np.linalg.norm(p_est - p_wc, axis=1)
+    out = RangeOutput(t=0.0, ids=np.array([3, 7, 9]), p_world=p_est, range=rng, range_sigma=np.ones(3),
+                      converged=np.ones(3, bool), valid=np.ones(3, bool), n_pending=0, n_initialized_tri=0,
+                      n_initialized_prior=0, n_rejected=0, tri_reasons={})
+    tf = SimpleNamespace(ids=np.array([2, 3, 9]), uv=np.array([[10.0, 10.0], uv[0], uv[2]]))  # 7 not seen now
+    p = Pipeline._points_on_current_rays(SimpleNamespace(camera=cam), out, tf, R_wc, p_wc)
+    for i in (0, 2):
+        u = (X[i] - p_wc) / np.linalg.norm(X[i] - p_wc)
+        np.testing.assert_allclose(p[i], p_wc + u * rng[i], atol=1e-9)
+    np.testing.assert_array_equal(p[1], p_est[1])
+    np.testing.assert_allclose(np.linalg.norm(p - p_wc, axis=1), rng, rtol=1e-12)

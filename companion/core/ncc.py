@@ -18,6 +18,12 @@ Every point gets a verdict (``reason``), tested in this order:
   cut by the image border (the point is leaving the image);
 * ``FLAT_TEMPLATE`` — template standard deviation below ``min_template_std`` grey levels (NCC is
   undefined on a flat patch);
+* ``EDGE_TEMPLATE`` — the template is an edge, not a corner: the smaller eigenvalue of its
+  structure tensor M = Σ ∇I ∇Iᵀ (central differences over the template, using its 1-px rim) is
+  below ``min_eigen_ratio`` × the larger.  Along an edge the NCC peak is a ridge, so the match
+  slides wherever noise and the predicted window put it (the aperture problem); a track that has
+  drifted from a corner onto an edge (e.g. the foreshortened, streaky ground near the horizon)
+  would feed the filter a steady false parallax and a confident range far too near;
 * ``LOW_SCORE`` — best score below ``k_min``;
 * ``AMBIGUOUS`` — another local maximum at least ``ambiguity_min_separation`` px away scores at
   least best − ``ambiguity_margin`` (repeated texture);
@@ -60,6 +66,7 @@ FLAT_TEMPLATE = 2
 LOW_SCORE = 3
 AMBIGUOUS = 4
 PEAK_AT_EDGE = 5
+EDGE_TEMPLATE = 6
 
 REASON_NAMES = {
     OK: "ok",
@@ -68,6 +75,7 @@ REASON_NAMES = {
     LOW_SCORE: "low_score",
     AMBIGUOUS: "ambiguous",
     PEAK_AT_EDGE: "peak_at_edge",
+    EDGE_TEMPLATE: "edge_template",
 }
 
 _EMPTY = np.float32(-2.0)  # score of cells outside a point's search window (NCC is in [-1, 1])
@@ -89,6 +97,7 @@ class NCCConfig:
     subpixel_method: str = "lk"  # "lk" (Lucas–Kanade on the patch) or "parabola" (through the NCC peak)
     lk_iterations: int = 3  # Lucas–Kanade iterations of the sub-pixel step
     min_template_std: float = 3.0  # grey levels; flatter templates are refused
+    min_eigen_ratio: float = 0.08  # structure-tensor λmin/λmax below this: an edge, refused (0 = off)
 
     def __post_init__(self) -> None:
         for name in ("template_half", "search_half", "max_search_half"):
@@ -113,6 +122,8 @@ class NCCConfig:
             f"lk_iterations must be an integer >= 1, got {self.lk_iterations!r}",
         )
         require_finite("min_template_std", self.min_template_std, nonnegative=True)
+        require_finite("min_eigen_ratio", self.min_eigen_ratio, nonnegative=True)
+        require(self.min_eigen_ratio < 1.0, f"min_eigen_ratio must be < 1, got {self.min_eigen_ratio}")
 
 
 @dataclasses.dataclass
@@ -361,6 +372,8 @@ def match_templates(
     mean = inner.mean(axis=1)
     var = np.einsum("ni,ni->n", inner, inner) / inner.shape[1] - mean * mean
     reason[(reason == OK) & (var < max(config.min_template_std, 1e-3) ** 2)] = FLAT_TEMPLATE
+    if config.min_eigen_ratio > 0:
+        reason[(reason == OK) & (template_eigen_ratio(templates) < config.min_eigen_ratio)] = EDGE_TEMPLATE
 
     # Search window of each point: template centres in [c - s, c + s], clipped to the image.
     H, W = img_cur.shape
@@ -473,6 +486,26 @@ def match_templates(
         found[g] = refined
     out_pts[run[good]] = found[good]
     return NCCResult(out_pts, score, reason == OK, reason)
+
+
+def template_eigen_ratio(templates: np.ndarray) -> np.ndarray:
+    """λmin/λmax of the structure tensor M = Σ ∇I ∇Iᵀ of each template (N,), in [0, 1].
+
+    ``templates`` (N, T+2, T+2): the matched patch plus its 1-px rim, which the central
+    differences use so that every pixel of the T×T patch contributes.  1 for an isotropic corner,
+    0 for a straight edge (and for a flat patch).
+    """
+    t = np.asarray(templates, np.float32)
+    gx = t[:, 1:-1, 2:] - t[:, 1:-1, :-2]  # 2·∂I/∂u; the factor cancels in the ratio
+    gy = t[:, 2:, 1:-1] - t[:, :-2, 1:-1]
+    a = np.einsum("nij,nij->n", gx, gx, dtype=np.float64)
+    b = np.einsum("nij,nij->n", gx, gy, dtype=np.float64)
+    c = np.einsum("nij,nij->n", gy, gy, dtype=np.float64)
+    half_tr = 0.5 * (a + c)
+    disc = np.sqrt(np.maximum(0.25 * (a - c) ** 2 + b * b, 0.0))
+    lmax = half_tr + disc
+    lmin = np.maximum(half_tr - disc, 0.0)
+    return np.where(lmax > 0, lmin / np.where(lmax > 0, lmax, 1.0), 0.0)
 
 
 def _ambiguous(flat_stack: np.ndarray, m: int, bi: np.ndarray, bj: np.ndarray, best: np.ndarray, config: NCCConfig) -> np.ndarray:

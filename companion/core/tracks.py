@@ -43,7 +43,7 @@ from companion.core.ncc import NCCConfig, extract_templates, match_ncc, match_te
 from companion.errors import InputError
 
 #: Drop reasons in :attr:`TrackFrame.drop_reason`: the NCC verdicts of :mod:`companion.core.ncc`
-#: (OUT_OF_IMAGE, FLAT_TEMPLATE, LOW_SCORE, AMBIGUOUS, PEAK_AT_EDGE) plus:
+#: (OUT_OF_IMAGE, FLAT_TEMPLATE, LOW_SCORE, AMBIGUOUS, PEAK_AT_EDGE, EDGE_TEMPLATE) plus:
 DROP_DUPLICATE = 10  # two tracks converged onto the same point: the younger one is dropped
 
 DROP_REASON_NAMES = {**_ncc.REASON_NAMES, DROP_DUPLICATE: "duplicate"}
@@ -301,12 +301,12 @@ class TrackManager:
             self._h_t[s_ok, k] = t
             self._n_obs[s_ok] += 1
 
-            # Failures: drop at once when the point has left the image or the template is flat,
-            # otherwise after max_failures consecutive misses.
+            # Failures: drop at once when the point has left the image or the template is flat or
+            # an edge (it will not become a corner again), otherwise after max_failures consecutive misses.
             s_bad = live[~ok]
             self._fail[s_bad] += 1
             self._score[s_bad] = score[~ok]
-            hard = np.isin(reason[~ok], (_ncc.OUT_OF_IMAGE, _ncc.FLAT_TEMPLATE))
+            hard = np.isin(reason[~ok], (_ncc.OUT_OF_IMAGE, _ncc.FLAT_TEMPLATE, _ncc.EDGE_TEMPLATE))
             drop = hard | (self._fail[s_bad] >= cfg.max_failures)
             drop_slots.append(s_bad[drop])
             drop_codes.append(reason[~ok][drop])
