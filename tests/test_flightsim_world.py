@@ -285,3 +285,27 @@ def test_world_config_is_frozen_and_names_default_to_kind_and_index():
     with pytest.raises(KeyError, match="no obstacle named 'shed'"):
         w.obstacle("shed")
     assert re.search("3 obstacles", repr(w))
+
+
+def test_texture_moments_do_not_depend_on_memory_alignment():
+    """The grey-level normalization of every texture uses moments that are exact integer sums, so
+    a seed gives the same world whatever the process allocated before (numpy's own float32 mean
+    can change in the last bit with the array's address)."""
+    from flightsim.world.textures import _moments, blocks_texture
+
+    rng = np.random.default_rng(5)
+    x = (rng.random((301, 257)) * 3.7 - 0.4).astype(np.float32)
+    results = set()
+    for offset in range(8):  # the same values at 8 different alignments
+        buf = np.empty(x.size + 8, np.float32)
+        view = buf[offset : offset + x.size].reshape(x.shape)
+        view[...] = x
+        results.add(_moments(view))
+    assert len(results) == 1
+    mu, sd = results.pop()
+    assert mu == pytest.approx(float(np.mean(x, dtype=np.float64)), rel=1e-4)
+    assert sd == pytest.approx(float(np.std(x, dtype=np.float64)), rel=1e-4)
+    assert _moments(np.zeros((4, 4), np.float32)) == (0.0, 0.0)
+    a = blocks_texture(np.random.default_rng(11), 64, 96, 0.1)
+    b = blocks_texture(np.random.default_rng(11), 64, 96, 0.1)
+    np.testing.assert_array_equal(a, b)

@@ -101,9 +101,34 @@ def _paint_rects(rng, img, texel_m, min_m, max_m, coverage, wrap, value_fn, max_
         _rect(img, int(x0[k]), int(y0[k]), int(x0[k] + sw[k]), int(y0[k] + sh[k]), float(vals[k]), wrap)
 
 
+def _moments(x: np.ndarray) -> tuple[float, float]:
+    """Mean and standard deviation of ``x`` that do not depend on where the array sits in memory.
+
+    numpy's float sums are pairwise with SIMD blocks whose split follows the data's alignment, so
+    the same values at another address can differ in the last bit, and a texture built from
+    them would change with whatever the process allocated before (a seed would not fix the
+    world).  Here the values are quantized to 2⁻¹⁶ of their largest magnitude and summed as
+    integers, which is exact in any order; the moments are good to ~1e-5 relative, which only
+    scales the grey levels.
+    """
+    v = np.asarray(x, np.float64).ravel()
+    if v.size == 0:
+        return 0.0, 0.0
+    m = float(np.max(np.abs(v)))
+    if not m > 0:
+        return 0.0, 0.0
+    q = np.rint(v * (65536.0 / m)).astype(np.int64)  # |q| ≤ 2¹⁶: q² sums stay far below 2⁶³
+    n = v.size
+    s1, s2 = int(q.sum()), int((q * q).sum())
+    mean_q = s1 / n
+    var_q = max(s2 / n - mean_q * mean_q, 0.0)
+    scale = m / 65536.0
+    return mean_q * scale, math.sqrt(var_q) * scale
+
+
 def _to_grey(x: np.ndarray, mean: float, contrast: float, std: float = 48.0) -> np.ndarray:
-    s = float(x.std())
-    y = mean + contrast * std * (x - float(x.mean())) / (s if s > 1e-6 else 1.0)
+    mu, s = _moments(x)
+    y = mean + contrast * std * (x - mu) / (s if s > 1e-6 else 1.0)
     return np.clip(np.rint(y), GREY_MIN, GREY_MAX).astype(np.uint8)
 
 
@@ -130,7 +155,8 @@ def facade_texture(rng, h: int, w: int, texel_m: float, *, contrast: float = 1.0
     n_floors = int(H_m // floor_h)
     n_bays = int(W_m // bay_w)
     if n_floors < 1 or n_bays < 1:
-        return _to_grey(img, float(img.mean()), 1.0, std=float(img.std()) + 1e-3)
+        mu, sd = _moments(img)
+        return _to_grey(img, mu, 1.0, std=sd + 1e-3)
     x_margin = 0.5 * (W_m - n_bays * bay_w)
     t = lambda m: int(round(m / texel_m))  # noqa: E731 - metres to texels
     c = contrast
