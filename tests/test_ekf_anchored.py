@@ -149,3 +149,50 @@ def test_bad_input():
         ekf.add([1], np.zeros((1, 2)), np.eye(3), np.zeros(3), 0.0, 0.01, 0.02)
     with pytest.raises(ConfigError, match="gate_probability"):
         AnchoredEKFConfig(gate_probability=1.5)
+
+
+def _bank_with_track(ids, drift=0.03):
+    """A bank of landmarks at 10–40 m and the pixels of a forward flight past them (one row per frame)."""
+    f = 400.0
+    ekf = AnchoredInverseDepthEKF(AnchoredEKFConfig(attitude_drift_deg_s=drift, position_sigma_m=0.1), f, f)
+    g = np.random.default_rng(3)
+    p = np.stack([g.uniform(-5, 5, len(ids)), g.uniform(-3, 3, len(ids)), g.uniform(10, 40, len(ids))], 1)
+    C = np.stack([0.05 * np.arange(8), np.zeros(8), 0.4 * np.arange(8)], 1)
+    R = so3_exp(np.stack([np.zeros(8), 0.01 * np.arange(8), np.zeros(8)], 1))
+    xy = np.stack([(np.einsum("ji,nj->ni", R[k], p - C[k])) for k in range(8)])
+    xy = xy[:, :, :2] / xy[:, :, 2:] + g.normal(scale=1.0 / f, size=(8, len(ids), 2))
+    ekf.add(ids, xy[0], R[0], C[0], 0.0, 0.02, 0.03)
+    return ekf, xy, R, C, 0.1 * np.arange(8)
+
+
+def test_update_sequence_and_update_banks_match_update():
+    """Replaying buffers (update_sequence) and one batch over two banks (update_banks) give what
+    update() gives landmark by landmark, frame by frame."""
+    ids = np.arange(6)
+    ref, xy, R, C, t = _bank_with_track(ids)
+    count = np.array([8, 3, 5, 8, 1, 6])  # observations per landmark, the anchor included
+    for k in range(1, 8):
+        sel = count > k
+        ref.update(ids[sel], xy[k, sel], R[k], C[k], t[k])
+    seq, *_ = _bank_with_track(ids)
+    seq.update_sequence(ids, np.swapaxes(xy[1:], 0, 1), np.broadcast_to(R[1:], (6, 7, 3, 3)),
+                        np.broadcast_to(C[1:], (6, 7, 3)), np.broadcast_to(t[1:], (6, 7)), count - 1)
+    np.testing.assert_allclose(seq.x, ref.x, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(seq.P, ref.P, rtol=1e-9, atol=1e-15)
+    np.testing.assert_array_equal(seq.n_updates, ref.n_updates)
+
+    a, *_ = _bank_with_track(ids[:4])
+    b, *_ = _bank_with_track(ids[:4])
+    b.move_to(a, [])  # nothing to move
+    alone, *_ = _bank_with_track(ids[:4])
+    other, *_ = _bank_with_track(ids[:4])
+    for k in range(1, 8):
+        res = AnchoredInverseDepthEKF.update_banks([(a, ids[:3], xy[k, :3]), (b, ids[1:4], xy[k, 1:4])], R[k], C[k], t[k])
+        alone.update(ids[:3], xy[k, :3], R[k], C[k], t[k])
+        other.update(ids[1:4], xy[k, 1:4], R[k], C[k], t[k])
+        assert [len(r.ids) for r in res] == [3, 3]
+    np.testing.assert_allclose(a.x, alone.x, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(b.P, other.P, rtol=1e-12, atol=1e-18)
+    with pytest.raises(InputError, match="count"):
+        seq.update_sequence(ids, np.swapaxes(xy[1:], 0, 1), np.broadcast_to(R[1:], (6, 7, 3, 3)),
+                            np.broadcast_to(C[1:], (6, 7, 3)), np.broadcast_to(t[1:], (6, 7)), count + 1)

@@ -477,17 +477,56 @@ class AnchoredInverseDepthEKF:
             accepted[sel] += good
         return accepted
 
+    @staticmethod
+    def update_banks(parts, R_world_cam, p_world_cam, t) -> list[UpdateResult]:
+        """Fuse one frame's observations of landmarks held in several banks, in one batch.
+
+        ``parts``: a list of (bank, ids, xy); the banks share configuration and camera, the pose
+        ``R_world_cam`` (3,3), ``p_world_cam`` (3,) and time ``t`` are the frame's.  The same as
+        :meth:`update` on each bank in turn, with one set of array operations for all of them.
+        """
+        parts = [(bank, np.asarray(ids, dtype=np.int64).reshape(-1), xy) for bank, ids, xy in parts]
+        if not parts:
+            return []
+        first = parts[0][0]
+        if any(b.config != first.config or not np.array_equal(b.sigma_xy, first.sigma_xy) for b, _, _ in parts):
+            raise InputError("update_banks: the banks must share their configuration and camera")
+        Rc = _shared_or_batch("R_world_cam", R_world_cam, 1, (3, 3))
+        C = _shared_or_batch("p_world_cam", p_world_cam, 1, (3,))
+        if Rc.shape != (3, 3) or C.shape != (3,) or np.ndim(t) != 0 or not np.isfinite(t):
+            raise InputError("update_banks: one frame's pose (3,3), (3,) and a finite time t")
+        rows = [bank.index_of(ids) for bank, ids, _ in parts]
+        z = [_as_batch("xy", xy, len(ids), (2,)) for _, ids, xy in parts]
+        ends = np.cumsum([len(r) for r in rows])
+        if ends[-1] == 0:
+            e = np.zeros(0)
+            return [UpdateResult(ids, e.astype(bool), e, e.astype(np.int8)) for _, ids, _ in parts]
+        gather = [np.concatenate([getattr(b, name)[r] for (b, _, _), r in zip(parts, rows)])
+                  for name in ("x", "P", "R_world_camA", "p_world_camA", "t_anchor")]
+        x, P, good, nis, reason = first._solve(*gather, np.concatenate(z), Rc, C, float(t))
+        out = []
+        for (bank, ids, _), r, lo, hi in zip(parts, rows, np.concatenate([[0], ends[:-1]]), ends):
+            bank._commit(r, x[lo:hi], P[lo:hi], good[lo:hi], nis[lo:hi])
+            out.append(UpdateResult(ids, good[lo:hi], nis[lo:hi], reason[lo:hi]))
+        return out
+
     def _update_rows(self, rows, z, Rc, C, t):
         """The iterated EKF update of bank rows ``rows`` (validated inputs): (accepted, nis, reason)."""
+        x, P, good, nis, reason = self._solve(
+            self.x[rows], self.P[rows], self.R_world_camA[rows], self.p_world_camA[rows], self.t_anchor[rows], z, Rc, C, t
+        )
+        self._commit(rows, x, P, good, nis)
+        return good, nis, reason
+
+    def _solve(self, x0, P0, RA, pA, tA, z, Rc, C, t):
+        """Iterated EKF update of states x0 (M,n), P0 (M,n,n) anchored at (RA, pA, tA) with measurements
+        z (M,2) from pose (Rc, C) at t: (x, P, accepted, nis, reason), x and P unchanged where not accepted."""
         cfg = self.config
-        x0 = self.x[rows]
-        P0 = self.P[rows]
-        RA = self.R_world_camA[rows]
         ray_map = _ray_map(RA)
         var = self.measurement_variance(x0)
         R_cam_world = np.swapaxes(Rc, -1, -2)
-        a = self.p_world_camA[rows] - C
-        D = (0.5 * (t - self.t_anchor[rows]))[:, None, None] * (RA + Rc) if self.n == 6 else None
+        a = pA - C
+        D = (0.5 * (t - tA))[:, None, None] * (RA + Rc) if self.n == 6 else None
 
         def gain(H):
             """P0 Hᵀ (M,n,2) and S⁻¹ (M,2,2), S = H P0 Hᵀ + R."""
@@ -525,8 +564,13 @@ class AnchoredInverseDepthEKF:
         P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
         good = ok & np.isfinite(xi).all(1) & np.isfinite(P_new).all((1, 2))
         reason[ok & ~good] = GATED
-        self.x[rows] = np.where(good[:, None], xi, x0)
-        self.P[rows] = np.where(good[:, None, None], P_new, P0)
+        return np.where(good[:, None], xi, x0), np.where(good[:, None, None], P_new, P0), good, nis, reason
+
+    def _commit(self, rows, x, P, good, nis) -> None:
+        """Store the updated rows and their accept / reject / NIS history."""
+        cfg = self.config
+        self.x[rows] = x
+        self.P[rows] = P
         self.n_updates[rows] += good
         n_rejects = np.where(good, 0, self.n_rejects[rows] + 1)
         self.n_rejects[rows] = n_rejects
@@ -541,7 +585,6 @@ class AnchoredInverseDepthEKF:
         if cfg.max_mean_nis > 0:
             full = nis_count >= cfg.nis_window
             self.diverged[rows] |= full & (nis_avg > cfg.max_mean_nis)
-        return good, nis, reason
 
     # -- output ---------------------------------------------------------------------------------
     def estimates(self, p_world_cam) -> LandmarkEstimates:

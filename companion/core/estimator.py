@@ -218,21 +218,17 @@ class RangeEstimator:
                 v_cam, w_cam = se3_twist(*self.pose_prev, R, p, dt)
             self.ekf.predict(np.asarray(v_cam, float), np.asarray(w_cam, float), dt)
 
-        # 1. landmarks with a running filter
+        # 1. landmarks with a running filter; pending ones are buffered (and fed to their
+        #    wide-prior filters in the same batch)
         in_ekf = self.ekf.contains(ids)
-        n_rej = 0
-        if np.any(in_ekf):
-            res = self._update(ids[in_ekf], xy[in_ekf], R, p, t)
-            n_rej = int(np.sum(~res))
-            rows = self.ekf.index_of(ids[in_ekf])
-            self.t_seen[rows] = t
-
-        # 2. pending landmarks: buffer, then try to initialize
         rest = ~in_ekf
         in_pend, prow = self.pending.rows_of(ids[rest])
         self.pending.append(prow[in_pend], t, xy[rest][in_pend], R, p)
-        if self.prior_bank is not None:
-            self.prior_bank.update(ids[rest][in_pend], xy[rest][in_pend], R, p, t)
+        n_rej = int(np.sum(~self._update(ids[in_ekf], xy[in_ekf], R, p, t, ids[rest][in_pend], xy[rest][in_pend])))
+        if np.any(in_ekf):
+            self.t_seen[self.ekf.index_of(ids[in_ekf])] = t
+
+        # 2. new landmarks, then try to initialize the pending ones
         room = self.config.max_landmarks - len(self.ekf) - len(self.pending)
         new_ids = ids[rest][~in_pend][: max(room, 0)]
         new_xy = xy[rest][~in_pend][: max(room, 0)]
@@ -271,9 +267,14 @@ class RangeEstimator:
             self.prior_bank.remove(gone[self.prior_bank.contains(gone)])
         self.pending.keep(keep)
 
-    def _update(self, ids, xy, R, p, t) -> np.ndarray:
+    def _update(self, ids, xy, R, p, t, pend_ids, pend_xy) -> np.ndarray:
+        """Fuse this frame into the running filters (accepted flags returned) and, with the anchored
+        filter, into the pending landmarks' wide-prior filters, in one batch."""
         if isinstance(self.ekf, AnchoredInverseDepthEKF):
-            return self.ekf.update(ids, xy, R, p, t).accepted
+            parts = [(self.ekf, ids, xy), (self.prior_bank, pend_ids, pend_xy)]
+            return AnchoredInverseDepthEKF.update_banks(parts, R, p, t)[0].accepted
+        if len(ids) == 0:
+            return np.zeros(0, bool)
         return self.ekf.update(ids, xy).accepted
 
     def _initialize(self, t, R, p):
