@@ -393,16 +393,16 @@ def compute_sectors(
     min_cm, max_cm = config.min_distance_cm, config.max_distance_cm
 
     # published value of every obstacle point (clamped to [min, max]; 0 = touching if enabled)
-    pt_cm = np.clip(np.rint(np.clip(d_cons, config.min_distance_m, max_m) * 100).astype(np.int64), min_cm, max_cm)
+    d_pub = np.clip(d_cons, config.min_distance_m, max_m)
+    pt_cm = np.clip(np.rint(d_pub * 100).astype(np.int64), min_cm, max_cm)
     if config.touching_distance_m > 0:
         pt_cm = np.where(d_h <= config.touching_distance_m, 0, pt_cm)
     obs_sec = np.flatnonzero(has_obs & in_view)
     if obs_sec.size:
         pts = pick[obs_sec]
-        vals = np.clip(d_cons[pts], config.min_distance_m, max_m)
         dist[obs_sec] = pt_cm[pts]
         state[obs_sec] = SectorState.OBSTACLE
-        range_m[obs_sec] = vals
+        range_m[obs_sec] = d_pub[pts]
         sigma_m[obs_sec] = sig[pts]
 
     clear_sec = fully & (n_obs == 0) & (n_veto == 0) & (n_clr >= config.min_points_clear)
