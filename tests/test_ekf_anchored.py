@@ -5,9 +5,9 @@ import pytest
 from scipy.stats import chi2
 
 from companion.core.ekf_anchored import (
-    GATED, AnchoredEKFConfig, AnchoredInverseDepthEKF, inverse_depth_state, ray,
+    GATED, AnchoredEKFConfig, AnchoredInverseDepthEKF, inverse_depth_state, ray, ray_jacobian,
 )
-from companion.core.frames import so3_exp
+from companion.core.frames import SKEW_MAP, skew, so3_exp
 from companion.errors import ConfigError, InputError
 
 rng = np.random.default_rng(7)
@@ -38,6 +38,18 @@ def test_analytic_jacobian_matches_numeric(n):
     dt = rng.uniform(0.1, 3.0, N)
     _, _, H = AnchoredInverseDepthEKF.measure(x, RA, pA, Rc, C, dt)
     np.testing.assert_allclose(H, numeric_H(x, RA, pA, Rc, C, dt), rtol=1e-5, atol=1e-7)
+
+
+def test_ray_and_skew_maps_match_their_formulas():
+    """m, ∂m/∂θ, ∂m/∂φ from the product basis and [v]× from SKEW_MAP equal the closed forms exactly."""
+    th, ph = rng.uniform(-3, 3, 50), rng.uniform(-1.5, 1.5, 50)
+    cp, sp, ct, st = np.cos(ph), np.sin(ph), np.cos(th), np.sin(th)
+    np.testing.assert_array_equal(ray(th, ph), np.stack([cp * st, -sp, cp * ct], -1))
+    dth = np.stack([cp * ct, np.zeros_like(cp), -cp * st], -1)
+    dph = np.stack([-sp * st, -cp, -sp * ct], -1)
+    np.testing.assert_array_equal(ray_jacobian(th, ph), np.stack([dth, dph], -1))
+    v = rng.normal(size=(20, 3))
+    np.testing.assert_array_equal((v @ SKEW_MAP).reshape(-1, 3, 3), skew(v))
 
 
 def test_state_round_trip():
@@ -193,6 +205,16 @@ def test_update_sequence_and_update_banks_match_update():
         assert [len(r.ids) for r in res] == [3, 3]
     np.testing.assert_allclose(a.x, alone.x, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(b.P, other.P, rtol=1e-12, atol=1e-18)
+    fields = AnchoredInverseDepthEKF._FIELDS
+    before = {name: getattr(b, name)[b.index_of([1, 3])].copy() for name in fields}
+    a.remove([1, 3])
+    b.move_to(a, [3, 1])  # state and history unchanged, ids kept sorted
+    np.testing.assert_array_equal(a.ids, [0, 1, 2, 3])
+    np.testing.assert_array_equal(b.ids, [0, 2])
+    for name in fields:
+        np.testing.assert_array_equal(getattr(a, name)[[1, 3]], before[name])
+    with pytest.raises(InputError, match="move_to"):
+        a.move_to(b, [2])  # b already holds id 2
     with pytest.raises(InputError, match="count"):
         seq.update_sequence(ids, np.swapaxes(xy[1:], 0, 1), np.broadcast_to(R[1:], (6, 7, 3, 3)),
                             np.broadcast_to(C[1:], (6, 7, 3)), np.broadcast_to(t[1:], (6, 7)), count + 1)

@@ -52,7 +52,7 @@ import math
 import numpy as np
 
 from companion.config import require, require_finite
-from companion.core.frames import skew
+from companion.core.frames import SKEW_MAP
 from companion.core.idbank import lookup, rows_or_raise
 from companion.errors import InputError
 
@@ -110,6 +110,11 @@ class UpdateResult:
     reason: np.ndarray  # (M,) UPDATED / GATED / BEHIND
 
 
+def _no_update(ids: np.ndarray) -> UpdateResult:
+    """The result of an update with no landmarks."""
+    return UpdateResult(ids, np.zeros(0, bool), np.zeros(0), np.zeros(0, np.int8))
+
+
 @dataclasses.dataclass
 class LandmarkEstimates:
     """Per landmark, relative to a given camera: everything a consumer needs, always finite."""
@@ -124,34 +129,14 @@ class LandmarkEstimates:
     valid: np.ndarray  # (N,) bool: not diverged, ρ not significantly negative
 
 
-def ray_columns(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """[∂m/∂θ, ∂m/∂φ, m(θ, φ)] of DESIGN §3.4 as the columns of one (N, 3, 3) array.
-
-    One array so that a single batched product rotates the ray and both its derivatives.
-    """
-    ct, st, cp = np.cos(theta), np.sin(theta), np.cos(phi)
-    nsp = -np.sin(phi)
-    T = np.empty(np.shape(theta) + (3, 3))
-    np.multiply(cp, ct, out=T[..., 0, 0])  # ∂m/∂θ = (cos φ cos θ, 0, −cos φ sin θ)
-    T[..., 1, 0] = 0.0
-    np.multiply(cp, st, out=T[..., 0, 2])  # m = (cos φ sin θ, −sin φ, cos φ cos θ)
-    np.negative(T[..., 0, 2], out=T[..., 2, 0])
-    np.multiply(nsp, st, out=T[..., 0, 1])  # ∂m/∂φ = (−sin φ sin θ, −cos φ, −sin φ cos θ)
-    np.negative(cp, out=T[..., 1, 1])
-    np.multiply(nsp, ct, out=T[..., 2, 1])
-    T[..., 1, 2] = nsp
-    T[..., 2, 2] = T[..., 0, 0]
-    return T
-
-
 def ray(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """m(θ, φ) of DESIGN §3.4, (N, 3)."""
-    return ray_columns(theta, phi)[..., 2]
+    return _ray_columns(theta, phi)[:, :, 0]
 
 
 def ray_jacobian(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """[∂m/∂θ, ∂m/∂φ] as (N, 3, 2)."""
-    return ray_columns(theta, phi)[..., :2]
+    return _ray_columns(theta, phi)[:, :, 1:]
 
 
 def angles_of(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -189,11 +174,15 @@ def _ray_basis() -> np.ndarray:
 
 
 _RAY_FROM_PRODUCTS = _ray_basis()
-#: [v]× = v @ _LEVI (flattened, row-major): (2,1) = v0, (0,2) = v1, (1,0) = v2 and the opposite entries negated
-_LEVI = np.zeros((3, 9))
-_LEVI[0, 7], _LEVI[1, 2], _LEVI[2, 3] = 1, 1, 1
-_LEVI[0, 5], _LEVI[1, 6], _LEVI[2, 1] = -1, -1, -1
+_RAY_FROM_PRODUCTS_L = np.ascontiguousarray(_RAY_FROM_PRODUCTS.transpose(1, 0, 2)).reshape(3, 24)  # [l, (k, c)]
+_RAY_COLUMNS = np.ascontiguousarray(_RAY_FROM_PRODUCTS[:, :, :3]).reshape(6, 9)
 _I3 = np.eye(3)
+
+
+def _ray_columns(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """[m, ∂m/∂θ, ∂m/∂φ] (N, 3, 3), columns, at angles (N,): :func:`_ray_basis` applied to the products."""
+    P = _ray_products(np.stack([np.ravel(theta), np.ravel(phi)], -1))
+    return (P @ _RAY_COLUMNS).reshape(-1, 3, 3)
 
 
 def _exp_and_left_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -219,7 +208,7 @@ def _exp_and_left_jacobian(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             a = np.where(small, 1.0 - th2 / 6, a)
             b = np.where(small, 0.5 - th2 / 24, b)
             d = np.where(small, 1.0 / 6 - th2 / 120, d)
-    K = (phi @ _LEVI).reshape(n, 3, 3)
+    K = (phi @ SKEW_MAP).reshape(n, 3, 3)
     K2 = phi[:, :, None] * phi[:, None, :] - th2[:, None, None] * _I3
     a, b, d = a[:, None, None], b[:, None, None], d[:, None, None]
     return a * K + b * K2 + _I3, b * K + d * K2 + _I3
@@ -230,9 +219,6 @@ def _ray_map(R_world_camA: np.ndarray) -> np.ndarray:
     n = len(R_world_camA)
     RM = (R_world_camA @ _RAY_FROM_PRODUCTS_L).reshape(n, 3, 6, 4)  # [n, i, k, c] = Σ_l R[n, i, l] M[k, l, c]
     return np.ascontiguousarray(RM.transpose(0, 2, 1, 3)).reshape(n, 6, 12)
-
-
-_RAY_FROM_PRODUCTS_L = np.ascontiguousarray(_RAY_FROM_PRODUCTS.transpose(1, 0, 2)).reshape(3, 24)  # [l, (k, c)]
 
 
 def _predict(x, ray_map, a, R_cam_world, D):
@@ -252,7 +238,7 @@ def _predict(x, ray_map, a, R_cam_world, D):
         E, J_l = _exp_and_left_jacobian((D @ x[:, 3:, None])[:, :, 0])
         W7 = np.empty((n, 3, 7))
         np.matmul(E, W, out=W7[:, :, :4])
-        np.matmul((W7[:, :, 0] @ -_LEVI).reshape(n, 3, 3), J_l @ D, out=W7[:, :, 4:])
+        np.matmul((W7[:, :, 0] @ -SKEW_MAP).reshape(n, 3, 3), J_l @ D, out=W7[:, :, 4:])
         W = W7
     if R_cam_world.ndim == 2:  # one pose for all: a single (3,3)·(3, N·k) product
         k = W.shape[2]
@@ -433,8 +419,7 @@ class AnchoredInverseDepthEKF:
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         m = len(ids)
         if m == 0:
-            e = np.zeros(0)
-            return UpdateResult(ids, e.astype(bool), e, e.astype(np.int8))
+            return _no_update(ids)
         rows = self.index_of(ids)
         z = _as_batch("xy", xy, m, (2,))
         Rc = _shared_or_batch("R_world_cam", R_world_cam, m, (3, 3))
@@ -499,8 +484,7 @@ class AnchoredInverseDepthEKF:
         z = [_as_batch("xy", xy, len(ids), (2,)) for _, ids, xy in parts]
         ends = np.cumsum([len(r) for r in rows])
         if ends[-1] == 0:
-            e = np.zeros(0)
-            return [UpdateResult(ids, e.astype(bool), e, e.astype(np.int8)) for _, ids, _ in parts]
+            return [_no_update(ids) for _, ids, _ in parts]
         gather = [np.concatenate([getattr(b, name)[r] for (b, _, _), r in zip(parts, rows)])
                   for name in ("x", "P", "R_world_camA", "p_world_camA", "t_anchor")]
         x, P, good, nis, reason = first._solve(*gather, np.concatenate(z), Rc, C, float(t))
@@ -580,7 +564,8 @@ class AnchoredInverseDepthEKF:
         nis_count = self.nis_count[rows] + 1
         self.nis_count[rows] = nis_count
         alpha = 1.0 / np.minimum(nis_count, cfg.nis_window)  # running mean, then exponential
-        nis_avg = self.nis_avg[rows] + alpha * (nis_c - self.nis_avg[rows])
+        nis_avg = self.nis_avg[rows]
+        nis_avg += alpha * (nis_c - nis_avg)
         self.nis_avg[rows] = nis_avg
         if cfg.max_mean_nis > 0:
             full = nis_count >= cfg.nis_window
@@ -598,14 +583,14 @@ class AnchoredInverseDepthEKF:
         srho = np.sqrt(np.maximum(self.P[:, 2, 2], 0.0))
         rho_floor = 1.0 / cfg.max_range_m
         rho_eff = np.maximum(rho, rho_floor)
-        mw = np.einsum("nij,nj->ni", self.R_world_camA, ray(x[:, 0], x[:, 1]))
+        Rm = np.einsum("nij,njk->nik", self.R_world_camA, _ray_columns(x[:, 0], x[:, 1]))  # R [m, ∂m/∂θ, ∂m/∂φ]
+        mw = Rm[:, :, 0]
         a = self.p_world_camA - C
         g = rho_eff[:, None] * a + mw  # ρ · (p − C)
         ng = np.linalg.norm(g, axis=1)
         rng = np.minimum(ng / rho_eff, cfg.max_range_m)
         J = np.zeros((len(x), 3))
-        dm = np.einsum("nij,njk->nik", self.R_world_camA, ray_jacobian(x[:, 0], x[:, 1]))
-        J[:, :2] = np.einsum("ni,nik->nk", g, dm) / (ng * rho_eff)[:, None]
+        J[:, :2] = np.einsum("ni,nik->nk", g, Rm[:, :, 1:]) / (ng * rho_eff)[:, None]
         J[:, 2] = np.einsum("ni,ni->n", g, a) / (ng * rho_eff) - ng / rho_eff**2
         rsig = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", J, self.P[:, :3, :3], J), 0.0))
         rsig = np.minimum(rsig, cfg.max_range_m)

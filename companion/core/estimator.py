@@ -223,8 +223,9 @@ class RangeEstimator:
         in_ekf = self.ekf.contains(ids)
         rest = ~in_ekf
         in_pend, prow = self.pending.rows_of(ids[rest])
-        self.pending.append(prow[in_pend], t, xy[rest][in_pend], R, p)
-        n_rej = int(np.sum(~self._update(ids[in_ekf], xy[in_ekf], R, p, t, ids[rest][in_pend], xy[rest][in_pend])))
+        pend_ids, pend_xy = ids[rest][in_pend], xy[rest][in_pend]
+        self.pending.append(prow[in_pend], t, pend_xy, R, p)
+        n_rej = int(np.sum(~self._update(ids[in_ekf], xy[in_ekf], R, p, t, pend_ids, pend_xy)))
         if np.any(in_ekf):
             self.t_seen[self.ekf.index_of(ids[in_ekf])] = t
 

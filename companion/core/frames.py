@@ -39,6 +39,10 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 _SKEW_POS = np.array([7, 2, 3])  # flat indices in a row-major 3×3 matrix
 _SKEW_NEG = np.array([5, 6, 1])
+#: :func:`skew` as a linear map: ``[v]x == (v @ SKEW_MAP).reshape(3, 3)`` for finite v (one product per batch)
+SKEW_MAP = np.zeros((3, 9))
+SKEW_MAP[[0, 1, 2], _SKEW_POS] = 1.0
+SKEW_MAP[[0, 1, 2], _SKEW_NEG] = -1.0
 
 
 def is_orthonormal(R: np.ndarray) -> bool:
