@@ -63,10 +63,6 @@ DATA_STREAMS = {
     mavlink.MAV_DATA_STREAM_ALL: ("ATTITUDE", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "SYSTEM_TIME"),
 }
 
-# the only messages whose handling can change the stream schedule (AutopilotLogic.handle calls
-# set_period for them and for nothing else; the SITL relies on this to build telemetry ahead)
-STREAM_COMMANDS = frozenset({"COMMAND_LONG", "REQUEST_DATA_STREAM"})
-
 
 class AutopilotLogic:
     """Answers to the companion's requests, on the simulation clock (see the module docstring).
@@ -253,4 +249,4 @@ class UdpEndpoint:
             pass
 
 
-__all__ = ["AutopilotLogic", "UdpEndpoint", "PortBusyError", "STREAMABLE", "DATA_STREAMS", "STREAM_COMMANDS", "COMPONENT_ID"]
+__all__ = ["AutopilotLogic", "UdpEndpoint", "PortBusyError", "STREAMABLE", "DATA_STREAMS", "COMPONENT_ID"]

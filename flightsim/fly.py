@@ -111,7 +111,6 @@ class StreamSchedule:
 
     def __init__(self) -> None:
         self._streams: dict[str, list] = {}  # name -> [period | None, next_t, build, delay]
-        self.changes = 0  # calls of set_period / restart_at so far
 
     def add(self, name: str, period: float | None, build: Callable, delay: float = 0.0, start_t: float = 0.0) -> None:
         self._streams[name] = [period, start_t, build, delay]
@@ -124,7 +123,6 @@ class StreamSchedule:
 
     def set_period(self, name: str, period: float | None, t_now: float) -> None:
         """Change a stream's period (None = stop); a (re)started stream sends at the next step."""
-        self.changes += 1
         s = self._streams[name]
         if period is not None and (s[0] is None or period != s[0]):
             s[1] = t_now
@@ -132,7 +130,6 @@ class StreamSchedule:
 
     def restart_at(self, name: str, t: float) -> None:
         """Send ``name`` at the first step at or after ``t`` (and then on its period)."""
-        self.changes += 1
         self._streams[name][1] = t
 
     def snapshot(self) -> dict[str, tuple]:

@@ -35,14 +35,14 @@ physics step at or after that instant.  Every DISTANCE_SENSOR's ``time_boot_ms``
 against this model (``clock_mismatches`` in the summary).  While the companion works on a
 frame the simulator already runs the physics and renders the next frame (nothing in them depends
 on the companion) and builds the telemetry of those steps, in step order, as if no request came
-in between; a step at which a stream request is handled (or a new companion's HEARTBEAT restart)
-rewinds the telemetry model and the stream schedule to that step and builds again, so the random
-draws and messages are those of the step-by-step loop (``telemetry_ahead`` in the summary counts
-both).  After the acknowledgement only the requests and the sending are left before the next
-frame goes out; on two cores the processes overlap; no fixed sleeps lie in this path.  Determinism
-rests on loopback ordering: a datagram sent before the frame (or the acknowledgement) is queued at
-the receiver before the frame (acknowledgement) is — true of Linux loopback, where ``sendto``
-delivers before it returns.
+in between; a change of the stream schedule (a stream request handled, or a new companion's
+HEARTBEAT restart) first rewinds the telemetry model and the schedule to the step at which it
+happens and that step is built again, so the random draws and messages are those of the
+step-by-step loop (``telemetry_ahead`` in the summary counts both).  After the acknowledgement
+only the requests and the sending are left before the next frame goes out; on two cores the
+processes overlap; no fixed sleeps lie in this path.  Determinism rests on loopback ordering: a
+datagram sent before the frame (or the acknowledgement) is queued at the receiver before the
+frame (acknowledgement) is — true of Linux loopback, where ``sendto`` delivers before it returns.
 
 ``realtime``: the simulator paces itself to the wall clock and never waits for the companion,
 which runs on its normal monotonic clock with TIMESYNC; a datagram is dated when it is read
@@ -76,11 +76,13 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import cv2
+
 from companion.mavlink.dialect import mavlink  # first: MAVLink 2 + ardupilotmega
 from companion.camera_sources import ACK_DROPPED, ACK_PROCESSED, ACK_REJECTED, SimFrameServer
 from companion.config import require, require_finite
 from companion.errors import CompanionError, ConfigError
-from flightsim.autopilot import STREAM_COMMANDS, AutopilotLogic, PortBusyError, UdpEndpoint
+from flightsim.autopilot import AutopilotLogic, PortBusyError, UdpEndpoint
 from flightsim.fly import EPS_T, Flight, StreamSchedule, camera_toml, open_video
 from flightsim.scenario import Scenario, load_scenario
 from flightsim.tlog import TlogWriter
@@ -261,6 +263,7 @@ class _Run:
         self.att_state_sent = -math.inf  # state time of the newest ATTITUDE sent
         self.speculated = 0  # lockstep: steps whose telemetry was built ahead (_speculate) ...
         self.rewound = 0  # ... and how many of those were rebuilt after a request changed the streams
+        self._playing_snap = None  # lockstep: the state before the step being played, while its requests are handled
         self.t_now = 0.0  # the autopilot's step (simulation time)
         self._ack_wall: float | None = None
         self._last_rx_t = -math.inf
@@ -291,7 +294,7 @@ class _Run:
         peers = self.endpoint.counters["peers"]
         got = self.endpoint.receive()
         if self.endpoint.counters["peers"] != peers:  # a new companion: HEARTBEAT at once, then every second
-            self._unspeculate()
+            self._rewind()
             self.streams.restart_at("HEARTBEAT", arrival)
         for raw, msg in got:
             t = max(arrival, self._last_rx_t)
@@ -363,12 +366,17 @@ class _Run:
             self.streams.add(name, None, b[name], 0.0 if name == "SYSTEM_TIME" else lat)
         defaults = {"ATTITUDE": 1.0 / self.tel.attitude_rate_hz, "LOCAL_POSITION_NED": 1.0 / self.tel.position_rate_hz,
                     "GLOBAL_POSITION_INT": 1.0 / self.tel.global_rate_hz, "SYSTEM_TIME": 1.0}
-        self.logic = AutopilotLogic(self.tel.system_id, self.streams.set_period, defaults, self.boot_s)
+        self.logic = AutopilotLogic(self.tel.system_id, self._set_period, defaults, self.boot_s)
         self.tx_log = TlogWriter(out / "telemetry.tlog", self.epoch)
         self.rx_log = TlogWriter(out / "received.tlog", self.epoch)
         if self.want_video:
             self.video = open_video(out / "video.avi", self.sc)
         self._wait_for_companion()
+
+    def _set_period(self, name: str, period: float | None, t: float) -> None:
+        """The autopilot's only way to change the streams: the telemetry built ahead is dropped first."""
+        self._rewind()
+        self.streams.set_period(name, period, t)
 
     def _system_time(self, state):
         return self._system_time_at(state.time_s)
@@ -473,33 +481,35 @@ class _Run:
         messages of the steps computed ahead, as if no request changed the streams in between —
         so that after the acknowledgement only the sending is left (the companion waits for that).
 
-        Each step keeps the telemetry model's and the schedule's state from before it; a step
-        whose requests may change the streams (:data:`STREAM_COMMANDS`) and a new companion
-        (HEARTBEAT restart) rewind to it (:meth:`_unspeculate`) and build again, so every message,
-        random draw and stamp is the one the step-by-step loop gives."""
-        fl, streams = self.flight, self.streams
+        Each step keeps the telemetry model's and the schedule's state from before it; a change of
+        the schedule rewinds to the step it happens at (:meth:`_rewind`), so every message, random
+        draw and stamp is the one the step-by-step loop gives."""
         for entry in self.ahead:
-            if entry[2] is not None:
-                continue
-            state = entry[0]
-            snap = (fl.tm.snapshot(), streams.snapshot())
-            fl.advance_telemetry(state)
-            w0 = time.perf_counter()
-            entry[2] = (snap, streams.due(state))
-            self.timing["telemetry_build"] += time.perf_counter() - w0
-            self.speculated += 1
+            if entry[2] is None:
+                snap = (self.flight.tm.snapshot(), self.streams.snapshot())
+                entry[2] = (snap, self._build_telemetry(entry[0]))
+                self.speculated += 1
 
-    def _unspeculate(self, spec=None) -> None:
-        """Drop the telemetry built ahead: back to the state before the step of ``spec`` (the step
-        being played) or, without it, before the first step not yet played."""
-        if spec is None:
-            first = next((e for e in self.ahead if e[2] is not None), None)
-            if first is None:
-                return
-            spec = first[2]
-        else:
+    def _build_telemetry(self, state) -> list:
+        """Advance the telemetry model to ``state`` and build the streams due at it."""
+        self.flight.advance_telemetry(state)
+        w0 = time.perf_counter()
+        due = self.streams.due(state)
+        self.timing["telemetry_build"] += time.perf_counter() - w0
+        return due
+
+    def _rewind(self) -> None:
+        """The stream schedule is about to change: drop the telemetry built ahead, back to the state
+        before the step being played (its requests are being handled) or, between steps, before
+        the first step not yet played (no-op when nothing was built ahead)."""
+        snap, self._playing_snap = self._playing_snap, None
+        if snap is not None:
             self.rewound += 1
-        tm_snap, streams_snap = spec[0]
+        else:
+            snap = next((e[2][0] for e in self.ahead if e[2] is not None), None)
+            if snap is None:
+                return
+        tm_snap, streams_snap = snap
         self.flight.tm.restore(tm_snap)
         self.streams.restore(streams_snap)
         for e in self.ahead:
@@ -507,34 +517,16 @@ class _Run:
                 e[2] = None
                 self.rewound += 1
 
-    def _stream_command_due(self, t: float) -> bool:
-        for item in self.inbox:
-            if item.t > t + EPS_T:
-                return False
-            if item.msg.get_type() in STREAM_COMMANDS:
-                return True
-        return False
-
     def _play(self, state, frame, spec=None) -> None:
         """The autopilot's side of one step: requests due, telemetry (built ahead in ``spec`` by
-        :meth:`_speculate`, or now), frames ready to leave."""
+        :meth:`_speculate` unless a request rewound it, or now), frames ready to leave."""
         cfg, fl = self.cfg, self.flight
         t = state.time_s
         self.t_now = t
-        if spec is not None and self._stream_command_due(t):
-            self._unspeculate(spec)
-            spec = None
-        changes = self.streams.changes
-        self._handle_inbox(t)
-        if spec is None:
-            fl.advance_telemetry(state)
-            w0 = time.perf_counter()
-            due = self.streams.due(state)
-            self.timing["telemetry_build"] += time.perf_counter() - w0
-        else:
-            if self.streams.changes != changes:  # only STREAM_COMMANDS may change the streams
-                raise RuntimeError(f"t = {t:.3f} s: the stream schedule changed under telemetry built ahead")
-            due = spec[1]
+        self._playing_snap = None if spec is None else spec[0]
+        self._handle_inbox(t)  # a stream request rewinds (_set_period → _rewind)
+        due = spec[1] if self._playing_snap is not None else self._build_telemetry(state)
+        self._playing_snap = None
         for t_emit, name, msg in due:
             heapq.heappush(self.outq, (t_emit, self._seq, name, t, msg))
             self._seq += 1
@@ -629,26 +621,6 @@ def _score(out: Path, companion_config: Path | None, world) -> tuple[dict | None
     return score, "scored"
 
 
-def _one_opencv_thread() -> int | None:
-    """OpenCV on one thread in the simulator for the run (as the companion is started with);
-    returns the previous setting.  Its worker threads split each warp of the renderer across both
-    cores and then preempt the companion's process; the results are the same row by row."""
-    try:
-        import cv2
-    except ImportError:  # pragma: no cover - the renderer needs it anyway
-        return None
-    prev = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    return prev
-
-
-def _restore_opencv_threads(prev: int | None) -> None:
-    if prev is not None:
-        import cv2
-
-        cv2.setNumThreads(prev)
-
-
 def _free_or(port: int | None) -> int:
     return 0 if port is None else int(port)
 
@@ -690,7 +662,11 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
     run = _Run(sc, out, clock, cfg, companion_config, attach, video, progress, _free_or(mavlink_port), _free_or(camera_port))
     wall0 = time.perf_counter()
     failure: BaseException | None = None
-    cv_threads = _one_opencv_thread()
+    # OpenCV on one thread in the simulator for the run (as the companion is started with): its
+    # worker threads split each warp of the renderer across both cores and then preempt the
+    # companion's process; the results are the same row by row
+    cv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
     try:
         run.setup()
         run.loop()
@@ -699,7 +675,7 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
         raise
     finally:
         run.close()
-        _restore_opencv_threads(cv_threads)
+        cv2.setNumThreads(cv_threads)
         if failure is not None and run.companion is not None:
             log.info("companion log: %s", run.companion.log_path)
     wall = time.perf_counter() - wall0
