@@ -43,8 +43,6 @@ from flightsim.score import ScoreConfig, _jsonable, mark, nees_stats
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_COMPANION_CONFIG = ROOT / "configs" / "companion.toml"
 MODES = ("auto", "replay", "sitl")
 RATE_KEYS = ("detection", "valid_range", "dangerous_clear", "false_obstacle_clear_cells", "too_near", "over_range",
              "messages_without_false_obstacle", "messages_with_claims")
@@ -274,7 +272,7 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     worker (a picklable module-level function; :func:`run_one` by default).
     """
     from flightsim.report import write_report
-    from flightsim.scenario import load_scenario
+    from flightsim.scenario import load_scenario, resolve_companion_config
     from flightsim.score_io import load_series
 
     if not (isinstance(runs, int) and runs >= 1):
@@ -291,10 +289,7 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     base = sc.meta.seed if seed0 is None else int(seed0)
     if base < 0:
         raise ConfigError(f"--seed0 must be >= 0, got {base}")
-    if companion_config is None:  # the scenario's [scenario] companion_config (validated by load_scenario), else ours
-        companion_config = sc.companion_config_path
-    if companion_config is None and DEFAULT_COMPANION_CONFIG.is_file():
-        companion_config = DEFAULT_COMPANION_CONFIG
+    companion_config = resolve_companion_config(sc, companion_config)
     if companion_config is not None:
         from flightsim.score_io import companion_score_params
 

@@ -17,7 +17,8 @@ too close to an obstacle, a camera that sees nothing but sky, a ``companion_conf
 
 ``companion_config`` (a path relative to the scenario file, like ``world``) is the companion TOML
 that ``flightsim sitl``, ``flightsim campaign`` and ``flightsim score`` use when none is given on
-the command line (:func:`default_companion_config`); without it they use ``configs/companion.toml``.
+the command line (:func:`resolve_companion_config`; :func:`default_companion_config` reads it
+without loading the world); without it they use ``configs/companion.toml``.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ from flightsim.world import World, check_camera_sees_something, load_world
 
 
 EPOCH_2026 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
+#: the companion configuration of this repository: what a run uses when neither the user nor the scenario names one
+DEFAULT_COMPANION_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "companion.toml"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,6 +131,18 @@ def default_companion_config(scenario_path: str | os.PathLike, given: str | os.P
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
     return companion_config_of(path, meta)
+
+
+def resolve_companion_config(sc: Scenario, given: str | os.PathLike | None = None) -> Path | None:
+    """The companion TOML a run of ``sc`` uses: ``given`` (the user's option), else the scenario's
+    ``[scenario] companion_config``, else :data:`DEFAULT_COMPANION_CONFIG` if present, else None
+    (the companion's built-in defaults).  The one place this chain lives (sitl, campaign)."""
+    if given is not None:
+        return Path(given)
+    found = sc.companion_config_path
+    if found is None and DEFAULT_COMPANION_CONFIG.is_file():
+        found = DEFAULT_COMPANION_CONFIG
+    return found
 
 
 def load_scenario(path: str | os.PathLike, seed: int | None = None) -> Scenario:

@@ -84,13 +84,11 @@ from companion.config import require, require_finite
 from companion.errors import CompanionError, ConfigError
 from flightsim.autopilot import AutopilotLogic, PortBusyError, UdpEndpoint
 from flightsim.fly import EPS_T, Flight, StreamSchedule, camera_toml, open_video
-from flightsim.scenario import Scenario, load_scenario
+from flightsim.scenario import Scenario, load_scenario, resolve_companion_config
 from flightsim.tlog import TlogWriter
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_COMPANION_CONFIG = ROOT / "configs" / "companion.toml"
 CLOCKS = ("lockstep", "realtime")
 _ACK_NAMES = {ACK_PROCESSED: "processed", ACK_DROPPED: "dropped", ACK_REJECTED: "rejected"}
 
@@ -634,7 +632,8 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
 
     Ports: ``mavlink_port`` / ``camera_port`` when given, else ``port_base`` and ``port_base + 1``,
     else free ports chosen by the system (parallel runs do not collide).  ``companion_config``:
-    the companion's TOML (default: the repository's ``configs/companion.toml``).  ``processing_ms``
+    the companion's TOML (default: the scenario's ``[scenario] companion_config``, else the
+    repository's ``configs/companion.toml``; :func:`flightsim.scenario.resolve_companion_config`).  ``processing_ms``
     overrides ``config.processing_ms``.  Raises :class:`ConfigError` for a bad scenario, argument
     or busy port and :class:`SitlError` when the companion fails.
     """
@@ -651,13 +650,12 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
     for name, p in (("mavlink_port", mavlink_port), ("camera_port", camera_port)):
         if p is not None and not (isinstance(p, int) and 0 <= p <= 65535):
             raise ConfigError(f"{name} must be in 0..65535, got {p!r}")
-    if companion_config is None:
-        companion_config = DEFAULT_COMPANION_CONFIG if DEFAULT_COMPANION_CONFIG.is_file() else None
+    sc = load_scenario(scenario_path, seed=seed)
+    companion_config = resolve_companion_config(sc, companion_config)
     if companion_config is not None:
         companion_config = Path(companion_config).resolve()
         if not companion_config.is_file():
             raise ConfigError(f"companion config {companion_config}: no such file")
-    sc = load_scenario(scenario_path, seed=seed)
     out = Path(out_dir)
     run = _Run(sc, out, clock, cfg, companion_config, attach, video, progress, _free_or(mavlink_port), _free_or(camera_port))
     wall0 = time.perf_counter()

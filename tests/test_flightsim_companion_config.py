@@ -12,7 +12,7 @@ from companion.errors import ConfigError
 from flightsim import campaign as C
 from flightsim import cli as fcli
 from flightsim.cli import main as flightsim_main
-from flightsim.scenario import companion_config_of, default_companion_config, load_scenario
+from flightsim.scenario import DEFAULT_COMPANION_CONFIG, companion_config_of, default_companion_config, load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 SCEN = ROOT / "configs" / "scenarios"
@@ -114,7 +114,7 @@ def test_campaign_uses_the_scenarios_companion_config_unless_given(tmp_path):
                        companion_config=ROOT / "configs" / "companion.toml", run_fn=record_config)
     assert Path(c["companion_config"]) == (ROOT / "configs" / "companion.toml").resolve()
     c = C.run_campaign(SCEN / "quad_approach.toml", tmp_path / "c", runs=1, workers=1, mode="replay", run_fn=record_config)
-    assert Path(c["companion_config"]) == C.DEFAULT_COMPANION_CONFIG
+    assert Path(c["companion_config"]) == DEFAULT_COMPANION_CONFIG
     with pytest.raises(ConfigError, match="companion_config"):
         C.run_campaign(scenario_with(tmp_path, "gone.toml"), tmp_path / "d", runs=1, workers=1, mode="replay",
                        run_fn=record_config)
