@@ -9,7 +9,9 @@ Three layers, each usable on its own:
     reported velocity for at most ``position_extrapolation_s``) → camera pose through the mount →
     :class:`~companion.core.tracks.TrackManager` guided by the telemetry prediction (epipolar
     window, narrowed by converged landmark depths) → :class:`~companion.core.estimator.RangeEstimator`
-    (``[estimator] filter``) → landmarks into body FRD at exposure → :func:`compute_sectors`.
+    (``[estimator] filter``) → the local obstacle map (:mod:`companion.core.obstacle_map`: points on
+    the current rays, converged landmarks kept after their tracks end, re-observation, retention)
+    → live and remembered points into body FRD at exposure → :func:`compute_sectors` over 360°.
     A frame without a usable pose is skipped and its :class:`FrameResult` says why (``ok`` False);
     a frame stamped before the previous one, a jump of the TIMESYNC mapping, an autopilot reboot or
     a long gap restart tracks and filters so no range survives a clock it was not measured on.
@@ -55,6 +57,7 @@ from companion.config import require, require_finite
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.estimator import RangeEstimator, RangeOutput
 from companion.core.frames import R_to_euler_zyx
+from companion.core.obstacle_map import ObstacleMap, landmark_covariance, points_on_current_rays, world_to_body
 from companion.core.prediction import make_track_predictor
 from companion.core.sectors import SECTOR_COUNT, Sectors, compute_sectors
 from companion.core.tracks import TrackManager
@@ -116,6 +119,8 @@ class FrameResult:
     n_landmarks: int = 0
     n_converged: int = 0
     restart: str = ""  # non-empty: tracks and filters restarted on this frame, and why
+    n_map: int = 0  # points held by the local obstacle map
+    n_remembered: int = 0  # map points no longer tracked (published from memory)
     t_boot_capture: float | None = None  # capture time on the autopilot's boot clock (s), if mapped
 
     @property
@@ -145,6 +150,10 @@ class Pipeline:
         self.last_ok: FrameResult | None = None
         self._reset_seen = telemetry.counters.get("reset", 0)
         self._offset: float | None = None
+        self._epoch = 0
+        mcfg = getattr(config, "map", None)
+        self.map = ObstacleMap(mcfg) if mcfg is not None and mcfg.enabled else None
+        self._bearing_sigma = config.ekf_anchored.sigma_px / min(camera.fx, camera.fy)
         self._new_state()
 
     # -- state -------------------------------------------------------------------------------------
@@ -156,11 +165,17 @@ class Pipeline:
         self._t_prev: float | None = None
         self._cam_prev: tuple[np.ndarray, np.ndarray] | None = None
         self._out_prev: RangeOutput | None = None
+        self._epoch += 1  # track ids restart with a new tracker: map keys carry the epoch
+        self._key_base = self._epoch << 40
 
     def reset(self, why: str) -> None:
-        """Forget all tracks and landmarks (clock jump, reboot, long gap)."""
+        """Forget all tracks and landmarks (clock jump, reboot, long gap).  The obstacle map is kept
+        across a gap (the local NED frame is unchanged and its points age with the drift model) and
+        cleared on everything else (a reboot or a clock change may move the frame or the clock)."""
         self.counters[f"restart_{why.split(':')[0].replace(' ', '_')}"] += 1
         log.info("ranging restarted: %s", why)
+        if self.map is not None and why != "gap":
+            self.map.clear()
         self._new_state()
 
     # -- telemetry helpers ------------------------------------------------------------------------
@@ -274,6 +289,8 @@ class Pipeline:
             self.counters["errors"] += 1
             res.ok, res.reason, res.sectors = False, f"error: {exc}"[:120], None
             log.warning("frame %d skipped: %s; ranging restarts", index, exc)
+            if self.map is not None:
+                self.map.clear()
             self._new_state()
             res.restart = res.restart or "error"
         except Exception as exc:  # a bug: never take the process down, say so loudly, start afresh
@@ -281,6 +298,8 @@ class Pipeline:
             if self.counters["internal_errors"] <= 5:
                 log.exception("internal error on frame %d: %r; ranging restarts", index, exc)
             res.ok, res.reason, res.sectors = False, "error: internal", None
+            if self.map is not None:
+                self.map.clear()
             self._new_state()
             res.restart = "internal error"
         res.processing_s = self._wall() - w0
@@ -295,27 +314,36 @@ class Pipeline:
         """The estimator's output for the latest processed frame (world points, ranges, σ)."""
         return self._out_prev
 
-    def _points_on_current_rays(self, out: RangeOutput, tf, R_wc: np.ndarray, p_wc: np.ndarray) -> np.ndarray:
-        """World points for the sectors: each landmark observed in this frame is placed at its
-        estimated range along the ray measured now (its pixel in this frame), the others stay where
-        the filter puts them.
-
-        The filter's point lies on the *anchor* ray (DESIGN §3.4), so a range error moves it
-        sideways as seen from the current camera (≈ range error × baseline / range): on a fast pass
-        a mast edge's point drifts into the neighbouring sector.  The current pixel measures the
-        bearing directly (to ~σ_px/f); only the range is the filter's.
-        """
-        p_world = out.p_world.copy()
-        if len(out.ids) == 0 or len(tf.ids) == 0:
-            return p_world
-        pos = np.minimum(np.searchsorted(tf.ids, out.ids), len(tf.ids) - 1)  # both sorted by id
-        seen = tf.ids[pos] == out.ids
-        if np.any(seen):
-            xy = self.camera.pixels_to_normalized(tf.uv[pos[seen]])
-            d_cam = np.concatenate([xy, np.ones((len(xy), 1))], 1)
-            d_cam /= np.linalg.norm(d_cam, axis=1, keepdims=True)
-            p_world[seen] = p_wc + (d_cam @ R_wc.T) * out.range[seen][:, None]
-        return p_world
+    def _update_map(self, t, out: RangeOutput, tf, p_world, R_wc, p_wc, p_wb):
+        """The local obstacle map's steps for this frame, in order (DESIGN §7; see
+        :mod:`companion.core.obstacle_map`); returns the remembered points (None without a map)."""
+        omap = self.map
+        if omap is None:
+            return None
+        keys = out.ids.astype(np.int64) + self._key_base
+        good = out.converged & out.valid & (out.range_sigma <= omap.config.max_rel_sigma * out.range)
+        P = landmark_covariance(p_world[good], p_wc, out.range_sigma[good], self._bearing_sigma)
+        rej = omap.observe(t, keys[good], p_world[good], P, live_keys=keys)
+        for why, n in rej.items():
+            if n:
+                self.counters[f"map_rejected_{why}"] += n
+        if len(out.retired_ids):
+            omap.forget(np.asarray(out.retired_ids, np.int64) + self._key_base)
+        # live converged landmarks seen in this frame: pinhole pixel, depth and its σ
+        live = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+        if len(out.ids) and len(tf.ids):
+            pos = np.minimum(np.searchsorted(tf.ids, out.ids), len(tf.ids) - 1)
+            seen = (tf.ids[pos] == out.ids) & out.converged & out.valid
+            if np.any(seen):
+                depth = (p_world[seen] - p_wc) @ R_wc[:, 2]
+                sig = out.range_sigma[seen] * np.abs(depth) / np.maximum(out.range[seen], 1e-9)
+                live = self.camera.undistort_to_pinhole(tf.uv[pos[seen]]), depth, sig
+        c = self.camera_config
+        vc = omap.check_view(t, R_wc, p_wc, c.fx, c.fy, c.cx, c.cy, c.width, c.height, *live)
+        self.counters["map_found"] += vc.found
+        self.counters["map_missed"] += vc.missed
+        omap.prune(t, p_wb)
+        return omap.remembered(t, p_wb)
 
     def _process(self, res: FrameResult, gray, now: float) -> None:
         cfg, tel = self.pcfg, self.telemetry
@@ -372,12 +400,18 @@ class Pipeline:
             self.tracks.kill(out.retired_ids)
         self._t_prev, self._cam_prev, self._out_prev = t, (R_wc, p_wc), out
 
-        p_body = (self._points_on_current_rays(out, tf, R_wc, p_wc) - p_wb) @ R_wb  # R_body_world (p − p_vehicle), row form
-        v_body = R_wb.T @ v_w
+        rays_cam = self.camera.unproject(tf.uv) if len(tf.ids) else np.zeros((0, 3))
+        p_world = points_on_current_rays(out.ids, out.p_world, out.range, tf.ids, rays_cam, R_wc, p_wc)
+        rem = self._update_map(t, out, tf, p_world, R_wc, p_wc, p_wb)
         sectors = compute_sectors(
-            p_body, out.range_sigma, out.converged, out.valid, self.hfov, self._R_cam_body, self.config.sectors,
-            roll_pitch_rad=(res.roll, res.pitch), velocity_body=v_body, vfov_rad=self.vfov,
+            world_to_body(p_world, R_wb, p_wb), out.range_sigma, out.converged, out.valid, self.hfov, self._R_cam_body,
+            self.config.sectors, roll_pitch_rad=(res.roll, res.pitch), velocity_body=R_wb.T @ v_w, vfov_rad=self.vfov,
+            remembered_p_body=None if rem is None else world_to_body(rem.p_world, R_wb, p_wb),
+            remembered_sigma=None if rem is None else rem.range_sigma,
+            remembered_tangential_sigma=None if rem is None else rem.tangential_sigma,
         )
+        if self.map is not None:
+            res.n_map, res.n_remembered = len(self.map), len(rem)
         res.sectors = sectors
         res.n_tracks = len(tf.ids)
         res.n_new_tracks = len(tf.new_ids)

@@ -243,7 +243,13 @@ def test_wall_ahead_gives_forward_ranges_with_correct_fields(rig):
         fwd = [d[i] for i in (70, 71, 0, 1, 2)]
         assert all(x != UINT16_MAX for x in fwd), fwd
         assert d[0] / 100 == pytest.approx(truth, rel=0.2) and d[0] / 100 <= truth * 1.05
-        assert all(d[i] == UINT16_MAX for i in range(8, 65)), "sectors outside the 60° view must be unknown"
+        # outside the 60° view: unknown, or a remembered part of the wall (DESIGN §7) no farther than the
+        # wall along that bearing (conservative), and nothing at all beyond ±80° where there is no wall
+        for i in range(7, 66):
+            if d[i] != UINT16_MAX:
+                b = math.radians(i * 5.0 if i < 36 else i * 5.0 - 360.0)
+                assert abs(b) < math.radians(80), (i, d[i])
+                assert d[i] / 100 <= truth / math.cos(b) * 1.05, (i, d[i], truth / math.cos(b))
     # forward DISTANCE_SENSOR with its covariance
     dss = [m for t, m in v.received_t("DISTANCE_SENSOR") if t >= t_end - 0.5]
     assert dss
@@ -582,6 +588,7 @@ def test_sector_points_lie_on_the_rays_measured_now():
     from companion.core.camera import CameraModel
     from companion.core.estimator import RangeOutput
     from companion.core.frames import euler_zyx_to_R
+    from companion.core.obstacle_map import points_on_current_rays
 
     cam = CameraModel(CameraConfig(width=320, height=240, fx=277.1, fy=277.1, cx=159.5, cy=119.5))
     R_body_cam = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # camera z forward, x right, y down
@@ -597,7 +604,7 @@ def test_sector_points_lie_on_the_rays_measured_now():
                       converged=np.ones(3, bool), valid=np.ones(3, bool), n_pending=0, n_initialized_tri=0,
                       n_initialized_prior=0, n_rejected=0, tri_reasons={})
     tf = SimpleNamespace(ids=np.array([2, 3, 9]), uv=np.array([[10.0, 10.0], uv[0], uv[2]]))  # 7 not seen now
-    p = Pipeline._points_on_current_rays(SimpleNamespace(camera=cam), out, tf, R_wc, p_wc)
+    p = points_on_current_rays(out.ids, out.p_world, out.range, tf.ids, cam.unproject(tf.uv), R_wc, p_wc)
     for i in (0, 2):
         u = (X[i] - p_wc) / np.linalg.norm(X[i] - p_wc)
         np.testing.assert_allclose(p[i], p_wc + u * rng[i], atol=1e-9)

@@ -87,6 +87,9 @@ class SectorConfig:
     nearest_count: int = 5  # nearest obstacles (one per sector) kept for OBSTACLE_DISTANCE_3D
     flight_path_min_speed_mps: float = 1.0  # below this speed the band is centred on the horizontal
     flight_path_max_angle_deg: float = 30.0  # the band centre climbs or descends at most this steeply
+    remembered_max_spread_deg: float = 15.0  # a remembered point is spread over bearings ± k·σ_tangential/range, at most this far, degrees
+    infer_max_gap_sectors: int = 1  # unknown gaps up to this many sectors between two consistent obstacle sectors are inferred obstacles (0 = off)
+    infer_rel_tol: float = 0.15  # the two sides are consistent when their ranges differ by at most this fraction of the nearer
 
     def __post_init__(self) -> None:
         require_finite("min_distance_m", self.min_distance_m, positive=True)
@@ -112,6 +115,11 @@ class SectorConfig:
         require_finite("flight_path_min_speed_mps", self.flight_path_min_speed_mps, nonnegative=True)
         require_finite("flight_path_max_angle_deg", self.flight_path_max_angle_deg, nonnegative=True)
         require(self.flight_path_max_angle_deg < 90, "flight_path_max_angle_deg must be < 90")
+        require_finite("remembered_max_spread_deg", self.remembered_max_spread_deg, nonnegative=True)
+        require(self.remembered_max_spread_deg <= 90, "remembered_max_spread_deg must be <= 90")
+        require(isinstance(self.infer_max_gap_sectors, int) and not isinstance(self.infer_max_gap_sectors, bool)
+                and 0 <= self.infer_max_gap_sectors <= 6, f"infer_max_gap_sectors must be an integer in 0..6, got {self.infer_max_gap_sectors!r}")
+        require_finite("infer_rel_tol", self.infer_rel_tol, nonnegative=True)
 
     @property
     def min_distance_cm(self) -> int:
@@ -168,6 +176,12 @@ class Sectors:
     obstacle_bearing_rad: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))  # levelled body bearing
     obstacle_cm: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))  # published value of each
     obstacle_rank: int = 1  # the n-th nearest point of a sector is published (``min_points_obstacle``)
+    remembered_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(SECTOR_COUNT, np.int64))  # (72,) map points behind each sector's claim
+    inferred: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(SECTOR_COUNT, bool))  # (72,) obstacle inferred between two sides
+
+    @property
+    def n_inferred(self) -> int:
+        return int(np.count_nonzero(self.inferred))
 
     @property
     def clear_cm(self) -> int:
@@ -301,6 +315,9 @@ def compute_sectors(
     roll_pitch_rad: tuple[float, float] | None = None,
     velocity_body=None,
     vfov_rad: float | None = None,
+    remembered_p_body=None,
+    remembered_sigma=None,
+    remembered_tangential_sigma=None,
 ) -> Sectors:
     """Sector distances from ranged points (DESIGN §5 OBSTACLE_DISTANCE rules; see module doc).
 
@@ -318,6 +335,18 @@ def compute_sectors(
     vfov_rad : vertical field of view; when given the view mask also checks the band centre is
         inside the image vertically.
 
+    remembered_p_body : (M, 3) points of the local obstacle map (DESIGN §7) in body FRD: they may
+        claim an obstacle in any sector over 360° (the field-of-view mask does not apply to them),
+        never "clear"; ``remembered_sigma`` (M,) their range σ and ``remembered_tangential_sigma``
+        (M,) their σ across the line of sight, both grown since last observed.  A point whose
+        bearing is uncertain by more than half a sector (k·σ_t / range) is spread over the sectors
+        that bearing interval touches (at most ``remembered_max_spread_deg``).
+
+    After the rules above, an unknown gap of at most ``infer_max_gap_sectors`` between two obstacle
+    sectors whose ranges agree within ``infer_rel_tol`` is filled with the nearer of the two and
+    flagged in :attr:`Sectors.inferred` (DESIGN §7: inference only ever adds an obstacle, never
+    "clear").
+
     Bad points (NaN/inf, negative σ, zero range) are ignored and counted, never raised on.
     """
     p = np.asarray(p_body, dtype=float)
@@ -333,6 +362,22 @@ def compute_sectors(
     for name, a in (("range_sigma", sig), ("converged", conv), ("valid", val)):
         if a.shape[0] != n:
             raise InputError(f"{name} has {a.shape[0]} entries for {n} points")
+    n_live = n
+    mem_tan = np.zeros(0)
+    if remembered_p_body is not None:
+        mp = np.asarray(remembered_p_body, dtype=float).reshape(-1, 3)
+        m = mp.shape[0]
+        ms = np.asarray(remembered_sigma if remembered_sigma is not None else np.zeros(m), dtype=float).reshape(-1)
+        mt = np.asarray(remembered_tangential_sigma if remembered_tangential_sigma is not None else np.zeros(m), dtype=float).reshape(-1)
+        if ms.shape[0] != m or mt.shape[0] != m:
+            raise InputError(f"remembered_sigma / remembered_tangential_sigma need {m} entries each")
+        p = np.concatenate([p, mp])
+        sig = np.concatenate([sig, ms])
+        conv = np.concatenate([conv, np.ones(m, bool)])
+        val = np.concatenate([val, np.all(np.isfinite(mp), axis=1) & np.isfinite(mt) & (mt >= 0)])
+        mem_tan = np.where(np.isfinite(mt), mt, 0.0)
+        n = p.shape[0]
+    mem = np.arange(n) >= n_live
 
     if roll_pitch_rad is not None:
         rp = tuple(float(a) for a in roll_pitch_rad)
@@ -353,6 +398,10 @@ def compute_sectors(
     rejected = int(np.count_nonzero(val & ~usable))
     usable &= val
     p_level = np.where(usable[:, None], p, 0.0) @ R_lb.T
+    if mem_tan.size:
+        p, p_level, sig, conv, usable, mem, r = _spread_remembered(
+            p, p_level, sig, conv, usable, mem, r, mem_tan, n_live, config, R_lb)
+        n = p.shape[0]
     d_h = np.hypot(p_level[:, 0], p_level[:, 1])
     height = -p_level[:, 2]
     r_safe = np.where(usable, r, 1.0)
@@ -364,7 +413,7 @@ def compute_sectors(
     in_band &= usable
     bearing = np.arctan2(p_level[:, 1], p_level[:, 0])
     idx = sector_index(bearing)
-    in_band &= in_view[idx]
+    in_band &= in_view[idx] | mem  # remembered points claim over 360° (DESIGN §7)
 
     r_cons = np.maximum(r - config.sigma_k * np.where(usable, sig, 0.0), 0.0)
     d_cons = d_h * (r_cons / r_safe)  # conservative horizontal range
@@ -372,7 +421,7 @@ def compute_sectors(
     near = d_cons <= max_m
 
     obs_pts = in_band & conv & near
-    clr_pts = in_band & conv & ~near
+    clr_pts = in_band & conv & ~near & ~mem  # "clear" only from what the camera sees now
     veto_pts = in_band & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)
 
     n_clr = np.bincount(idx[clr_pts], minlength=SECTOR_COUNT)
@@ -397,7 +446,7 @@ def compute_sectors(
     pt_cm = np.clip(np.rint(d_pub * 100).astype(np.int64), min_cm, max_cm)
     if config.touching_distance_m > 0:
         pt_cm = np.where(d_h <= config.touching_distance_m, 0, pt_cm)
-    obs_sec = np.flatnonzero(has_obs & in_view)
+    obs_sec = np.flatnonzero(has_obs)
     if obs_sec.size:
         pts = pick[obs_sec]
         dist[obs_sec] = pt_cm[pts]
@@ -408,6 +457,9 @@ def compute_sectors(
     clear_sec = fully & (n_obs == 0) & (n_veto == 0) & (n_clr >= config.min_points_clear)
     dist[clear_sec] = max_cm + 1
     state[clear_sec] = SectorState.CLEAR
+    n_mem = np.bincount(idx[obs_pts & mem], minlength=SECTOR_COUNT)
+
+    inferred = _infer_between(state, dist, range_m, sigma_m, config)
 
     # ---- forward window (DISTANCE_SENSOR) ------------------------------------------------------
     centres = np.arange(SECTOR_COUNT) * SECTOR_DEG
@@ -424,7 +476,7 @@ def compute_sectors(
         forward = ForwardRange(SectorState.UNKNOWN, math.nan, math.nan, math.nan)
 
     # ---- nearest obstacles, one per sector (OBSTACLE_DISTANCE_3D) -----------------------------
-    cand = np.flatnonzero((n_obs > 0) & in_view)
+    cand = np.flatnonzero(n_obs > 0)
     nearest: list[Obstacle3D] = []
     if cand.size:
         pts = nearest_pick[cand]
@@ -451,10 +503,70 @@ def compute_sectors(
         max_distance_cm=max_cm,
         points_used=int(np.count_nonzero(in_band & conv)),
         points_rejected=rejected,
-        obstacle_bearing_rad=bearing[obs_pts],
-        obstacle_cm=pt_cm[obs_pts],
+        obstacle_bearing_rad=np.concatenate([bearing[obs_pts], np.repeat(np.radians(np.flatnonzero(inferred) * SECTOR_DEG), k)]),
+        obstacle_cm=np.concatenate([pt_cm[obs_pts], np.repeat(dist[inferred], k)]),
         obstacle_rank=k,
+        remembered_points=n_mem,
+        inferred=inferred,
     )
+
+
+def _spread_remembered(p, p_level, sig, conv, usable, mem, r, mem_tan, n_live, config: SectorConfig, R_lb):
+    """Copies of each remembered point at bearings covering β ± k·σ_t/d (at most the configured
+    spread), turned about the levelled vertical through the vehicle (range and height unchanged)."""
+    d_h = np.hypot(p_level[n_live:, 0], p_level[n_live:, 1])
+    w = np.minimum(config.sigma_k * mem_tan / np.maximum(d_h, 1e-6), math.radians(config.remembered_max_spread_deg))
+    half = math.radians(SECTOR_DEG / 2)
+    J = np.where(usable[n_live:] & (w > half), np.ceil(w / math.radians(SECTOR_DEG)).astype(np.int64), 0)
+    if not np.any(J):
+        return p, p_level, sig, conv, usable, mem, r
+    reps = 2 * J + 1
+    src = np.repeat(np.arange(len(J)), reps)
+    start = np.cumsum(reps) - reps
+    j = np.arange(len(src)) - np.repeat(start, reps) - np.repeat(J, reps)  # −J..J per point
+    off = np.where(J[src] > 0, w[src] * j / np.maximum(J[src], 1), 0.0)
+    c, s_ = np.cos(off), np.sin(off)
+    q = p_level[n_live:][src]
+    q_level = np.stack([c * q[:, 0] - s_ * q[:, 1], s_ * q[:, 0] + c * q[:, 1], q[:, 2]], 1)
+    q_body = q_level @ R_lb  # levelled → body
+    cat = lambda a, b: np.concatenate([a[:n_live], b])  # noqa: E731
+    return (cat(p, q_body), cat(p_level, q_level), cat(sig, sig[n_live:][src]), cat(conv, conv[n_live:][src]),
+            cat(usable, usable[n_live:][src]), cat(mem, np.ones(len(src), bool)), cat(r, r[n_live:][src]))
+
+
+def _infer_between(state, dist, range_m, sigma_m, config: SectorConfig) -> np.ndarray:
+    """Fill unknown gaps between two consistent obstacle sectors (in place); returns the mask of
+    inferred sectors.  Never touches a "clear" or obstacle sector: inference only adds obstacles."""
+    inferred = np.zeros(SECTOR_COUNT, bool)
+    G = config.infer_max_gap_sectors
+    if G == 0:
+        return inferred
+    obs = state == SectorState.OBSTACLE
+    unk = state == SectorState.UNKNOWN
+    for gap in range(1, G + 1):
+        # sectors i+1..i+gap unknown, i and i+gap+1 obstacles (indices on the ring)
+        left = obs.copy()
+        right = np.roll(obs, -(gap + 1))
+        between = np.ones(SECTOR_COUNT, bool)
+        for a in range(1, gap + 1):
+            between &= np.roll(unk, -a)
+        cand = np.flatnonzero(left & right & between)
+        if cand.size == 0:
+            continue
+        rl = range_m[cand]
+        rr = range_m[(cand + gap + 1) % SECTOR_COUNT]
+        ok = np.abs(rl - rr) <= config.infer_rel_tol * np.minimum(rl, rr)
+        for i in cand[ok]:
+            jr = (i + gap + 1) % SECTOR_COUNT
+            near = i if range_m[i] <= range_m[jr] else jr
+            fill = (i + np.arange(1, gap + 1)) % SECTOR_COUNT
+            fill = fill[~inferred[fill]]
+            state[fill] = SectorState.OBSTACLE
+            dist[fill] = min(dist[i], dist[jr])
+            range_m[fill] = range_m[near]
+            sigma_m[fill] = max(sigma_m[i], sigma_m[jr])
+            inferred[fill] = True
+    return inferred
 
 
 def unknown_sectors(config: SectorConfig = SectorConfig()) -> np.ndarray:

@@ -22,6 +22,7 @@ from companion.core.ekf_landmark import LandmarkEKFConfig
 from companion.core.estimator import EstimatorConfig
 from companion.core.harris import HarrisConfig
 from companion.core.ncc import NCCConfig
+from companion.core.obstacle_map import MapConfig
 from companion.core.prediction import PredictionConfig
 from companion.core.tracks import TrackConfig
 from companion.core.sectors import SectorConfig
@@ -52,6 +53,7 @@ class CompanionConfig:
     ekf_landmark: LandmarkEKFConfig = LandmarkEKFConfig()
     estimator: EstimatorConfig = EstimatorConfig()
     sectors: SectorConfig = SectorConfig()
+    map: MapConfig = MapConfig()
     telemetry: TelemetryConfig = TelemetryConfig()
     outputs: OutputConfig = OutputConfig()
     link: LinkConfig = LinkConfig()

@@ -1,0 +1,358 @@
+"""Local obstacle map: converged landmarks kept as world points after their tracks end (DESIGN.md §7).
+
+Pure logic, no I/O, no globals.  The pipeline calls, in order, once per frame:
+
+1. :func:`points_on_current_rays` — each landmark seen in this frame placed at its estimated range
+   along the ray measured now (the filter's own point lies on its *anchor* ray, DESIGN §3.4);
+2. :meth:`ObstacleMap.observe` — converged landmarks enter (or refresh) the map with a world
+   covariance (:func:`landmark_covariance`); retired (diverged) landmarks are forgotten;
+3. :meth:`ObstacleMap.check_view` — remembered points predicted in view are compared with the live
+   converged landmarks near their predicted pixel: found again (re-observed, ``o``) or seen through
+   (``u``: a live point lies clearly beyond where the remembered one should be);
+4. :meth:`ObstacleMap.prune` — retention (see below);
+5. :meth:`ObstacleMap.remembered` — remembered points relative to the vehicle, with their range and
+   tangential σ grown since they were last observed, for
+   :func:`companion.core.sectors.compute_sectors` (over 360°);
+6. :func:`world_to_body` — points into body FRD at exposure.
+
+Model (DESIGN §7)
+-----------------
+The point is static in the world (local NED); what grows is its uncertainty *relative to the
+vehicle*: the vehicle's position estimate drifts after the point was last observed (σ_drift =
+min(position_drift_mps · Δt, position_drift_max_m) per axis, a random-walk bound of the correlated
+GPS error) and its heading drifts (σ_ψ = heading_drift_deg_s · Δt, seen as r_h · σ_ψ across the
+line of sight).  With u the unit vector from the vehicle to the point,
+
+    σ_r² = uᵀ P u + σ_drift²,        σ_t² = (tr P − uᵀ P u)/2 + σ_drift² + (r_h σ_ψ)²,
+
+P the point's world covariance when it was last observed.  A landmark's covariance at entry is that
+of its filter: σ_range² along the line of sight and (r · σ_bearing)² across it
+(:func:`landmark_covariance`).
+
+Retention (seed 003 §3.6, DESIGN §7)
+------------------------------------
+Usage score s = (o − 0.5·u)/(1 + o), o = re-observations (a remembered point predicted in view
+and found again: a live converged landmark within ``reobserve_radius_px`` of its predicted pixel
+whose depth agrees within ``gate_k`` σ), u = missed predictions (predicted in view, and a live
+converged landmark near its pixel lies clearly *beyond* it: the camera sees through where the point
+should be — it moved, or it was a mismatch).  No live landmark near the pixel is no evidence either
+way (a texture-less patch, an unconverged track), and a live landmark clearly *nearer* is an
+occluder; neither changes the counts.  A point leaves the map when s < ``min_score``, when it is
+farther than ``radius_m`` from the vehicle, or older (since last observed) than ``max_age_s``; the
+count is capped at ``max_landmarks``, lowest score evicted first (then the longest unseen).
+Memory is bounded by the cap: every array is sized by the number of points held.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from companion.config import require, require_finite
+from companion.errors import InputError
+
+#: Reasons an input landmark is refused by :meth:`ObstacleMap.observe` (counted, never raised).
+REJECT_NOT_FINITE = "not_finite"
+REJECT_NOT_PD = "covariance_not_positive_definite"
+
+
+@dataclasses.dataclass(frozen=True)
+class MapConfig:
+    """The ``[map]`` table."""
+
+    enabled: bool = True  # keep converged landmarks after their tracks end and publish them over 360°
+    max_landmarks: int = 1500  # hard cap on points held (lowest usage score evicted first)
+    radius_m: float = 60.0  # points farther than this from the vehicle are dropped, m
+    max_age_s: float = 20.0  # points not observed for this long are dropped, s
+    min_score: float = -0.75  # usage score s = (o − 0.5u)/(1 + o) below this drops a point
+    max_rel_sigma: float = 0.15  # a converged landmark enters the map only when its σ/range is at most this
+    position_drift_mps: float = 0.05  # growth of the vehicle's position error relative to a remembered point, m per s
+    position_drift_max_m: float = 1.5  # ... bounded by this (the correlated GPS error does not grow without bound), m
+    heading_drift_deg_s: float = 0.05  # heading drift since a point was last observed, degrees per s
+    reobserve_radius_px: float = 6.0  # a live landmark within this of a remembered point's predicted pixel can confirm or contradict it, px
+    gate_k: float = 3.0  # depths agree when within gate_k combined σ (found); a live point beyond that is "seen through" (missed)
+    image_margin_px: float = 4.0  # a remembered point is predicted in view only this far inside the image border, px
+
+    def __post_init__(self) -> None:
+        require(isinstance(self.enabled, bool), "enabled must be true or false")
+        require(isinstance(self.max_landmarks, int) and not isinstance(self.max_landmarks, bool) and self.max_landmarks >= 1,
+                f"max_landmarks must be an integer >= 1, got {self.max_landmarks!r}")
+        for name in ("radius_m", "max_age_s", "max_rel_sigma", "reobserve_radius_px", "gate_k"):
+            require_finite(name, getattr(self, name), positive=True)
+        for name in ("position_drift_mps", "position_drift_max_m", "heading_drift_deg_s", "image_margin_px"):
+            require_finite(name, getattr(self, name), nonnegative=True)
+        require_finite("min_score", self.min_score)
+        require(-2.0 < self.min_score < 1.0, f"min_score must be in (-2, 1) (s lies in (-inf, 1)), got {self.min_score}")
+
+
+def usage_score(o: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Seed 003's usage score s = (o − 0.5·u)/(1 + o) (DESIGN §3.6, §7)."""
+    o = np.asarray(o, float)
+    return (o - 0.5 * np.asarray(u, float)) / (1.0 + o)
+
+
+def landmark_covariance(p_world: np.ndarray, p_world_cam: np.ndarray, range_sigma: np.ndarray, bearing_sigma_rad: float) -> np.ndarray:
+    """(N, 3, 3) world covariance of landmarks from their filter: σ_range² along the line of sight
+    from the camera, (r·σ_bearing)² across it (DESIGN §3.4: the ray is measured to the pixel σ)."""
+    p = np.asarray(p_world, float).reshape(-1, 3)
+    d = p - np.asarray(p_world_cam, float).reshape(3)
+    r = np.linalg.norm(d, axis=1)
+    u = d / np.maximum(r, 1e-9)[:, None]
+    uu = u[:, :, None] * u[:, None, :]
+    s_r2 = np.asarray(range_sigma, float).reshape(-1) ** 2
+    s_t2 = (r * float(bearing_sigma_rad)) ** 2
+    return s_r2[:, None, None] * uu + s_t2[:, None, None] * (np.eye(3) - uu)
+
+
+def points_on_current_rays(out_ids: np.ndarray, out_p_world: np.ndarray, out_range: np.ndarray, track_ids: np.ndarray,
+                           rays_cam: np.ndarray, R_world_cam: np.ndarray, p_world_cam: np.ndarray) -> np.ndarray:
+    """World points for the sectors: each landmark observed in this frame at its estimated range
+    along the ray measured now (``rays_cam``: unit rays of the tracks' current pixels, camera frame),
+    the others where the filter puts them.
+
+    The filter's point lies on the *anchor* ray (DESIGN §3.4), so a range error moves it sideways
+    as seen from the current camera (≈ range error × baseline / range): on a fast pass a mast edge's
+    point drifts into the neighbouring sector.  The current pixel measures the bearing directly (to
+    ~σ_px/f); only the range is the filter's.  Both id arrays must be sorted.
+    """
+    p_world = np.array(out_p_world, float, copy=True).reshape(-1, 3)
+    out_ids = np.asarray(out_ids)
+    track_ids = np.asarray(track_ids)
+    if len(out_ids) == 0 or len(track_ids) == 0:
+        return p_world
+    pos = np.minimum(np.searchsorted(track_ids, out_ids), len(track_ids) - 1)
+    seen = track_ids[pos] == out_ids
+    if np.any(seen):
+        d_cam = np.asarray(rays_cam, float)[pos[seen]]
+        p_world[seen] = np.asarray(p_world_cam, float) + (d_cam @ np.asarray(R_world_cam, float).T) * np.asarray(out_range, float)[seen][:, None]
+    return p_world
+
+
+def world_to_body(p_world: np.ndarray, R_world_body: np.ndarray, p_world_body: np.ndarray) -> np.ndarray:
+    """Points (N, 3) from local NED into body FRD at the pose (R_world_body, p_world_body) (DESIGN §2)."""
+    return (np.asarray(p_world, float).reshape(-1, 3) - np.asarray(p_world_body, float)) @ np.asarray(R_world_body, float)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Remembered:
+    """Remembered points relative to the vehicle (output of :meth:`ObstacleMap.remembered`)."""
+
+    keys: np.ndarray  # (M,) map keys
+    p_world: np.ndarray  # (M, 3)
+    range_sigma: np.ndarray  # (M,) σ of the range from the vehicle, drift included, m
+    tangential_sigma: np.ndarray  # (M,) σ across the line of sight (horizontal), drift included, m
+    age_s: np.ndarray  # (M,) time since last observed, s
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewCheck:
+    """What :meth:`ObstacleMap.check_view` found this frame."""
+
+    predicted: int = 0  # remembered points predicted in view
+    found: int = 0  # ... found again (o += 1)
+    missed: int = 0  # ... seen through (u += 1)
+
+
+class ObstacleMap:
+    """The local obstacle map (module docstring).  Arrays sized by the points held, at most
+    ``config.max_landmarks``; ``live`` marks points whose landmark the estimator still runs."""
+
+    _fields = ("keys", "p", "P", "t_seen", "o", "u", "live")
+
+    def __init__(self, config: MapConfig = MapConfig()):
+        self.config = config
+        self.keys = np.zeros(0, np.int64)
+        self.p = np.zeros((0, 3))
+        self.P = np.zeros((0, 3, 3))
+        self.t_seen = np.zeros(0)
+        self.o = np.zeros(0, np.int64)
+        self.u = np.zeros(0, np.int64)
+        self.live = np.zeros(0, bool)
+        self.rejected: dict[str, int] = {REJECT_NOT_FINITE: 0, REJECT_NOT_PD: 0}
+        self.evicted: dict[str, int] = {"score": 0, "radius": 0, "age": 0, "cap": 0, "retired": 0}
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    @property
+    def score(self) -> np.ndarray:
+        return usage_score(self.o, self.u)
+
+    def clear(self) -> None:
+        for f in self._fields:
+            a = getattr(self, f)
+            setattr(self, f, a[:0])
+
+    def _keep(self, mask: np.ndarray) -> None:
+        for f in self._fields:
+            setattr(self, f, getattr(self, f)[mask])
+
+    def _rows(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(mask of keys held, their rows)."""
+        keys = np.asarray(keys, np.int64).reshape(-1)
+        if len(self.keys) == 0 or len(keys) == 0:
+            return np.zeros(len(keys), bool), np.zeros(len(keys), np.int64)
+        order = np.argsort(self.keys, kind="stable")
+        pos = np.minimum(np.searchsorted(self.keys[order], keys), len(self.keys) - 1)
+        rows = order[pos]
+        return self.keys[rows] == keys, rows
+
+    # -- 2. landmarks in ---------------------------------------------------------------------------
+    def observe(self, t: float, keys, p_world, P_world, live_keys=None) -> dict[str, int]:
+        """Converged landmarks observed at ``t`` enter the map or refresh their point.
+
+        ``keys`` (M,), ``p_world`` (M, 3), ``P_world`` (M, 3, 3).  ``live_keys``: every landmark the
+        estimator still runs (default ``keys``); their map points are not *remembered* (the live
+        estimate stands for them).  Landmarks with a non-finite point or a covariance that is not
+        symmetric positive definite are refused and counted by reason (returned), never raised on.
+        """
+        if not math.isfinite(t):
+            raise InputError("observe: t must be finite")
+        keys = np.asarray(keys, np.int64).reshape(-1)
+        m = len(keys)
+        p = np.asarray(p_world, float).reshape(m, 3)
+        P = np.asarray(P_world, float).reshape(m, 3, 3)
+        rej = {REJECT_NOT_FINITE: 0, REJECT_NOT_PD: 0}
+        finite = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
+        rej[REJECT_NOT_FINITE] = int(np.count_nonzero(~finite))
+        pd = np.zeros(m, bool)
+        if np.any(finite):
+            Pf = P[finite]
+            sym = np.all(np.abs(Pf - np.swapaxes(Pf, 1, 2)) <= 1e-9 * (1.0 + np.abs(Pf)), axis=(1, 2))
+            eig_min = np.linalg.eigvalsh(0.5 * (Pf + np.swapaxes(Pf, 1, 2)))[:, 0]
+            pd[finite] = sym & (eig_min > 0)
+        rej[REJECT_NOT_PD] = int(np.count_nonzero(finite & ~pd))
+        for k, v in rej.items():
+            self.rejected[k] += v
+        ok = finite & pd
+        keys, p, P = keys[ok], p[ok], P[ok]
+        live = keys if live_keys is None else np.asarray(live_keys, np.int64).reshape(-1)
+        self.live[:] = False
+        held, rows = self._rows(keys)
+        if np.any(held):
+            r = rows[held]
+            self.p[r], self.P[r], self.t_seen[r] = p[held], P[held], t
+        new = ~held
+        if np.any(new):
+            n_new = int(np.count_nonzero(new))
+            self.keys = np.concatenate([self.keys, keys[new]])
+            self.p = np.concatenate([self.p, p[new]])
+            self.P = np.concatenate([self.P, P[new]])
+            self.t_seen = np.concatenate([self.t_seen, np.full(n_new, float(t))])
+            self.o = np.concatenate([self.o, np.zeros(n_new, np.int64)])
+            self.u = np.concatenate([self.u, np.zeros(n_new, np.int64)])
+            self.live = np.concatenate([self.live, np.zeros(n_new, bool)])
+        lh, lrows = self._rows(live)
+        self.live[lrows[lh]] = True
+        return rej
+
+    def forget(self, keys) -> int:
+        """Remove the points of these landmarks (retired by the estimator: diverged, not static)."""
+        held, rows = self._rows(keys)
+        if not np.any(held):
+            return 0
+        mask = np.ones(len(self.keys), bool)
+        mask[rows[held]] = False
+        n = int(np.count_nonzero(~mask))
+        self.evicted["retired"] += n
+        self._keep(mask)
+        return n
+
+    # -- 3. re-observation -------------------------------------------------------------------------
+    def _drift(self, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        c = self.config
+        s_pos = np.minimum(c.position_drift_mps * dt, c.position_drift_max_m)
+        s_head = math.radians(c.heading_drift_deg_s) * dt
+        return s_pos, s_head
+
+    def check_view(self, t: float, R_world_cam: np.ndarray, p_world_cam: np.ndarray, fx: float, fy: float, cx: float,
+                   cy: float, width: int, height: int, live_uv: np.ndarray, live_depth: np.ndarray,
+                   live_sigma: np.ndarray) -> ViewCheck:
+        """Compare remembered points predicted in view with the live converged landmarks
+        (``live_uv`` (L, 2) pixels in this frame — pinhole, undistorted —, ``live_depth`` (L,) depth
+        along the optical axis, ``live_sigma`` (L,) its σ) and update ``o`` / ``u`` (module doc)."""
+        c = self.config
+        rem = np.flatnonzero(~self.live)
+        if rem.size == 0:
+            return ViewCheck()
+        R = np.asarray(R_world_cam, float)
+        p_cam = (self.p[rem] - np.asarray(p_world_cam, float)) @ R
+        z = p_cam[:, 2]
+        front = z > 0.1
+        uv = np.full((rem.size, 2), np.nan)
+        uv[front] = np.stack([fx * p_cam[front, 0] / z[front] + cx, fy * p_cam[front, 1] / z[front] + cy], 1)
+        mg = c.image_margin_px
+        with np.errstate(invalid="ignore"):
+            inside = front & (uv[:, 0] >= mg) & (uv[:, 0] <= width - 1 - mg) & (uv[:, 1] >= mg) & (uv[:, 1] <= height - 1 - mg)
+        idx = np.flatnonzero(inside)
+        if idx.size == 0:
+            return ViewCheck()
+        luv = np.asarray(live_uv, float).reshape(-1, 2)
+        if len(luv) == 0:
+            return ViewCheck(predicted=int(idx.size))
+        rows = rem[idx]
+        # σ of the remembered depth: its covariance along the optical axis plus the drift since seen
+        a = R[:, 2]
+        s_pos, _ = self._drift(t - self.t_seen[rows])
+        s_map2 = np.einsum("i,nij,j->n", a, self.P[rows], a) + s_pos**2
+        d2 = np.sum((uv[idx][:, None, :] - luv[None, :, :]) ** 2, axis=2)  # (K, L)
+        near = d2 <= c.reobserve_radius_px**2
+        dz = np.asarray(live_depth, float)[None, :] - z[idx][:, None]
+        gate = c.gate_k * np.sqrt(s_map2[:, None] + np.asarray(live_sigma, float)[None, :] ** 2)
+        agree = near & (np.abs(dz) <= gate)
+        beyond = near & (dz > gate)
+        found = np.any(agree, axis=1)
+        missed = ~found & np.any(beyond, axis=1)
+        self.o[rows[found]] += 1
+        self.t_seen[rows[found]] = t
+        self.u[rows[missed]] += 1
+        return ViewCheck(predicted=int(idx.size), found=int(np.count_nonzero(found)), missed=int(np.count_nonzero(missed)))
+
+    # -- 4. retention ------------------------------------------------------------------------------
+    def prune(self, t: float, p_world_vehicle: np.ndarray) -> dict[str, int]:
+        """Drop points by score, radius and age, then evict down to the cap (module doc)."""
+        c = self.config
+        out = {"score": 0, "radius": 0, "age": 0, "cap": 0}
+        if len(self.keys) == 0:
+            return out
+        score = self.score
+        dist = np.linalg.norm(self.p - np.asarray(p_world_vehicle, float).reshape(3), axis=1)
+        bad_score = score < c.min_score
+        far = ~bad_score & (dist > c.radius_m)
+        old = ~bad_score & ~far & ((t - self.t_seen) > c.max_age_s)
+        out["score"], out["radius"], out["age"] = (int(np.count_nonzero(a)) for a in (bad_score, far, old))
+        keep = ~(bad_score | far | old)
+        if np.count_nonzero(keep) > c.max_landmarks:
+            kept = np.flatnonzero(keep)
+            # lowest score first, then the longest unseen; live points last among equals
+            order = np.lexsort((self.t_seen[kept], score[kept]))
+            drop = kept[order[: len(kept) - c.max_landmarks]]
+            keep[drop] = False
+            out["cap"] = int(drop.size)
+        for k, v in out.items():
+            self.evicted[k] += v
+        if not np.all(keep):
+            self._keep(keep)
+        return out
+
+    # -- 5. remembered points out --------------------------------------------------------------------
+    def remembered(self, t: float, p_world_vehicle: np.ndarray) -> Remembered:
+        """Points whose landmark is no longer live, with σ relative to the vehicle (module doc)."""
+        rows = np.flatnonzero(~self.live)
+        pv = np.asarray(p_world_vehicle, float).reshape(3)
+        d = self.p[rows] - pv
+        r = np.linalg.norm(d, axis=1)
+        u = d / np.maximum(r, 1e-9)[:, None]
+        P = self.P[rows]
+        uPu = np.einsum("ni,nij,nj->n", u, P, u)
+        dt = np.maximum(t - self.t_seen[rows], 0.0)
+        s_pos, s_head = self._drift(dt)
+        r_h = np.hypot(d[:, 0], d[:, 1])
+        s_r = np.sqrt(np.maximum(uPu, 0.0) + s_pos**2)
+        s_t = np.sqrt(np.maximum(np.trace(P, axis1=1, axis2=2) - uPu, 0.0) / 2.0 + s_pos**2 + (r_h * s_head) ** 2)
+        return Remembered(self.keys[rows], self.p[rows].copy(), s_r, s_t, dt)

@@ -1,0 +1,237 @@
+"""Local obstacle map (DESIGN §7): retention, re-observation, drift, sectors over 360°, inference."""
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.core.frames import euler_zyx_to_R
+from companion.core.obstacle_map import (
+    REJECT_NOT_FINITE,
+    REJECT_NOT_PD,
+    MapConfig,
+    ObstacleMap,
+    landmark_covariance,
+    usage_score,
+    world_to_body,
+)
+from companion.core.sectors import SECTOR_COUNT, UNKNOWN_CM, SectorConfig, SectorState, compute_sectors
+from companion.errors import ConfigError
+
+HFOV = math.radians(60.0)
+# camera looking along body x (forward): R_cam_body maps body (x fwd, y right, z down) to cam (x right, y down, z fwd)
+R_CAM_BODY = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+FX = FY = 277.1
+CX, CY, W, H = 159.5, 119.5, 320, 240
+
+
+def cov(n, s=0.2):
+    return np.broadcast_to(np.eye(3) * s * s, (n, 3, 3)).copy()
+
+
+def camera_pose(yaw=0.0, p=(0.0, 0.0, -10.0)):
+    R_wb = euler_zyx_to_R(0.0, 0.0, yaw)
+    return R_wb, R_wb @ R_CAM_BODY.T, np.asarray(p, float)
+
+
+def test_usage_score_is_seed_003s():
+    assert usage_score(0, 0) == 0.0
+    assert usage_score(3, 2) == pytest.approx((3 - 1) / 4)
+    assert usage_score(0, 2) == pytest.approx(-1.0)
+
+
+def test_config_validation_names_the_key():
+    with pytest.raises(ConfigError, match="max_landmarks"):
+        MapConfig(max_landmarks=0)
+    with pytest.raises(ConfigError, match="radius_m"):
+        MapConfig(radius_m=-1.0)
+    with pytest.raises(ConfigError, match="min_score"):
+        MapConfig(min_score=1.5)
+
+
+def test_observe_upserts_and_live_points_are_not_remembered():
+    m = ObstacleMap()
+    m.observe(1.0, [1, 2], [[10, 0, -10], [12, 1, -10]], cov(2))
+    assert len(m) == 2 and len(m.remembered(1.0, np.zeros(3))) == 0  # both live
+    m.observe(1.1, [2], [[12.5, 1, -10]], cov(1), live_keys=[2])  # track 1 ended
+    rem = m.remembered(1.1, np.array([0.0, 0.0, -10.0]))
+    assert rem.keys.tolist() == [1]
+    np.testing.assert_allclose(m.p[m.keys == 2][0], [12.5, 1, -10])  # refreshed
+
+
+def test_bad_landmarks_are_rejected_with_a_named_reason():
+    m = ObstacleMap()
+    P = cov(4)
+    P[1] = np.diag([1.0, -0.1, 1.0])  # not positive definite
+    P[2] = np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # not symmetric
+    p = np.array([[10, 0, 0], [11, 0, 0], [12, 0, 0], [np.nan, 0, 0]], float)
+    rej = m.observe(0.0, [1, 2, 3, 4], p, P)
+    assert rej == {REJECT_NOT_FINITE: 1, REJECT_NOT_PD: 2}
+    assert m.keys.tolist() == [1] and m.rejected[REJECT_NOT_PD] == 2
+
+
+def test_uncertainty_grows_with_time_since_observed():
+    cfg = MapConfig(position_drift_mps=0.1, position_drift_max_m=1.0, heading_drift_deg_s=0.1)
+    m = ObstacleMap(cfg)
+    m.observe(0.0, [1], [[20.0, 0.0, -10.0]], cov(1, 0.3), live_keys=[])
+    pv = np.array([0.0, 0.0, -10.0])
+    r0, r5, r30 = (m.remembered(t, pv) for t in (0.0, 5.0, 30.0))
+    assert r0.range_sigma[0] == pytest.approx(0.3)
+    assert r5.range_sigma[0] == pytest.approx(math.hypot(0.3, 0.5))
+    assert r30.range_sigma[0] == pytest.approx(math.hypot(0.3, 1.0))  # drift bounded
+    # heading drift: 0.1°/s for 5 s at 20 m across the line of sight
+    assert r5.tangential_sigma[0] == pytest.approx(math.sqrt(0.09 + 0.25 + (20 * math.radians(0.5)) ** 2))
+
+
+def test_retention_by_age_radius_and_cap():
+    m = ObstacleMap(MapConfig(max_age_s=10.0, radius_m=50.0, max_landmarks=3))
+    m.observe(0.0, [1], [[10, 0, 0]], cov(1), live_keys=[])
+    m.observe(8.0, [2, 3, 4], [[70, 0, 0], [20, 0, 0], [30, 0, 0]], cov(3), live_keys=[])
+    out = m.prune(10.5, np.zeros(3))
+    assert out["age"] == 1 and out["radius"] == 1 and sorted(m.keys.tolist()) == [3, 4]
+    # cap: 5 more points, the lowest score goes first, then the longest unseen
+    m.o[m.keys == 3] = 2  # re-observed twice: high score, survives
+    m.observe(9.0, [5, 6], [[5, 5, 0], [6, 6, 0]], cov(2), live_keys=[])
+    m.observe(10.0, [7], [[7, 7, 0]], cov(1), live_keys=[7])
+    out = m.prune(10.5, np.zeros(3))
+    assert out["cap"] == 2 and len(m) == 3
+    assert sorted(m.keys.tolist()) == [3, 6, 7]  # 4 (t 8) and 5 (t 9) were the oldest at score 0
+
+
+def test_memory_stays_at_the_cap_on_a_long_stream():
+    rng = np.random.default_rng(3)
+    m = ObstacleMap(MapConfig(max_landmarks=200))
+    for k in range(300):  # 300 frames of 50 new converged landmarks each, the old tracks ending
+        keys = np.arange(50) + 50 * k
+        p = np.column_stack([rng.uniform(5, 30, 50), rng.uniform(-10, 10, 50), rng.uniform(-12, -8, 50)])
+        m.observe(k / 30, keys, p, cov(50), live_keys=keys)
+        m.prune(k / 30, np.array([0.0, 0.0, -10.0]))
+        assert len(m) <= 200
+    assert m.P.shape == (200, 3, 3)
+
+
+def _wall_point_in_view(z=15.0):
+    """A remembered point 15 m straight ahead of a camera at the origin looking north."""
+    m = ObstacleMap(MapConfig(min_score=-0.75))
+    m.observe(0.0, [1], [[z, 0.0, -10.0]], cov(1, 0.3), live_keys=[])
+    return m
+
+
+def test_a_point_predicted_in_view_and_found_again_is_reobserved():
+    m = _wall_point_in_view()
+    _, R_wc, p_wc = camera_pose()
+    vc = m.check_view(2.0, R_wc, p_wc, FX, FY, CX, CY, W, H, np.array([[CX + 2.0, CY]]), np.array([15.3]), np.array([0.4]))
+    assert (vc.predicted, vc.found, vc.missed) == (1, 1, 0)
+    assert m.o[0] == 1 and m.t_seen[0] == 2.0
+
+
+def test_a_point_predicted_in_view_and_seen_through_loses_score_and_goes():
+    m = _wall_point_in_view()
+    _, R_wc, p_wc = camera_pose()
+    for k in range(2):  # a live converged point at 30 m where the remembered one should be at 15 m
+        vc = m.check_view(1.0 + k, R_wc, p_wc, FX, FY, CX, CY, W, H, np.array([[CX, CY + 1]]), np.array([30.0]), np.array([1.0]))
+        assert vc.missed == 1
+    assert m.u[0] == 2 and m.score[0] == pytest.approx(-1.0)
+    assert m.prune(3.0, p_wc)["score"] == 1 and len(m) == 0
+
+
+def test_no_evidence_and_occluders_change_nothing():
+    m = _wall_point_in_view()
+    _, R_wc, p_wc = camera_pose()
+    # a live point far from the predicted pixel, and one nearer (an occluder): neither counts
+    vc = m.check_view(1.0, R_wc, p_wc, FX, FY, CX, CY, W, H, np.array([[CX + 40, CY], [CX, CY]]), np.array([30.0, 5.0]),
+                      np.array([1.0, 0.2]))
+    assert (vc.predicted, vc.found, vc.missed) == (1, 0, 0) and m.u[0] == 0 and m.o[0] == 0
+    # out of view (behind the camera): not predicted at all
+    _, R_back, _ = camera_pose(math.pi)
+    assert m.check_view(1.0, R_back, p_wc, FX, FY, CX, CY, W, H, np.array([[CX, CY]]), np.array([30.0]), np.array([1.0])).predicted == 0
+
+
+def test_sectors_from_the_map_over_360_after_a_yaw():
+    """Points ranged ahead are published beside and behind after the vehicle turns 90° / 180°."""
+    m = ObstacleMap(MapConfig(heading_drift_deg_s=0.0, position_drift_mps=0.0))
+    p_v = np.array([0.0, 0.0, -10.0])
+    # a wall 12 m north of the vehicle, points at bearings −10…10°, seen while facing north
+    b = np.radians(np.arange(-10, 11, 2.0))
+    pts = np.column_stack([np.full(b.shape, 12.0), 12.0 * np.tan(b), np.full(b.shape, -10.0)])
+    m.observe(0.0, np.arange(len(b)), pts, cov(len(b), 0.2), live_keys=[])
+    cfg = SectorConfig()
+    for yaw_deg, expect_sector in ((90.0, 54), (180.0, 36), (-90.0, 18)):
+        R_wb = euler_zyx_to_R(0.0, 0.0, math.radians(yaw_deg))
+        rem = m.remembered(1.0, p_v)
+        s = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, 0.0, cfg, roll_pitch_rad=(0.0, 0.0),
+                            remembered_p_body=world_to_body(rem.p_world, R_wb, p_v), remembered_sigma=rem.range_sigma,
+                            remembered_tangential_sigma=rem.tangential_sigma)
+        assert s.state[expect_sector] == SectorState.OBSTACLE
+        assert s.distances_cm[expect_sector] == round((12.0 - 2 * 0.2) * 100)
+        assert s.remembered_points[expect_sector] >= 1
+        # the wall spans ±10° around the north bearing: at most sectors within ±3 of it hold it
+        claimed = np.flatnonzero(s.state == SectorState.OBSTACLE)
+        off = (claimed - expect_sector + 36) % 72 - 36
+        assert np.all(np.abs(off) <= 3), claimed
+        assert not np.any(s.state == SectorState.CLEAR)  # memory never claims clear
+        assert not s.in_view[expect_sector] or yaw_deg == 0.0
+
+
+def test_remembered_point_with_uncertain_bearing_spreads_into_neighbours():
+    p = np.array([[10.0, 0.0, 0.0]])
+    kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=p, remembered_sigma=[0.2])
+    s_sharp = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(infer_max_gap_sectors=0),
+                              remembered_tangential_sigma=[0.05], **kw)
+    s_wide = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(infer_max_gap_sectors=0),
+                             remembered_tangential_sigma=[0.8], **kw)  # k·σ/r = 9.2°
+    assert np.flatnonzero(s_sharp.state == SectorState.OBSTACLE).tolist() == [0]
+    assert np.flatnonzero(s_wide.state == SectorState.OBSTACLE).tolist() == [0, 1, 2, 70, 71]
+
+
+def test_inference_fills_a_consistent_gap_and_is_marked():
+    # camera looking backwards (yaw offset π) so every forward sector is outside the view; two remembered
+    # points 10 m away at 0° and 10° (sectors 0 and 2), sector 1 has no evidence
+    p = np.array([[10.0, 0.0, 0.0], [10.0 * math.cos(math.radians(10)), 10.0 * math.sin(math.radians(10)), 0.0]])
+    kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=p, remembered_sigma=[0.2, 0.2], remembered_tangential_sigma=[0.0, 0.0])
+    s = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(), **kw)
+    assert s.state[1] == SectorState.OBSTACLE and s.inferred.tolist() == [i == 1 for i in range(SECTOR_COUNT)]
+    assert s.distances_cm[1] == min(s.distances_cm[0], s.distances_cm[2]) and s.n_inferred == 1
+    assert s.rotated(0.0)[1] == s.distances_cm[1]  # survives the re-binning at sending time
+    off = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(infer_max_gap_sectors=0), **kw)
+    assert off.distances_cm[1] == UNKNOWN_CM and not off.inferred.any()
+    # inconsistent sides (10 m and 20 m): no inference
+    p2 = p.copy()
+    p2[1] *= 2.0
+    s2 = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(), roll_pitch_rad=(0.0, 0.0),
+                         remembered_p_body=p2, remembered_sigma=[0.2, 0.2], remembered_tangential_sigma=[0.0, 0.0])
+    assert s2.distances_cm[1] == UNKNOWN_CM
+
+
+def test_inference_never_produces_clear_and_only_adds_obstacles():
+    """Seeded Monte Carlo over random scenes: with inference on, every sector that was clear or an
+    obstacle stays exactly so, the only changes are unknown → obstacle, and they are all marked."""
+    rng = np.random.default_rng(11)
+    cfg_on, cfg_off = SectorConfig(infer_max_gap_sectors=3, infer_rel_tol=0.5), SectorConfig(infer_max_gap_sectors=0)
+    changed = 0
+    for _ in range(300):
+        n = int(rng.integers(0, 40))
+        b = rng.uniform(-math.pi, math.pi, n)
+        r = rng.uniform(2.0, 80.0, n)
+        p = np.column_stack([r * np.cos(b), r * np.sin(b), rng.normal(0, 1.0, n)])
+        sig = rng.uniform(0.05, 2.0, n)
+        conv = rng.random(n) < 0.8
+        m = int(rng.integers(0, 10))
+        bm = rng.uniform(-math.pi, math.pi, m)
+        rm = rng.uniform(2.0, 40.0, m)
+        pm = np.column_stack([rm * np.cos(bm), rm * np.sin(bm), np.zeros(m)])
+        kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=pm, remembered_sigma=np.full(m, 0.3),
+                  remembered_tangential_sigma=rng.uniform(0, 1, m))
+        a = compute_sectors(p, sig, conv, np.ones(n, bool), HFOV, 0.0, cfg_on, **kw)
+        o = compute_sectors(p, sig, conv, np.ones(n, bool), HFOV, 0.0, cfg_off, **kw)
+        diff = a.distances_cm != o.distances_cm
+        assert np.all(o.state[diff] == SectorState.UNKNOWN) and np.all(a.state[diff] == SectorState.OBSTACLE)
+        assert np.array_equal(diff, a.inferred)
+        assert np.array_equal(a.state == SectorState.CLEAR, o.state == SectorState.CLEAR)
+        changed += int(diff.sum())
+    assert changed > 0  # the property was exercised
+
+
+def test_landmark_covariance_is_range_along_the_ray_and_bearing_across():
+    P = landmark_covariance(np.array([[10.0, 0.0, 0.0]]), np.zeros(3), np.array([0.5]), 0.01)
+    np.testing.assert_allclose(P[0], np.diag([0.25, 0.01, 0.01]), atol=1e-12)
