@@ -68,7 +68,7 @@ class MapConfig:
     max_age_s: float = 20.0  # points not observed for this long are dropped, s
     min_score: float = -0.75  # usage score s = (o − 0.5u)/(1 + o) below this drops a point
     max_rel_sigma: float = 0.15  # a converged landmark enters the map only when its σ/range is at most this
-    position_drift_mps: float = 0.05  # growth of the vehicle's position error relative to a remembered point, m per s
+    position_drift_mps: float = 0.02  # growth of the vehicle's position error relative to a remembered point, m per s
     position_drift_max_m: float = 1.5  # ... bounded by this (the correlated GPS error does not grow without bound), m
     heading_drift_deg_s: float = 0.05  # heading drift since a point was last observed, degrees per s
     reobserve_radius_px: float = 6.0  # a live landmark within this of a remembered point's predicted pixel can confirm or contradict it, px
