@@ -235,3 +235,73 @@ def test_inference_never_produces_clear_and_only_adds_obstacles():
 def test_landmark_covariance_is_range_along_the_ray_and_bearing_across():
     P = landmark_covariance(np.array([[10.0, 0.0, 0.0]]), np.zeros(3), np.array([0.5]), 0.01)
     np.testing.assert_allclose(P[0], np.diag([0.25, 0.01, 0.01]), atol=1e-12)
+
+
+def _hover_run(map_enabled: bool, yaw_turn: bool = False):
+    """Pipeline on a synthetic approach to 5 m from a wall, then a still hover (optionally turning 90°
+    in place): fraction of hover frames whose sectors hold the wall."""
+    import dataclasses
+
+    from companion.bench.latency import feed_telemetry
+    from companion.bench.map_memory import APPROACH_S, HoverFlight
+    from companion.camera_sources import Frame
+    from companion.core.camera import CameraConfig
+    from companion.io.config_files import CompanionConfig
+    from companion.pipeline import Pipeline, PipelineConfig
+    from companion.telemetry import TelemetryBuffer
+
+    class StillHover(HoverFlight):
+        def position(self, t):
+            return super().position(min(t, APPROACH_S))
+
+        def velocity_at(self, t):
+            return super().velocity_at(t) if t <= APPROACH_S else np.zeros(3)
+
+        def rpy(self, t):
+            if not yaw_turn or t <= APPROACH_S + 1.0:
+                return 0.0, 0.0, 0.0
+            return 0.0, 0.0, min(t - APPROACH_S - 1.0, 3.0) * math.radians(30.0)  # 90° right at 30°/s
+
+        def rates(self):
+            return 0.0, 0.0, 0.0
+
+    cam = CameraConfig.from_fov(320, 240, 60.0)
+    base = CompanionConfig()
+    cfg = dataclasses.replace(base, camera=cam, map=dataclasses.replace(base.map, enabled=map_enabled),
+                              tracks=dataclasses.replace(base.tracks, max_tracks=120),
+                              harris=dataclasses.replace(base.harris, max_corners=120))
+    flight = StillHover(camera=cam, wall_north_m=20.0, start_ned=(0.0, 0.0, -10.0), velocity_ned=(0.0, 0.0, 0.0),
+                        noise_sigma=1.0, seed=2)
+    tel = TelemetryBuffer(cfg.telemetry)
+    tel.set_clock_offset(0.0)
+    pipe = Pipeline(cam, cfg, PipelineConfig(), tel)
+    fps, fed, held, n, sectors = 10.0, 0.0, 0, 0, None
+    for k in range(int((APPROACH_S + 8.0) * fps)):
+        t = k / fps
+        feed_telemetry(tel, flight, fed, t + 0.021)
+        fed = t + 0.021
+        res = pipe.process(Frame(k, t, flight.render(t)), t + 0.021)
+        if t > APPROACH_S + (5.0 if yaw_turn else 1.0):
+            n += 1
+            s = res.sectors
+            # the wall is north: sector 0 while facing it, sector 54 (−90°) after turning 90° right
+            sec = 54 if yaw_turn else 0
+            held += bool(res.ok and s is not None and s.state[sec] == SectorState.OBSTACLE
+                         and s.distances_cm[sec] <= 500 + 10)  # never farther than the wall (5 m)
+            sectors = s
+    return held / n, sectors
+
+
+def test_hovering_in_front_of_a_wall_keeps_its_range():
+    held, s = _hover_run(True)
+    assert held >= 0.95, held
+    assert not np.any(s.state == SectorState.CLEAR)
+
+
+def test_turning_in_place_keeps_the_wall_beside_the_vehicle():
+    """After a 90° turn in place the wall, out of view on the left, is still published there."""
+    held, s = _hover_run(True, yaw_turn=True)
+    assert held >= 0.9, held
+    assert not s.in_view[54]
+    off, _ = _hover_run(False, yaw_turn=True)
+    assert off < 0.1  # without the map nothing is published out of view
