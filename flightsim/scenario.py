@@ -13,7 +13,13 @@ dataclass of its module (unknown or misspelt keys stop with an error naming them
 The ``[scenario] seed`` seeds everything (turbulence, gyro bias, GPS noise, pixel noise); the
 tables may not carry seeds of their own, so one number reproduces a flight.  Every check that
 can fail before take-off runs in :func:`load_scenario`: TOML keys, the aircraft, a start inside or
-too close to an obstacle, a camera that sees nothing but sky, a ``companion_config`` that names no file.
+too close to an obstacle, a quad route whose waypoints or straight legs pass within 1 m of an
+obstacle (:func:`check_route_clear`), a camera that sees nothing but sky, a ``companion_config``
+that names no file.
+
+Hard flights (issue 11; DESIGN.md §6–§7: hovering and turning in place are where avoidance needs
+ranges most) use the quad route's per-waypoint ``hold_s`` (hover) and ``turn_deg`` (turn in place,
+360 = a full turn) at ``yaw_rate_dps`` (:class:`flightsim.dynamics.RouteConfig`).
 
 ``companion_config`` (a path relative to the scenario file, like ``world``) is the companion TOML
 that ``flightsim sitl``, ``flightsim campaign`` and ``flightsim score`` use when none is given on
@@ -105,6 +111,39 @@ def start_pose(vehicle: DynamicsConfig) -> tuple[np.ndarray, np.ndarray]:
     return R, np.asarray(vehicle.start_ned_m, float)
 
 
+#: least distance from a quad's waypoints and straight legs to any obstacle surface, m
+ROUTE_CLEARANCE_M = 1.0
+#: spacing of the points checked along a quad's legs, m
+_ROUTE_STEP_M = 0.25
+
+
+def check_route_clear(world: World, vehicle: DynamicsConfig, what: str = "route", clearance_m: float = ROUTE_CLEARANCE_M) -> None:
+    """Raise :class:`ConfigError` naming the waypoint and the obstacle if a quad's route passes
+    within ``clearance_m`` of an obstacle (or below the ground).
+
+    The quad flies straight lines (the take-off, if any, straight up; then start → waypoint 0 →
+    waypoint 1 …; turns and holds happen in place at the waypoints), so the whole path is known
+    before take-off; points every 0.25 m along it are checked.  The fixed-wing's L1 curves depend on
+    its speed and the wind, so its route is not checked here.
+    """
+    if vehicle.kind != "quad" or not vehicle.route.waypoints:
+        return
+    p = np.asarray(vehicle.start_ned_m, float)
+    wps = [np.asarray(wp, float) for wp in vehicle.route.waypoints]
+    legs: list[tuple[np.ndarray, np.ndarray, str]] = []
+    if -p[2] < 0.5:  # on its gear: straight up to the first waypoint's altitude first
+        top = np.array([p[0], p[1], wps[0][2]])
+        legs.append((p, top, "the take-off"))
+        p = top
+    for i, wp in enumerate(wps):
+        legs.append((p, wp, f"the leg to route.waypoints[{i}]"))
+        p = wp
+    for a, b, label in legs:
+        n = max(1, int(math.ceil(float(np.linalg.norm(b - a)) / _ROUTE_STEP_M)))
+        for k in range(n + 1):
+            world.check_start_clear(a + (b - a) * (k / n), min_clearance_m=clearance_m, what=f"{what}: {label}, at")
+
+
 def companion_config_of(path: str | os.PathLike, meta: ScenarioMeta) -> Path | None:
     """``meta.companion_config`` resolved against the scenario file's folder; ConfigError if it names no file."""
     if not meta.companion_config:
@@ -175,6 +214,7 @@ def load_scenario(path: str | os.PathLike, seed: int | None = None) -> Scenario:
     # pre-flight checks: the start must be clear and the camera must see something
     R_wb, p0 = start_pose(vehicle)
     world.check_start_clear(p0, what=f"{path.name}: start position")
+    check_route_clear(world, vehicle, what=f"{path.name}: [vehicle.route]")
     R_wc, p_wc = CameraModel(camera).camera_pose(R_wb, p0)
     check_camera_sees_something(world, camera, R_wc, p_wc, what=f"{path.name}: camera at the start")
     return Scenario(path, meta, vehicle, camera, render, telemetry, world)

@@ -155,7 +155,20 @@ class RouteConfig:
     (0 = keep the start airspeed), switching within ``acceptance_radius_m``; after the last one it
     holds the last leg's course (or starts over when ``loop``).  The quad flies each leg as a
     straight line at up to ``speed_mps`` (0 = its ``max_speed_mps``), stops at the waypoint, and
-    holds the last one; with ``face_travel`` it first turns to face along the leg (forward camera).
+    holds the last one (hovering there, on its last heading, until the flight ends); with
+    ``face_travel`` it first turns in place to face along the leg (forward camera).
+
+    Quad only, per waypoint (one value per waypoint, or empty for none), the hovering and turning
+    in place where DESIGN.md §6–§7 say avoidance needs ranges most:
+
+    * ``hold_s[i]`` — after arriving at waypoint i, hover there for this many seconds;
+    * ``turn_deg[i]`` — then turn in place by this signed angle (positive = clockwise seen from
+      above, i.e. to the right; any size: 360 is a full turn, 720 two);
+
+    then it turns to face the next leg (``face_travel``) and flies on.  ``yaw_rate_dps`` is the
+    heading rate of every turn in place of the route (0 = ``QuadGains.yaw_rate_dps``); the F450's
+    rate loop saturates at 0.75 rad/s (43°/s), hence the bound of 40°/s.  The defaults (no holds,
+    no turns, 0) leave a route's flight exactly as without these keys.
     """
 
     waypoints: tuple[tuple[float, float, float], ...] = ()
@@ -163,6 +176,14 @@ class RouteConfig:
     acceptance_radius_m: float = 30.0
     loop: bool = False
     face_travel: bool = True
+    hold_s: tuple[float, ...] = ()
+    turn_deg: tuple[float, ...] = ()
+    yaw_rate_dps: float = 0.0
+
+    #: longest hover at one waypoint, s; largest turn in place at one waypoint, degrees
+    MAX_HOLD_S = 3600.0
+    MAX_TURN_DEG = 1080.0
+    MAX_YAW_RATE_DPS = 40.0
 
     def __post_init__(self) -> None:
         for i, wp in enumerate(self.waypoints):
@@ -172,6 +193,40 @@ class RouteConfig:
         require(isinstance(self.loop, bool), f"loop must be true/false, got {self.loop!r}")
         require(isinstance(self.face_travel, bool), f"face_travel must be true/false, got {self.face_travel!r}")
         require(not self.loop or len(self.waypoints) >= 2, "loop needs at least 2 waypoints")
+        n = len(self.waypoints)
+        for key, bound, unit in (("hold_s", self.MAX_HOLD_S, "s"), ("turn_deg", self.MAX_TURN_DEG, "degrees")):
+            vals = getattr(self, key)
+            require(isinstance(vals, (tuple, list)), f"{key} must be a list with one number per waypoint, got {vals!r}")
+            require(
+                len(vals) in (0, n),
+                f"{key} must have one value per waypoint ({n}), or be empty for none; got {len(vals)}",
+            )
+            for i, v in enumerate(vals):
+                require_finite(f"{key}[{i}]", v, nonnegative=key == "hold_s")
+                require(abs(v) <= bound, f"{key}[{i}] must be within {bound:g} {unit}, got {v!r}")
+        require_finite("yaw_rate_dps", self.yaw_rate_dps, nonnegative=True)
+        require(
+            self.yaw_rate_dps <= self.MAX_YAW_RATE_DPS,
+            f"yaw_rate_dps must be <= {self.MAX_YAW_RATE_DPS:g} (the F450 turns at most 43°/s), got {self.yaw_rate_dps!r}",
+        )
+
+    @property
+    def has_holds(self) -> bool:
+        """True when some waypoint has a hover time."""
+        return any(v > 0 for v in self.hold_s)
+
+    @property
+    def has_turns(self) -> bool:
+        """True when some waypoint has a turn in place."""
+        return any(v != 0 for v in self.turn_deg)
+
+    def hold_at(self, i: int) -> float:
+        """Hover time at waypoint ``i``, s (0 when ``hold_s`` is empty)."""
+        return float(self.hold_s[i]) if self.hold_s else 0.0
+
+    def turn_at(self, i: int) -> float:
+        """Turn in place at waypoint ``i``, degrees (0 when ``turn_deg`` is empty)."""
+        return float(self.turn_deg[i]) if self.turn_deg else 0.0
 
 
 @dataclass(frozen=True)
@@ -224,6 +279,9 @@ class DynamicsConfig:
             require(self.route.speed_mps == 0 or 20.0 <= self.route.speed_mps <= 45.0, f"route.speed_mps for the J3Cub must be 0 or in [20, 45], got {self.route.speed_mps}")
             for i, wp in enumerate(self.route.waypoints):
                 require(-wp[2] >= 20.0, f"route.waypoints[{i}] is below 20 m above ground for the J3Cub: {wp}")
+            require(not self.route.has_holds, "route.hold_s: the J3Cub cannot hover at a waypoint (quad only); leave hold_s empty")
+            require(not self.route.has_turns, "route.turn_deg: the J3Cub cannot turn in place (quad only); leave turn_deg empty")
+            require(self.route.yaw_rate_dps == 0, "route.yaw_rate_dps: the J3Cub has no turn in place (quad only); leave it 0")
         else:
             require(self.start_ned_m[2] <= 0.5, f"start_ned_m[2] = {self.start_ned_m[2]} is below the ground (z > 0 is underground)")
             require(self.route.speed_mps <= self.quad.max_speed_mps, f"route.speed_mps ({self.route.speed_mps}) exceeds quad.max_speed_mps ({self.quad.max_speed_mps})")

@@ -124,6 +124,8 @@ class FixedWingSim(JSBSimVehicle):
             route = RouteConfig(waypoints=tuple(tuple(float(x) for x in wp) for wp in route))
         if not route.waypoints:
             raise ValueError("route has no waypoints")
+        if route.has_holds or route.has_turns:
+            raise ValueError("route hold_s / turn_deg: the J3Cub cannot hover or turn in place (quad only)")
         for i, wp in enumerate(route.waypoints):
             if -wp[2] < 20.0:
                 raise ValueError(f"waypoint {i} {wp} is below the J3Cub's 20 m floor")

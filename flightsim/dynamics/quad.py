@@ -9,7 +9,10 @@ so the attitude loop is ours too.
 Cascade (every ``QuadGains.control_rate_hz``):
 
 * reference: a queue of legs — turn to face the next leg, then a straight line with a trapezoidal
-  speed profile (rest to rest) — giving position, velocity and acceleration references;
+  speed profile (rest to rest); at a waypoint, optionally a hover of a set time and a turn in place
+  by a set angle (``RouteConfig.hold_s`` / ``turn_deg``: hovering and turning in place are where
+  avoidance needs ranges most, DESIGN.md §6–§7) — giving position, velocity, acceleration and
+  heading references;
 * position P → velocity demand (+ reference velocity); velocity PI → acceleration demand
   (+ reference acceleration); acceleration → thrust vector → roll/pitch demand (tilt-limited) and
   collective (hover throttle × thrust ratio);
@@ -28,7 +31,8 @@ from .vehicle import FT, G, JSBSimVehicle, SimulationError
 
 class QuadSim(JSBSimVehicle):
     """The F450, on its gear or hovering at the start, flown by :meth:`takeoff`, :meth:`goto`,
-    :meth:`hold` or a route (each waypoint a straight leg that ends at rest).
+    :meth:`hold_for`, :meth:`turn_in_place`, :meth:`hold` or a route (each waypoint a straight leg
+    that ends at rest, then the waypoint's hover and turn in place).
 
     With route waypoints in the config it takes off (if on the ground) to the first waypoint's
     altitude and flies the route.
@@ -85,6 +89,7 @@ class QuadSim(JSBSimVehicle):
         self._active_t0 = 0.0
         self._ref = ((pn, pe, pd), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
         self._face_travel = c.route.face_travel
+        self._turn_rate = math.radians(c.route.yaw_rate_dps or q.yaw_rate_dps)  # rad/s of turns in place
         if c.route.waypoints:
             self.set_route(c.route)
 
@@ -122,6 +127,25 @@ class QuadSim(JSBSimVehicle):
         self.armed = True
         self._legs.append(("line", p, speed_mps, self._face_travel if face_travel is None else face_travel))
 
+    def hold_for(self, seconds: float) -> None:
+        """Queue a hover of ``seconds`` where the queued legs end (on the heading reached there)."""
+        if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and 0 <= seconds <= RouteConfig.MAX_HOLD_S):
+            raise ValueError(f"hold seconds must be in [0, {RouteConfig.MAX_HOLD_S:g}], got {seconds!r}")
+        if seconds > 0:
+            self._legs.append(("hold", float(seconds)))
+
+    def turn_in_place(self, delta_deg: float, rate_dps: float | None = None) -> None:
+        """Queue a turn in place by ``delta_deg`` (signed, positive = clockwise from above; 360 = a
+        full turn) at ``rate_dps`` (None = the route's / the gains' rate), hovering where the queued
+        legs end."""
+        if not (isinstance(delta_deg, (int, float)) and math.isfinite(delta_deg) and abs(delta_deg) <= RouteConfig.MAX_TURN_DEG):
+            raise ValueError(f"delta_deg must be within ±{RouteConfig.MAX_TURN_DEG:g}, got {delta_deg!r}")
+        if rate_dps is not None and not (isinstance(rate_dps, (int, float)) and 0 < rate_dps <= RouteConfig.MAX_YAW_RATE_DPS):
+            raise ValueError(f"rate_dps must be in (0, {RouteConfig.MAX_YAW_RATE_DPS:g}], got {rate_dps!r}")
+        if delta_deg != 0:
+            rate = self._turn_rate if rate_dps is None else math.radians(rate_dps)
+            self._legs.append(("turn", math.radians(delta_deg), rate))
+
     def hold(self) -> None:
         """Drop the queued legs and hold the current reference position at rest."""
         self._legs.clear()
@@ -131,17 +155,21 @@ class QuadSim(JSBSimVehicle):
         self._ref = (self._hold_p, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 
     def set_route(self, route: RouteConfig | Sequence[Sequence[float]]) -> None:
-        """Fly waypoints one straight leg after another (taking off first if on the ground)."""
+        """Fly waypoints one straight leg after another (taking off first if on the ground); at
+        each waypoint hover ``route.hold_s[i]`` seconds, then turn in place by ``route.turn_deg[i]``."""
         if not isinstance(route, RouteConfig):
             route = RouteConfig(waypoints=tuple(tuple(float(x) for x in wp) for wp in route))
         if not route.waypoints:
             raise ValueError("route has no waypoints")
         self._face_travel = route.face_travel
+        self._turn_rate = math.radians(route.yaw_rate_dps or self.config.quad.yaw_rate_dps)
         speed = route.speed_mps or None
         if self.on_ground() or not self.armed:
             self.takeoff(-route.waypoints[0][2])
-        for wp in route.waypoints:
+        for i, wp in enumerate(route.waypoints):
             self.goto(wp, speed)
+            self.hold_for(route.hold_at(i))
+            self.turn_in_place(route.turn_at(i))
 
     @property
     def busy(self) -> bool:
@@ -157,7 +185,16 @@ class QuadSim(JSBSimVehicle):
     def _start_next_leg(self, t: float, psi: float) -> None:
         q = self.config.quad
         while self._legs:
-            kind, target, speed, face = self._legs.pop(0)
+            leg = self._legs.pop(0)
+            if leg[0] == "hold":
+                self._active = ("hold", t + leg[1])
+                self._active_t0 = t
+                return
+            if leg[0] == "turn":
+                self._active = ("turn", [leg[1]], leg[2])  # [heading change still to command, rad], rate
+                self._active_t0 = t
+                return
+            kind, target, speed, face = leg
             a = self._hold_p
             dn, de = target[0] - a[0], target[1] - a[1]
             if face and math.hypot(dn, de) > 1.0:
@@ -178,15 +215,31 @@ class QuadSim(JSBSimVehicle):
         self._active = None
 
     def _update_reference(self, t: float, psi: float, dt: float) -> None:
-        q = self.config.quad
         if self._active is None and self._legs:
             self._start_next_leg(t, psi)
         act = self._active
         if act is None:
             self._ref = (self._hold_p, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
             return
+        if act[0] == "hold":
+            self._ref = (self._hold_p, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+            if t >= act[1] - 1e-9:
+                self._active = None
+                self._start_next_leg(t, psi)
+            return
+        if act[0] == "turn":
+            left = act[1]
+            step = act[2] * dt
+            inc = clip(left[0], -step, step)
+            self._yaw_ref = wrap_pi(self._yaw_ref + inc)
+            left[0] -= inc
+            self._ref = (self._hold_p, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+            if left[0] == 0.0 and abs(wrap_pi(self._yaw_ref - psi)) < math.radians(3.0):
+                self._active = None
+                self._start_next_leg(t, psi)
+            return
         if act[0] == "yaw":
-            step = math.radians(q.yaw_rate_dps) * dt
+            step = self._turn_rate * dt
             err = wrap_pi(act[1] - self._yaw_ref)
             self._yaw_ref = wrap_pi(self._yaw_ref + clip(err, -step, step))
             self._ref = (self._hold_p, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
