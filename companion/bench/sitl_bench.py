@@ -2,12 +2,19 @@
 
 * lockstep ``flightsim sitl`` of ``quad_approach`` (320×240): wall time, real-time factor (target
   ≥ 10×) and the companion's work per lockstep round;
-* campaigns (:func:`flightsim.campaign.run_campaign`, SITL mode) of ``quad_approach`` and
-  ``fixedwing_pass``: pooled detection, false-obstacle and dangerous-clear rates against the issue's
-  targets, range error by bin, latency and NEES.  Reports (plots + index.md) go to ``out/bench/``.
-  Each campaign runs the companion configuration its scenario names (``[scenario]
-  companion_config``: ``fixedwing_pass`` flies ``configs/companion_fixedwing.toml``, max_distance
-  150 m), else ``configs/companion.toml``.
+* campaigns (:func:`flightsim.campaign.run_campaign`, SITL mode) of every scenario in
+  :data:`CAMPAIGNS`: ``quad_approach`` and ``fixedwing_pass`` (issue 5), and the hard flights of
+  issue 11 where DESIGN.md §6–§7 say avoidance needs ranges most and a single camera gains least
+  (hovering at a wall, turning in place, head-on, close in): ``quad_wall_hover``, ``quad_slalom``,
+  ``quad_corner``, ``quad_yaw_spin``, ``fixedwing_tower``.  Pooled detection, unknown,
+  false-obstacle and dangerous-clear rates against the targets, range error by bin, latency and
+  NEES.  Reports (plots + index.md) go to ``out/bench/``.  Each campaign runs the companion
+  configuration its scenario names (``[scenario] companion_config``: the fixed-wing scenarios fly
+  ``configs/companion_fixedwing.toml``, max_distance 150 m), else ``configs/companion.toml``.
+
+Seeds: :func:`run_all` runs ``quad_runs`` seeds of each quad scenario and ``fixedwing_runs`` of
+each fixed-wing one (8 each by default, issue 11 asks ≥ 8 per scenario); fewer, or a subset of
+the scenarios, from Python or ``python -m companion.bench.sitl_bench --runs 2 --scenarios quad_slalom``.
 """
 
 from __future__ import annotations
@@ -20,6 +27,17 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 SCEN = ROOT / "configs" / "scenarios"
 OUT = ROOT / "out" / "bench"
+
+#: The SITL campaigns of ``make bench``, in report order: scenario → (aircraft class, what it flies).
+CAMPAIGNS: dict[str, tuple[str, str]] = {
+    "quad_approach": ("quad", "F450 at 5 m/s towards a building, past a mast 3 m beside the path, stopping 5 m short of the mast"),
+    "quad_wall_hover": ("quad", "F450 at 4 m/s straight at a warehouse face, then hovering 4 m from it for 8 s"),
+    "quad_slalom": ("quad", "F450 weaving between poles of 0.2–0.6 m radius, stopping and turning in place beside each"),
+    "quad_corner": ("quad", "F450 along a building 5 m beside it, turning in place at its corner, stopping 5 m short of a second one"),
+    "quad_yaw_spin": ("quad", "F450 turning a full circle in place with obstacles 8–24 m away all round, then 6 m on"),
+    "fixedwing_pass": ("fixedwing", "J3Cub at 30 m/s past masts and a hangar corner 18–35 m beside the track"),
+    "fixedwing_tower": ("fixedwing", "J3Cub at 28 m/s past towers 8–20 m beside the track"),
+}
 
 
 def lockstep_speed(scenario: str = "quad_approach") -> dict:
@@ -51,6 +69,7 @@ def lockstep_speed(scenario: str = "quad_approach") -> dict:
 
 
 def campaign(scenario: str, runs: int, workers: int = 2) -> dict:
+    """One SITL campaign of ``runs`` seeds of ``configs/scenarios/<scenario>.toml`` into ``out/bench/campaign_<scenario>``."""
     from flightsim.campaign import run_campaign
 
     out = OUT / f"campaign_{scenario}"
@@ -61,10 +80,19 @@ def campaign(scenario: str, runs: int, workers: int = 2) -> dict:
     return c
 
 
-def run_all(quad_runs: int = 8, fixedwing_runs: int = 4) -> dict:
+def run_all(quad_runs: int = 8, fixedwing_runs: int = 8, scenarios=None, workers: int = 2) -> dict:
+    """Lockstep speed and the campaigns of ``scenarios`` (default: every one in :data:`CAMPAIGNS`),
+    ``quad_runs`` seeds per quad scenario and ``fixedwing_runs`` per fixed-wing one."""
+    names = list(CAMPAIGNS) if scenarios is None else list(scenarios)
+    unknown = [n for n in names if n not in CAMPAIGNS]
+    if unknown:
+        raise ValueError(f"unknown SITL campaign(s) {', '.join(unknown)}; known: {', '.join(CAMPAIGNS)}")
+    for label, n in (("quad_runs", quad_runs), ("fixedwing_runs", fixedwing_runs)):
+        if not (isinstance(n, int) and n >= 1):
+            raise ValueError(f"{label} must be an integer >= 1, got {n!r}")
+    runs = {"quad": quad_runs, "fixedwing": fixedwing_runs}
     return {"lockstep": lockstep_speed("quad_approach"),
-            "campaigns": {"quad_approach": campaign("quad_approach", quad_runs),
-                          "fixedwing_pass": campaign("fixedwing_pass", fixedwing_runs)}}
+            "campaigns": {n: campaign(n, runs[CAMPAIGNS[n][0]], workers) for n in names}}
 
 
 def _config_label(path) -> str:
@@ -109,10 +137,21 @@ def markdown(res: dict) -> str:
         "### Campaigns (SITL, scored against truth)",
         "",
         "`flightsim campaign configs/scenarios/X.toml --runs N --workers 2 --mode sitl --out out/bench/campaign_X` "
-        "(plots and index.md in `out/bench/campaign_X/report/`). Pooled over the runs; cell definitions in `flightsim/score.py`.",
+        "(plots and index.md in `out/bench/campaign_X/report/`). Pooled over the runs (N seeds from the scenario's own); "
+        "cell definitions in `flightsim/score.py`. What each scenario flies (the hard flights of issue 11 hover, turn in "
+        "place and come close, where DESIGN.md §6–§7 say avoidance needs ranges most and a single camera gains least):",
         "",
-        "| scenario | companion config (max_distance) | runs ok | detection | valid range | too near | false obstacles in clear cells | messages with no false obstacle (≥ 95 %) | dangerous clears (≤ 1 %) | obstacle cells | forward estimate mean abs error | latency p50 / p99 ms | NEES |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name in res["campaigns"]:
+        what = CAMPAIGNS.get(name, ("", ""))[1]
+        lines.append(f"- `{name}`: {what}." if what else f"- `{name}`.")
+    lines += [
+        "",
+        "Detection: a range reported in an obstacle cell; unknown: no data (UINT16_MAX) there, which ArduPilot treats "
+        "as no constraint and PX4 as a direction it refuses to move into.",
+        "",
+        "| scenario | companion config (max_distance) | runs ok | detection | unknown in obstacle cells | valid range | too near | false obstacles in clear cells | messages with no false obstacle (target) | dangerous clears (target) | obstacle cells | forward estimate mean abs error | latency p50 / p99 ms | NEES |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, c in res["campaigns"].items():
         a = c.get("aggregate", {})
@@ -123,7 +162,11 @@ def markdown(res: dict) -> str:
         def tcell(t):
             if t is None or t.get("pooled") is None:
                 return "–"
-            return f"{100 * t['pooled']:.2f} % {'✓' if t['met'] else '✗'}"
+            bound = f" ({t['op'].replace('>=', '≥').replace('<=', '≤')} {100 * t['threshold']:g} %)" if "threshold" in t and "op" in t else ""
+            return f"{100 * t['pooled']:.2f} %{bound} {'✓' if t['met'] else '✗'}"
+
+        cells = a.get("cells", {})
+        unknown = cells.get("unknown_in_obstacle_cells") / cells["obstacle"] if cells.get("obstacle") and "unknown_in_obstacle_cells" in cells else None
 
         err = a.get("range_error", {}).get("estimate_forward", [])
         fe = "; ".join(f"{b['bin']}: {b['mae_m']:.2f} m ({b['mae_pct']:.1f} %)" for b in err
@@ -132,7 +175,7 @@ def markdown(res: dict) -> str:
         nees = a.get("nees", {})
         lo_hi = nees.get("band") or [float("nan"), float("nan")]
         lines.append(
-            f"| {name} | {_config_label(c.get('companion_config'))} | {a.get('runs_ok', '?')}/{a.get('runs', '?')} | {_pct(p.get('detection'))} | {_pct(p.get('valid_range'))} | "
+            f"| {name} | {_config_label(c.get('companion_config'))} | {a.get('runs_ok', '?')}/{a.get('runs', '?')} | {_pct(p.get('detection'))} | {_pct(unknown)} | {_pct(p.get('valid_range'))} | "
             f"{_pct(p.get('too_near'))} | {_pct(p.get('false_obstacle_clear_cells'))} | {tcell(t_nf)} | {tcell(t_dc)} | "
             f"{t_dc['n'] if t_dc else '–'} | {fe} | "
             f"{_num(lat.get('p50_ms'), 0)} / {_num(lat.get('p99_ms'), 0)} | "
@@ -145,7 +188,22 @@ def markdown(res: dict) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":
-    r = run_all(2, 1)
+def main(argv=None) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m companion.bench.sitl_bench",
+                                 description="Lockstep SITL speed and the SITL campaigns of make bench (fewer seeds or scenarios for a quick look).")
+    ap.add_argument("--runs", type=int, default=8, help="seeds per quad scenario (default 8)")
+    ap.add_argument("--fixedwing-runs", type=int, default=None, help="seeds per fixed-wing scenario (default: --runs)")
+    ap.add_argument("--scenarios", default=None, help=f"comma-separated subset of: {', '.join(CAMPAIGNS)}")
+    ap.add_argument("--workers", type=int, default=2, help="worker processes per campaign (default 2)")
+    args = ap.parse_args(argv)
+    names = [n.strip() for n in args.scenarios.split(",") if n.strip()] if args.scenarios else None
+    r = run_all(args.runs, args.fixedwing_runs or args.runs, scenarios=names, workers=args.workers)
     print(json.dumps(r["lockstep"], indent=2))
     print(markdown(r))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
