@@ -540,7 +540,9 @@ class Reporter:
     Every method returns a list of ``(output, message)``.
     """
 
-    DIAG_NAMES = ("MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS")
+    #: NAMED_VALUE_FLOAT diagnostics: frame rate, live tracks, nearest range, latency, points held by the
+    #: obstacle map, sectors claimed from memory only (no live point), sectors inferred between two sides (DESIGN §7)
+    DIAG_NAMES = ("MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER")
 
     def __init__(self, config, pipeline: PipelineConfig, outputs=("autopilot",), start: float = 0.0,
                  heartbeat: bool = False):
@@ -612,13 +614,16 @@ class Reporter:
     def _diagnostics(self, now: float, time_boot_ms: int) -> list:
         res = self._result
         nearest = -1.0
-        tracks = 0.0
+        tracks = n_map = mem_sec = inferred = 0.0
         if res is not None and res.ok and res.sectors is not None:
-            tracks = float(res.n_tracks)
-            n = res.sectors.nearest_m
+            sec = res.sectors
+            tracks, n_map = float(res.n_tracks), float(res.n_map)
+            n = sec.nearest_m
             nearest = float(n) if math.isfinite(n) else -1.0
+            mem_only = (sec.remembered_points > 0) & (sec.remembered_points == sec.obstacle_points)
+            mem_sec, inferred = float(np.count_nonzero(mem_only)), float(sec.n_inferred)
         lat = self.last_latency_s * 1000.0 if math.isfinite(self.last_latency_s) else -1.0
-        vals = (self.fps(now), tracks, nearest, lat)
+        vals = (self.fps(now), tracks, nearest, lat, n_map, mem_sec, inferred)
         return [M.named_value_float(name, v, time_boot_ms) for name, v in zip(self.DIAG_NAMES, vals)]
 
     def _texts(self, events) -> list:

@@ -305,3 +305,19 @@ def test_turning_in_place_keeps_the_wall_beside_the_vehicle():
     assert not s.in_view[54]
     off, _ = _hover_run(False, yaw_turn=True)
     assert off < 0.1  # without the map nothing is published out of view
+
+
+def test_a_new_landmark_on_a_remembered_point_takes_it_over_fused():
+    m = ObstacleMap(MapConfig(gate_k=3.0))
+    m.observe(0.0, [1], [[20.0, 0.0, -10.0]], cov(1, 0.4), live_keys=[])
+    m.observe(1.0, [7, 8], [[20.3, 0.1, -10.0], [25.0, 3.0, -10.0]], cov(2, 0.3), live_keys=[7, 8])
+    assert len(m) == 2 and sorted(m.keys.tolist()) == [7, 8] and m.merged == 1
+    row = np.flatnonzero(m.keys == 7)[0]
+    assert m.o[row] == 1 and m.t_seen[row] == 1.0 and m.live[row]
+    # fused: between the two, nearer the more certain new one; variance below both
+    w = 0.4**2 / (0.4**2 + 0.3**2)
+    np.testing.assert_allclose(m.p[row], np.array([20.0, 0.0, -10.0]) + w * np.array([0.3, 0.1, 0.0]), atol=1e-9)
+    assert m.P[row][0, 0] < 0.3**2
+    # a live point is never taken over (its own estimate stands)
+    m.observe(2.0, [9], [[20.3, 0.1, -10.0]], cov(1, 0.3), live_keys=[7, 8, 9])
+    assert len(m) == 3

@@ -266,7 +266,8 @@ def test_wall_ahead_gives_forward_ranges_with_correct_fields(rig):
     # diagnostics at <= 1 Hz per name
     nv = v.received_t("NAMED_VALUE_FLOAT")
     names = {m.name for _, m in nv}
-    assert {"MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS"} <= names
+    assert {"MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER"} <= names
+    assert max(m.value for _, m in nv if m.name == "MR_MAP") > 0  # converged wall points entered the map
     for name in names:
         ts = [t for t, m in nv if m.name == name]
         assert all(b - a >= 0.9 for a, b in zip(ts, ts[1:])), (name, ts)

@@ -33,7 +33,8 @@ Retention (seed 003 §3.6, DESIGN §7)
 ------------------------------------
 Usage score s = (o − 0.5·u)/(1 + o), o = re-observations (a remembered point predicted in view
 and found again: a live converged landmark within ``reobserve_radius_px`` of its predicted pixel
-whose depth agrees within ``gate_k`` σ), u = missed predictions (predicted in view, and a live
+whose depth agrees within ``gate_k`` σ; or a newly converged landmark that lands within ``gate_k``
+σ of it, which then takes the point over, fused, instead of adding another), u = missed predictions (predicted in view, and a live
 converged landmark near its pixel lies clearly *beyond* it: the camera sees through where the point
 should be — it moved, or it was a mismatch).  No live landmark near the pixel is no evidence either
 way (a texture-less patch, an unconverged track), and a live landmark clearly *nearer* is an
@@ -175,6 +176,7 @@ class ObstacleMap:
         self.live = np.zeros(0, bool)
         self.rejected: dict[str, int] = {REJECT_NOT_FINITE: 0, REJECT_NOT_PD: 0}
         self.evicted: dict[str, int] = {"score": 0, "radius": 0, "age": 0, "cap": 0, "retired": 0}
+        self.merged = 0  # new landmarks that landed on a remembered point (counted as its re-observation)
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -233,11 +235,15 @@ class ObstacleMap:
         keys, p, P = keys[ok], p[ok], P[ok]
         live = keys if live_keys is None else np.asarray(live_keys, np.int64).reshape(-1)
         self.live[:] = False
+        lh, lrows = self._rows(live)
+        self.live[lrows[lh]] = True
         held, rows = self._rows(keys)
         if np.any(held):
             r = rows[held]
             self.p[r], self.P[r], self.t_seen[r] = p[held], P[held], t
         new = ~held
+        if np.any(new):
+            new = self._merge(t, keys, p, P, new, live)
         if np.any(new):
             n_new = int(np.count_nonzero(new))
             self.keys = np.concatenate([self.keys, keys[new]])
@@ -246,10 +252,42 @@ class ObstacleMap:
             self.t_seen = np.concatenate([self.t_seen, np.full(n_new, float(t))])
             self.o = np.concatenate([self.o, np.zeros(n_new, np.int64)])
             self.u = np.concatenate([self.u, np.zeros(n_new, np.int64)])
-            self.live = np.concatenate([self.live, np.zeros(n_new, bool)])
-        lh, lrows = self._rows(live)
-        self.live[lrows[lh]] = True
+            self.live = np.concatenate([self.live, np.isin(keys[new], live)])
         return rej
+
+    def _merge(self, t: float, keys, p, P, new, live) -> np.ndarray:
+        """A new landmark that lands on a remembered point (within ``gate_k`` combined σ) is that
+        point observed again: the row takes the new key, its count ``o`` grows, and its point is
+        fused with the new estimate (covariance-weighted).  Keeps one point per surface patch, so the
+        map's size follows the scene, not the time spent in it.  Returns the still-new mask."""
+        rem = np.flatnonzero(~self.live)
+        cand = np.flatnonzero(new)
+        if rem.size == 0 or cand.size == 0:
+            return new
+        var_new = np.trace(P[cand], axis1=1, axis2=2) / 3.0
+        var_rem = np.trace(self.P[rem], axis1=1, axis2=2) / 3.0
+        d2 = np.sum((p[cand][:, None, :] - self.p[rem][None, :, :]) ** 2, axis=2)
+        gate2 = self.config.gate_k**2 * (var_new[:, None] + var_rem[None, :])
+        d2 = np.where(d2 <= gate2, d2, np.inf)
+        j = np.argmin(d2, axis=1)
+        hit = np.isfinite(d2[np.arange(cand.size), j])
+        if not np.any(hit):
+            return new
+        ci, rj = cand[hit], rem[j[hit]]
+        _, first = np.unique(rj, return_index=True)  # one new landmark per remembered point
+        ci, rj = ci[first], rj[first]
+        # information-form fusion of the two Gaussian estimates of the same static point
+        I_old, I_new = np.linalg.inv(self.P[rj]), np.linalg.inv(P[ci])
+        P_f = np.linalg.inv(I_old + I_new)
+        P_f = 0.5 * (P_f + np.swapaxes(P_f, 1, 2))
+        p_f = np.einsum("nij,nj->ni", P_f, np.einsum("nij,nj->ni", I_old, self.p[rj]) + np.einsum("nij,nj->ni", I_new, p[ci]))
+        self.keys[rj], self.p[rj], self.P[rj], self.t_seen[rj] = keys[ci], p_f, P_f, t
+        self.live[rj] = np.isin(keys[ci], live)
+        self.o[rj] += 1
+        new = new.copy()
+        new[ci] = False
+        self.merged += int(ci.size)
+        return new
 
     def forget(self, keys) -> int:
         """Remove the points of these landmarks (retired by the estimator: diverged, not static)."""
