@@ -25,6 +25,7 @@ from flightsim.scenario import load_scenario
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = sorted((ROOT / "configs" / "scenarios").glob("*.toml"))
 HARD = ["quad_wall_hover", "quad_slalom", "quad_corner", "quad_yaw_spin", "fixedwing_tower"]
+VARIANTS = ["quad_wall_hover_dim"]  # same world and route as quad_wall_hover, a third of the light
 
 
 def _fly(cfg: DynamicsConfig, duration_s: float, dt: float = 0.05) -> dict:
@@ -56,12 +57,12 @@ def test_the_hard_scenarios_exist_with_their_worlds():
         assert (ROOT / "configs" / "worlds" / f"{name}.toml").is_file()
 
 
-@pytest.mark.parametrize("name", HARD)
+@pytest.mark.parametrize("name", HARD + VARIANTS)
 def test_hard_scenarios_are_short_and_every_key_is_commented(name):
     path = ROOT / "configs" / "scenarios" / f"{name}.toml"
     sc = load_scenario(path)
     assert sc.meta.duration_s <= 22.0  # short enough for campaigns of ≥ 8 seeds
-    for p in (path, ROOT / "configs" / "worlds" / f"{name}.toml"):
+    for p in (path, (path.parent / sc.meta.world).resolve()):
         for line in p.read_text(encoding="utf-8").splitlines():
             s = line.strip()
             if "=" in s and not s.startswith("#"):
@@ -326,3 +327,10 @@ def test_bench_markdown_lists_the_scenarios_with_unknown_and_target_thresholds()
     row = next(line for line in text.splitlines() if line.startswith("| quad_yaw_spin |"))
     assert "| 87.50 % | 12.50 % |" in row
     assert "99.00 % (≥ 98 %) ✓" in row and "0.00 % (≤ 0.5 %) ✓" in row
+
+
+def test_dim_variant_differs_from_quad_wall_hover_only_in_the_light():
+    base, dim = _scenario("quad_wall_hover"), _scenario("quad_wall_hover_dim")
+    assert dim.world.source == base.world.source and dim.vehicle == base.vehicle and dim.camera == base.camera
+    assert dim.render.gain < 0.5 * base.render.gain
+    assert dataclasses.replace(dim.meta, name=base.meta.name) == base.meta
