@@ -331,15 +331,17 @@ class Pipeline:
             omap.forget(np.asarray(out.retired_ids, np.int64) + self._key_base)
         # live converged landmarks seen in this frame: pinhole pixel, depth and its σ
         live = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+        live_keys = np.zeros(0, np.int64)
         if len(out.ids) and len(tf.ids):
             pos = np.minimum(np.searchsorted(tf.ids, out.ids), len(tf.ids) - 1)
-            seen = (tf.ids[pos] == out.ids) & out.converged & out.valid
+            seen = (tf.ids[pos] == out.ids) & good  # live landmarks with a point in the map
             if np.any(seen):
                 depth = (p_world[seen] - p_wc) @ R_wc[:, 2]
                 sig = out.range_sigma[seen] * np.abs(depth) / np.maximum(out.range[seen], 1e-9)
                 live = self.camera.undistort_to_pinhole(tf.uv[pos[seen]]), depth, sig
+                live_keys = keys[seen]
         c = self.camera_config
-        vc = omap.check_view(t, R_wc, p_wc, c.fx, c.fy, c.cx, c.cy, c.width, c.height, *live)
+        vc = omap.check_view(t, R_wc, p_wc, c.fx, c.fy, c.cx, c.cy, c.width, c.height, *live, live_keys=live_keys)
         self.counters["map_found"] += vc.found
         self.counters["map_missed"] += vc.missed
         omap.prune(t, p_wb)

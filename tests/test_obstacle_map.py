@@ -321,3 +321,14 @@ def test_a_new_landmark_on_a_remembered_point_takes_it_over_fused():
     # a live point is never taken over (its own estimate stands)
     m.observe(2.0, [9], [[20.3, 0.1, -10.0]], cov(1, 0.3), live_keys=[7, 8, 9])
     assert len(m) == 3
+
+
+def test_a_point_found_again_by_a_live_map_landmark_is_absorbed_by_it():
+    m = ObstacleMap()
+    m.observe(0.0, [5], [[15.3, 0.05, -10.0]], cov(1, 0.1), live_keys=[5])  # live, in the map
+    m.observe(0.5, [1], [[15.0, 0.0, -10.0]], cov(1, 0.3), live_keys=[5])  # 1: remembered (a live point is never merged)
+    m.o[m.keys == 1] = 2
+    _, R_wc, p_wc = camera_pose()
+    vc = m.check_view(2.0, R_wc, p_wc, FX, FY, CX, CY, W, H, np.array([[CX + 1.0, CY]]), np.array([15.3]),
+                      np.array([0.1]), live_keys=[5])
+    assert vc.found == 1 and m.keys.tolist() == [5] and m.o[0] == 3 and m.absorbed == 1

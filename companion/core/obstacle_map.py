@@ -177,6 +177,7 @@ class ObstacleMap:
         self.rejected: dict[str, int] = {REJECT_NOT_FINITE: 0, REJECT_NOT_PD: 0}
         self.evicted: dict[str, int] = {"score": 0, "radius": 0, "age": 0, "cap": 0, "retired": 0}
         self.merged = 0  # new landmarks that landed on a remembered point (counted as its re-observation)
+        self.absorbed = 0  # remembered points found again by a live landmark of the map, which stands for them since
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -310,10 +311,15 @@ class ObstacleMap:
 
     def check_view(self, t: float, R_world_cam: np.ndarray, p_world_cam: np.ndarray, fx: float, fy: float, cx: float,
                    cy: float, width: int, height: int, live_uv: np.ndarray, live_depth: np.ndarray,
-                   live_sigma: np.ndarray) -> ViewCheck:
+                   live_sigma: np.ndarray, live_keys=None) -> ViewCheck:
         """Compare remembered points predicted in view with the live converged landmarks
         (``live_uv`` (L, 2) pixels in this frame — pinhole, undistorted —, ``live_depth`` (L,) depth
-        along the optical axis, ``live_sigma`` (L,) its σ) and update ``o`` / ``u`` (module doc)."""
+        along the optical axis, ``live_sigma`` (L,) its σ) and update ``o`` / ``u`` (module doc).
+
+        A remembered point found again by a live landmark that has its own point in the map
+        (``live_keys``) is absorbed by it: the live point stands for that surface patch from now on
+        (its estimate is the newer, nearer one) and inherits the usage count ``o`` + 1; otherwise
+        the remembered point's ``o`` grows and its age restarts."""
         c = self.config
         rem = np.flatnonzero(~self.live)
         if rem.size == 0:
@@ -346,10 +352,24 @@ class ObstacleMap:
         beyond = near & (dz > gate)
         found = np.any(agree, axis=1)
         missed = ~found & np.any(beyond, axis=1)
-        self.o[rows[found]] += 1
-        self.t_seen[rows[found]] = t
         self.u[rows[missed]] += 1
-        return ViewCheck(predicted=int(idx.size), found=int(np.count_nonzero(found)), missed=int(np.count_nonzero(missed)))
+        n_found = int(np.count_nonzero(found))
+        absorbed = np.zeros(len(self.keys), bool)
+        if n_found and live_keys is not None:
+            best = np.argmin(np.where(agree, d2, np.inf), axis=1)[found]  # nearest agreeing live pixel
+            held, lrows = self._rows(np.asarray(live_keys, np.int64).reshape(-1)[best])
+            fr = rows[found]
+            np.add.at(self.o, lrows[held], self.o[fr[held]] + 1)
+            absorbed[fr[held]] = True
+            found_rows = fr[~held]
+        else:
+            found_rows = rows[found]
+        self.o[found_rows] += 1
+        self.t_seen[found_rows] = t
+        if np.any(absorbed):
+            self.absorbed += int(np.count_nonzero(absorbed))
+            self._keep(~absorbed)
+        return ViewCheck(predicted=int(idx.size), found=n_found, missed=int(np.count_nonzero(missed)))
 
     # -- 4. retention ------------------------------------------------------------------------------
     def prune(self, t: float, p_world_vehicle: np.ndarray) -> dict[str, int]:

@@ -521,7 +521,16 @@ class Renderer:
         rng = np.sqrt(np.sum(Cc * Cc, axis=2))
         cos = np.abs(np.einsum("kcj,kj->kc", Cc, n_c)) / rng
         lam = np.log2(rng / (self._f_mean * self._ftexel[:, None] * np.maximum(cos, 1e-3))) + self.options.lod_bias
-        lam_lo, lam_hi = np.rint(lam.min(axis=1)), np.rint(lam.max(axis=1))
+        # the face's point nearest the camera (the foot of the perpendicular, clamped into the
+        # rectangle) has the finest level; for a large face seen close up it lies inside, far from the corners
+        rel = p - self._fO
+        e1, e2 = self._fE1, self._fE2
+        a1 = np.clip(np.einsum("ij,ij->i", rel, e1) / np.einsum("ij,ij->i", e1, e1), 0.0, 1.0)
+        a2 = np.clip(np.einsum("ij,ij->i", rel, e2) / np.einsum("ij,ij->i", e2, e2), 0.0, 1.0)
+        near = self._fO + a1[:, None] * e1 + a2[:, None] * e2 - p
+        r2 = np.maximum(np.einsum("ij,ij->i", near, near), self.options.near_m**2)
+        lam_near = np.log2(r2 / (self._f_mean * self._ftexel * np.maximum(np.abs(dist), self.options.near_m))) + self.options.lod_bias
+        lam_lo, lam_hi = np.rint(np.minimum(lam.min(axis=1), lam_near)), np.rint(lam.max(axis=1))
         G = np.einsum("ji,kjc->kic", R, np.stack([self._fE1, self._fE2, self._fO - p], 2))
         front = (side > 1e-9) | (self._ftwo & (np.abs(side) >= 1e-9))
         return front, coef, dist, lam_lo, lam_hi, G
