@@ -50,7 +50,7 @@ def test_config_validation_names_the_key():
 
 
 def test_observe_upserts_and_live_points_are_not_remembered():
-    m = ObstacleMap()
+    m = ObstacleMap(MapConfig(min_support=1))
     m.observe(1.0, [1, 2], [[10, 0, -10], [12, 1, -10]], cov(2))
     assert len(m) == 2 and len(m.remembered(1.0, np.zeros(3))) == 0  # both live
     m.observe(1.1, [2], [[12.5, 1, -10]], cov(1), live_keys=[2])  # track 1 ended
@@ -71,7 +71,7 @@ def test_bad_landmarks_are_rejected_with_a_named_reason():
 
 
 def test_uncertainty_grows_with_time_since_observed():
-    cfg = MapConfig(position_drift_mps=0.1, position_drift_max_m=1.0, heading_drift_deg_s=0.1)
+    cfg = MapConfig(position_drift_mps=0.1, position_drift_max_m=1.0, heading_drift_deg_s=0.1, min_support=1)
     m = ObstacleMap(cfg)
     m.observe(0.0, [1], [[20.0, 0.0, -10.0]], cov(1, 0.3), live_keys=[])
     pv = np.array([0.0, 0.0, -10.0])
@@ -332,3 +332,12 @@ def test_a_point_found_again_by_a_live_map_landmark_is_absorbed_by_it():
     vc = m.check_view(2.0, R_wc, p_wc, FX, FY, CX, CY, W, H, np.array([[CX + 1.0, CY]]), np.array([15.3]),
                       np.array([0.1]), live_keys=[5])
     assert vc.found == 1 and m.keys.tolist() == [5] and m.o[0] == 3 and m.absorbed == 1
+
+
+def test_a_lone_remembered_point_is_not_published_a_surface_is():
+    m = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6))
+    lone = [[19.0, 0.2, -5.0]]
+    patch = [[30.0, 0.0, -5.0], [30.0, 0.3, -5.0], [30.0, 0.3, -5.4]]
+    m.observe(0.0, [1, 2, 3, 4], lone + patch, cov(4), live_keys=[])
+    assert sorted(m.remembered(0.5, np.zeros(3)).keys.tolist()) == [2, 3, 4]
+    assert m.support(np.arange(4)).tolist() == [1, 3, 3, 3]

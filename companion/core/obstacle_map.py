@@ -75,12 +75,16 @@ class MapConfig:
     reobserve_radius_px: float = 6.0  # a live landmark within this of a remembered point's predicted pixel can confirm or contradict it, px
     gate_k: float = 3.0  # depths agree when within gate_k combined σ (found); a live point beyond that is "seen through" (missed)
     image_margin_px: float = 4.0  # a remembered point is predicted in view only this far inside the image border, px
+    min_support: int = 2  # a remembered point is published only with at least this many map points (itself included) within support_radius_m
+    support_radius_m: float = 0.6  # neighbourhood of that support test, m
 
     def __post_init__(self) -> None:
         require(isinstance(self.enabled, bool), "enabled must be true or false")
         require(isinstance(self.max_landmarks, int) and not isinstance(self.max_landmarks, bool) and self.max_landmarks >= 1,
                 f"max_landmarks must be an integer >= 1, got {self.max_landmarks!r}")
-        for name in ("radius_m", "max_age_s", "max_rel_sigma", "reobserve_radius_px", "gate_k"):
+        require(isinstance(self.min_support, int) and not isinstance(self.min_support, bool) and self.min_support >= 1,
+                f"min_support must be an integer >= 1, got {self.min_support!r}")
+        for name in ("radius_m", "max_age_s", "max_rel_sigma", "reobserve_radius_px", "gate_k", "support_radius_m"):
             require_finite(name, getattr(self, name), positive=True)
         for name in ("position_drift_mps", "position_drift_max_m", "heading_drift_deg_s", "image_margin_px"):
             require_finite(name, getattr(self, name), nonnegative=True)
@@ -399,9 +403,25 @@ class ObstacleMap:
         return out
 
     # -- 5. remembered points out --------------------------------------------------------------------
+    def support(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows),) number of map points (the point itself included) within ``support_radius_m``."""
+        if rows.size == 0:
+            return np.zeros(0, np.int64)
+        q = self.p[rows].astype(np.float32)
+        P = self.p.astype(np.float32)
+        d2 = np.sum(q * q, 1)[:, None] + np.sum(P * P, 1)[None, :] - 2.0 * (q @ P.T)
+        return np.count_nonzero(d2 <= np.float32(self.config.support_radius_m**2), axis=1)
+
     def remembered(self, t: float, p_world_vehicle: np.ndarray) -> Remembered:
-        """Points whose landmark is no longer live, with σ relative to the vehicle (module doc)."""
+        """Points whose landmark is no longer live, with σ relative to the vehicle (module doc).
+
+        Only points with ``min_support`` map points within ``support_radius_m`` are returned: a real
+        surface leaves several landmarks, a lone point is most likely a track that converged on a
+        mismatch (an occluding edge, a repeated texture), which memory would otherwise keep for
+        ``max_age_s``."""
         rows = np.flatnonzero(~self.live)
+        if self.config.min_support > 1 and rows.size:
+            rows = rows[self.support(rows) >= self.config.min_support]
         pv = np.asarray(p_world_vehicle, float).reshape(3)
         d = self.p[rows] - pv
         r = np.linalg.norm(d, axis=1)
