@@ -42,12 +42,40 @@ Measurement noise R = (σ_px/f)² + σ_att² (white attitude noise of each telem
 inverse depth ρ; treated as white, an approximation for GPS-like correlated error).
 
 All operations are batched over landmarks: arrays of shape (N, 3), (N, 3, 3); no loop per landmark.
+
+Looming (DESIGN §7, "Looming / time to contact").  A small surface patch facing the camera images
+with a size ∝ 1/Z, Z its depth along the optical axis, so the patch scale change between the
+previous frame (pose R_world_cam', C', time t') and the current one (R_world_cam, C, t) measured
+by the matcher, s = size now / size before, is the depth ratio s = Z'/Z — also on the optical axis,
+where the bearings (and so the pixel measurement above) carry no range.  With the same h_c as the
+pixel model evaluated at each pose (ρ scales both depths and cancels in the ratio, the camera
+positions and attitudes come from telemetry):
+
+    Z = h_z / ρ,   h_z = e₃ᵀ R_cam_world Exp(w) (ρ (p_world_camA − C) + R_world_camA m(θ, φ))
+    z_s = h_s(x) = h_z' / h_z                     (h_z' the same at the previous pose, w' = D' b)
+
+a scalar measurement of x.  With ∂h_z/∂x the third row of [∂h_c/∂(θ, φ, ρ) | ∂h_c/∂b] above
+(evaluated at each pose), the quotient rule gives the analytic Jacobian
+
+    H_s = (∂h_z'/∂x − h_s ∂h_z/∂x) / h_z          (1 × n)
+
+(for a point on the axis, h_s = (1 − ρ ζ')/(1 − ρ ζ) with ζ the distance travelled towards it
+since the anchor: ∂h_s/∂ρ ≈ ζ − ζ' = the distance travelled between the two frames, so a scale
+σ of 0.005 over a 0.13 m step gives σ_ρ ≈ 0.04 per frame, then accumulates).  The model is exact
+for a patch parallel to the image plane; a tilted patch or the camera's rotation between two
+frames changes the scale by O(angle²) more, which the noise floor covers.  Noise
+R_s = σ_s² + σ_floor² (σ_s from the matcher's Gauss–Newton covariance, ``looming_sigma_floor``);
+χ² (1 dof) gate ``looming_gate_probability``; iterated update in Joseph form
+P = (I − K H) P (I − K H)ᵀ + K R Kᵀ, batched over landmarks.  Input that cannot be a scale is
+not an error in flight: NaN (the matcher could not measure it) is skipped and counted
+(``LOOM_NAN``), a non-positive or non-finite scale or σ is refused (``LOOM_NONPOSITIVE``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import statistics
 
 import numpy as np
 
@@ -73,6 +101,9 @@ class AnchoredEKFConfig:
     max_range_m: float = 10000.0  # ranges beyond this are reported as this value
     nis_window: float = 10.0  # updates averaged (exponentially) in each landmark's mean NIS
     max_mean_nis: float = 0.0  # mean NIS above this flags the landmark diverged (not a static point); 0 = off
+    looming: bool = True  # fuse the matcher's patch scale change (looming, DESIGN §7) when given
+    looming_sigma_floor: float = 0.003  # floor added (in quadrature) to the matcher's scale σ
+    looming_gate_probability: float = 0.999  # χ² (1 dof) gate of the looming innovation
 
     def __post_init__(self) -> None:
         require_finite("sigma_px", self.sigma_px, positive=True)
@@ -89,11 +120,23 @@ class AnchoredEKFConfig:
         require_finite("nis_window", self.nis_window)
         require(self.nis_window >= 1.0, f"nis_window must be >= 1, got {self.nis_window}")
         require_finite("max_mean_nis", self.max_mean_nis, nonnegative=True)
+        require(isinstance(self.looming, bool), f"looming must be true or false, got {self.looming!r}")
+        require_finite("looming_sigma_floor", self.looming_sigma_floor, positive=True)
+        require_finite("looming_gate_probability", self.looming_gate_probability)
+        require(
+            0.5 < self.looming_gate_probability < 1.0,
+            f"looming_gate_probability must be in (0.5, 1), got {self.looming_gate_probability}",
+        )
 
     @property
     def gate_threshold(self) -> float:
         """χ²₂ quantile: for 2 dof the CDF is 1 − exp(−x/2), so the quantile is −2 ln(1 − p)."""
         return -2.0 * math.log(1.0 - self.gate_probability)
+
+    @property
+    def looming_gate_threshold(self) -> float:
+        """χ²₁ quantile: (Φ⁻¹((1 + p)/2))²."""
+        return statistics.NormalDist().inv_cdf(0.5 * (1.0 + self.looming_gate_probability)) ** 2
 
 
 # -- reasons an update was not applied --------------------------------------------------------
@@ -102,12 +145,18 @@ GATED = 1  # innovation failed the χ² gate
 BEHIND = 2  # the predicted point is behind the current camera
 
 
+LOOM_NAN = 3  # looming: the scale is NaN (not measured): skipped
+LOOM_NONPOSITIVE = 4  # looming: scale ≤ 0, ±inf, or its σ not finite and > 0: refused
+
+UPDATE_REASON_NAMES = {UPDATED: "updated", GATED: "gated", BEHIND: "behind", LOOM_NAN: "nan_scale", LOOM_NONPOSITIVE: "nonpositive_scale"}
+
+
 @dataclasses.dataclass
 class UpdateResult:
     ids: np.ndarray
     accepted: np.ndarray  # (M,) bool
     nis: np.ndarray  # (M,) normalized innovation squared (first linearization)
-    reason: np.ndarray  # (M,) UPDATED / GATED / BEHIND
+    reason: np.ndarray  # (M,) UPDATED / GATED / BEHIND (looming also LOOM_NAN / LOOM_NONPOSITIVE)
 
 
 def _no_update(ids: np.ndarray) -> UpdateResult:
@@ -229,6 +278,18 @@ def _predict(x, ray_map, a, R_cam_world, D):
     states): the parts that stay fixed over the iterated-EKF relinearizations, computed once per
     update by the caller.
     """
+    V = _hc_jacobian(x, ray_map, a, R_cam_world, D)
+    h = V[:, :, 0]
+    hz = h[:, 2]
+    inv_hz = 1.0 / np.where(np.abs(hz) > 1e-12, hz, 1e-12)
+    z = h[:, :2] * inv_hz[:, None]
+    # ∂z/∂h = (1/h_z) [I₂ | −z], applied row-wise without forming it
+    H = (V[:, :2, 1:] - z[:, :, None] * V[:, 2:3, 1:]) * inv_hz[:, None, None]
+    return h, z, H
+
+
+def _hc_jacobian(x, ray_map, a, R_cam_world, D):
+    """[h_c | ∂h_c/∂x] (N, 3, 1+n) at states x (N,n); arguments as in :func:`_predict`."""
     n = len(x)
     # W = [g | ∂g/∂(θ, φ, ρ)] with g = ρ a + R_world_camA m, ∂g/∂θ = R ∂m/∂θ, ∂g/∂φ = R ∂m/∂φ, ∂g/∂ρ = a
     W = (_ray_products(x[:, :2])[:, None, :] @ ray_map).reshape(n, 3, 4)
@@ -245,13 +306,18 @@ def _predict(x, ray_map, a, R_cam_world, D):
         V = (R_cam_world @ W.transpose(1, 0, 2).reshape(3, n * k)).reshape(3, n, k).transpose(1, 0, 2)
     else:
         V = R_cam_world @ W  # [h | ∂h/∂x]
-    h = V[:, :, 0]
-    hz = h[:, 2]
-    inv_hz = 1.0 / np.where(np.abs(hz) > 1e-12, hz, 1e-12)
-    z = h[:, :2] * inv_hz[:, None]
-    # ∂z/∂h = (1/h_z) [I₂ | −z], applied row-wise without forming it
-    H = (V[:, :2, 1:] - z[:, :, None] * V[:, 2:3, 1:]) * inv_hz[:, None, None]
-    return h, z, H
+    return V
+
+
+def _looming_predict(x, ray_map, a_prev, Rcw_prev, D_prev, a_now, Rcw_now, D_now):
+    """h_z' (N,), h_z (N,), h_s = h_z'/h_z (N,) and H_s (N,n) of the looming model (module docstring)."""
+    Vp = _hc_jacobian(x, ray_map, a_prev, Rcw_prev, D_prev)[:, 2, :]
+    Vn = _hc_jacobian(x, ray_map, a_now, Rcw_now, D_now)[:, 2, :]
+    hz_prev, hz_now = Vp[:, 0], Vn[:, 0]
+    inv = 1.0 / np.where(np.abs(hz_now) > 1e-12, hz_now, 1e-12)
+    hs = hz_prev * inv
+    Hs = (Vp[:, 1:] - hs[:, None] * Vn[:, 1:]) * inv[:, None]
+    return hz_prev, hz_now, hs, Hs
 
 
 def _inv2(S: np.ndarray) -> np.ndarray:
@@ -305,6 +371,7 @@ class AnchoredInverseDepthEKF:
         self.diverged = np.zeros(0, dtype=bool)
         self.nis_avg = np.zeros(0)  # mean NIS over the last ~nis_window measurements (consistency with a static point)
         self.nis_count = np.zeros(0, dtype=np.int64)  # measurements in nis_avg
+        self.n_looming = np.zeros(0, dtype=np.int64)  # accepted looming (scale) updates
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -363,10 +430,11 @@ class AnchoredInverseDepthEKF:
             x0 = np.concatenate([x0, np.zeros((m, 3))], 1)
         zi = np.zeros(m, np.int64)
         self._insert(dict(ids=ids, x=x0, P=P0, R_world_camA=R, p_world_camA=p, t_anchor=t, n_updates=zi,
-                          n_rejects=zi, diverged=np.zeros(m, bool), nis_avg=np.zeros(m), nis_count=zi))
+                          n_rejects=zi, diverged=np.zeros(m, bool), nis_avg=np.zeros(m), nis_count=zi, n_looming=zi))
 
     #: per-landmark arrays, all aligned with ``ids`` (kept sorted ascending)
-    _FIELDS = ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged", "nis_avg", "nis_count")
+    _FIELDS = ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged", "nis_avg",
+               "nis_count", "n_looming")
 
     def _insert(self, rows: dict) -> None:
         """Merge new landmarks (every field of :data:`_FIELDS`, ids not yet present) keeping ids sorted."""
@@ -570,6 +638,133 @@ class AnchoredInverseDepthEKF:
         if cfg.max_mean_nis > 0:
             full = nis_count >= cfg.nis_window
             self.diverged[rows] |= full & (nis_avg > cfg.max_mean_nis)
+
+    # -- looming (module docstring, DESIGN §7) --------------------------------------------------
+    @staticmethod
+    def measure_looming(x, R_world_camA, p_world_camA, R_world_cam_prev, p_world_cam_prev, R_world_cam, p_world_cam,
+                        dt_prev=None, dt=None):
+        """Predicted scale change h_s (N,) and H_s (N,n) of states x (N,n) between the previous pose
+        (R_world_cam_prev, p_world_cam_prev) and the current one; poses (3,3)/(3,) or per landmark.
+        With n = 6, ``dt_prev`` and ``dt`` (N,) are t' − t_anchor and t − t_anchor."""
+        RA = np.asarray(R_world_camA, float)
+        drift = x.shape[1] == 6
+
+        def parts(R, p, d):
+            D = (0.5 * d)[:, None, None] * (RA + R) if drift else None
+            return p_world_camA - p, np.swapaxes(R, -1, -2), D
+
+        _, _, hs, Hs = _looming_predict(x, _ray_map(RA), *parts(np.asarray(R_world_cam_prev, float), p_world_cam_prev, dt_prev),
+                                        *parts(np.asarray(R_world_cam, float), p_world_cam, dt))
+        return hs, Hs
+
+    def update_looming(self, ids, scale, scale_sigma, R_world_cam_prev, p_world_cam_prev, t_prev,
+                       R_world_cam, p_world_cam, t) -> UpdateResult:
+        """Fuse one looming measurement per listed landmark: ``scale`` (M,) = image size now / in the
+        previous frame (pose R_world_cam_prev, p_world_cam_prev at t_prev) with σ ``scale_sigma``
+        (M,) or None (the floor only).  NaN scales are skipped (``LOOM_NAN``), non-positive or
+        infinite ones refused (``LOOM_NONPOSITIVE``); neither raises."""
+        return self.update_looming_banks([(self, ids, scale, scale_sigma)], R_world_cam_prev, p_world_cam_prev, t_prev,
+                                         R_world_cam, p_world_cam, t)[0]
+
+    @staticmethod
+    def update_looming_banks(parts, R_world_cam_prev, p_world_cam_prev, t_prev, R_world_cam, p_world_cam, t) -> list[UpdateResult]:
+        """:meth:`update_looming` over several banks of one configuration in one batch.
+
+        ``parts``: a list of (bank, ids, scale, scale_sigma); the two poses are shared (3,3)/(3,).
+        """
+        parts = [(b, np.asarray(ids, dtype=np.int64).reshape(-1), sc, sg) for b, ids, sc, sg in parts]
+        if not parts:
+            return []
+        first = parts[0][0]
+        if any(b.config != first.config for b, *_ in parts):
+            raise InputError("update_looming_banks: the banks must share their configuration")
+        Rp = _shared_or_batch("R_world_cam_prev", R_world_cam_prev, 1, (3, 3))
+        Cp = _shared_or_batch("p_world_cam_prev", p_world_cam_prev, 1, (3,))
+        Rc = _shared_or_batch("R_world_cam", R_world_cam, 1, (3, 3))
+        C = _shared_or_batch("p_world_cam", p_world_cam, 1, (3,))
+        if Rp.shape != (3, 3) or Cp.shape != (3,) or Rc.shape != (3, 3) or C.shape != (3,):
+            raise InputError("update_looming_banks: one previous and one current pose, (3,3) and (3,) each")
+        if np.ndim(t) or np.ndim(t_prev) or not (np.isfinite(t) and np.isfinite(t_prev)) or not t > t_prev:
+            raise InputError(f"update_looming_banks: times must be finite scalars with t > t_prev, got {t_prev!r}, {t!r}")
+        rows, s_all, sig_all = [], [], []
+        for bank, ids, sc, sg in parts:
+            m = len(ids)
+            rows.append(bank.index_of(ids))
+            sc = np.asarray(sc, float).reshape(-1) if sc is not None else np.full(m, np.nan)
+            sg = np.zeros(m) if sg is None else np.asarray(sg, float).reshape(-1)
+            if sc.shape != (m,) or sg.shape != (m,):
+                raise InputError(f"scale and scale_sigma must have shape ({m},), got {sc.shape} and {sg.shape}")
+            s_all.append(sc)
+            sig_all.append(sg)
+        z = np.concatenate(s_all)
+        sig = np.concatenate(sig_all)
+        reason = np.full(len(z), UPDATED, np.int8)
+        reason[np.isnan(z)] = LOOM_NAN
+        bad = ~np.isnan(z) & (~np.isfinite(z) | (z <= 0) | ~np.isfinite(sig) | (sig < 0))
+        reason[bad] = LOOM_NONPOSITIVE
+        nis = np.full(len(z), np.nan)
+        good = np.zeros(len(z), bool)
+        use = np.flatnonzero(reason == UPDATED)
+        ends = np.cumsum([len(r) for r in rows])
+        starts = np.concatenate([[0], ends[:-1]])
+        if len(use):
+            bank_of = np.searchsorted(ends, use, side="right")
+            gather = {name: np.concatenate([getattr(b, name)[r] for (b, *_), r in zip(parts, rows)])[use]
+                      for name in ("x", "P", "R_world_camA", "p_world_camA", "t_anchor")}
+            var = sig[use] ** 2 + first.config.looming_sigma_floor**2
+            x, P, g, nis_u, reason_u = first._solve_looming(
+                gather["x"], gather["P"], gather["R_world_camA"], gather["p_world_camA"], gather["t_anchor"],
+                z[use], var, Rp, Cp, float(t_prev), Rc, C, float(t))
+            good[use], nis[use], reason[use] = g, nis_u, reason_u
+            for k, ((bank, *_), r) in enumerate(zip(parts, rows)):
+                sel = bank_of == k
+                if np.any(sel):
+                    rr = r[use[sel] - starts[k]]
+                    bank.x[rr] = x[sel]
+                    bank.P[rr] = P[sel]
+                    bank.n_looming[rr] += g[sel]
+        return [UpdateResult(ids, good[lo:hi], nis[lo:hi], reason[lo:hi])
+                for (_, ids, *_), lo, hi in zip(parts, starts, ends)]
+
+    def _solve_looming(self, x0, P0, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t):
+        """Iterated scalar EKF update (Joseph form) of states x0 (M,n), P0 (M,n,n) with scale
+        measurements z (M,) of variance var (M,): (x, P, accepted, nis, reason)."""
+        cfg = self.config
+        ray_map = _ray_map(RA)
+        drift = self.n == 6
+        Dp = (0.5 * (t_prev - tA))[:, None, None] * (RA + Rp) if drift else None
+        Dn = (0.5 * (t - tA))[:, None, None] * (RA + Rc) if drift else None
+        args = (ray_map, pA - Cp, Rp.T, Dp, pA - C, Rc.T, Dn)
+        hzp, hzn, hs, Hs = _looming_predict(x0, *args)
+        behind = (hzp <= 1e-9) | (hzn <= 1e-9)
+        PHt = (P0 @ Hs[:, :, None])[:, :, 0]  # (M,n)
+        S = np.einsum("ni,ni->n", Hs, PHt) + var
+        y = z - hs
+        nis = y * y / S
+        nis[behind] = np.inf
+        reason = np.where(nis <= cfg.looming_gate_threshold, UPDATED, GATED).astype(np.int8)
+        reason[behind] = BEHIND
+        ok = reason == UPDATED
+        xi = x0
+        K = PHt / S[:, None]
+        innov = y
+        H = Hs
+        for it in range(cfg.iterations):
+            if it > 0:
+                hzp, hzn, hs, H = _looming_predict(xi, *args)
+                ok &= (hzp > 1e-9) & (hzn > 1e-9)
+                PHt = (P0 @ H[:, :, None])[:, :, 0]
+                S = np.einsum("ni,ni->n", H, PHt) + var
+                K = PHt / S[:, None]
+                innov = z - hs - np.einsum("ni,ni->n", H, x0 - xi)
+            xi = np.where(ok[:, None], x0 + K * innov[:, None], xi)
+        # Joseph form: (I − K H) P0 (I − K H)ᵀ + K R Kᵀ
+        A = np.eye(self.n) - K[:, :, None] * H[:, None, :]
+        P_new = A @ P0 @ np.swapaxes(A, 1, 2) + var[:, None, None] * (K[:, :, None] * K[:, None, :])
+        P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
+        good = ok & np.isfinite(xi).all(1) & np.isfinite(P_new).all((1, 2))
+        reason[ok & ~good] = GATED
+        return np.where(good[:, None], xi, x0), np.where(good[:, None, None], P_new, P0), good, nis, reason
 
     # -- output ---------------------------------------------------------------------------------
     def estimates(self, p_world_cam) -> LandmarkEstimates:

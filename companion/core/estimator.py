@@ -21,6 +21,14 @@ Life of a landmark (the "combined method" of seeds 000 and 004):
    (one batch per frame in a second bank of pending filters) and a landmark that times out moves
    over unchanged; a triangulated start replays its buffer from the triangulated prior.
 4. a landmark unseen for ``max_unseen_s``, or flagged diverged or invalid, is dropped.
+
+Looming (DESIGN §7): with the anchored filter, ``process`` optionally takes each track's patch
+scale change since the previous frame (``scale``, ``scale_sigma``, keyed like the pixels, NaN where
+the matcher could not measure it: see :class:`companion.core.tracks.TrackFrame`).  After the pixel
+update, the running filters *and* the pending landmarks' wide-prior filters get the looming
+update (``[ekf_anchored] looming``), so a landmark on the direction of travel, which never
+triangulates, starts from the wide prior and converges by looming.  The scale is relative to the
+previous frame given to ``process``; a triangulated start replays its buffered pixels only.
 """
 
 from __future__ import annotations
@@ -31,7 +39,7 @@ import numpy as np
 
 from companion.config import require, require_finite
 from companion.core.camera import CameraConfig, CameraModel
-from companion.core.ekf_anchored import AnchoredEKFConfig, AnchoredInverseDepthEKF
+from companion.core.ekf_anchored import UPDATE_REASON_NAMES, AnchoredEKFConfig, AnchoredInverseDepthEKF
 from companion.core.ekf_landmark import LandmarkEKFBank, LandmarkEKFConfig
 from companion.core.frames import is_orthonormal, se3_twist
 from companion.core.triangulation import Reject, TriangulationConfig, triangulate_multiview
@@ -80,6 +88,8 @@ class RangeOutput:
     n_rejected: int  # measurements refused by the χ² gate in this frame
     tri_reasons: dict  # Reject name -> count among pending landmarks tried this frame
     retired_ids: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))  # diverged this frame: end their tracks
+    n_looming: int = 0  # looming (scale) updates accepted in this frame (running + pending filters)
+    looming_reasons: dict = dataclasses.field(default_factory=dict)  # reason name -> count of looming measurements not applied
 
 
 class _Pending:
@@ -200,14 +210,20 @@ class RangeEstimator:
         return R, p, ids.astype(np.int64), uv
 
     # -- main step ------------------------------------------------------------------------------
-    def process(self, t, R_world_cam, p_world_cam, ids, uv, v_cam=None, w_cam=None) -> RangeOutput:
-        """Fuse one frame.  ``uv``: raw (distorted) pixels (M, 2) of tracks ``ids`` (M,)."""
+    def process(self, t, R_world_cam, p_world_cam, ids, uv, v_cam=None, w_cam=None, scale=None, scale_sigma=None) -> RangeOutput:
+        """Fuse one frame.  ``uv``: raw (distorted) pixels (M, 2) of tracks ``ids`` (M,).
+
+        ``scale`` / ``scale_sigma`` (M,), optional: each track's patch scale change since the
+        previous frame and its σ (NaN = not measured), fused as looming (module docstring)."""
         R, p, ids, uv = self._validate(t, R_world_cam, p_world_cam, ids, uv)
+        scale, scale_sigma = self._validate_scale(scale, scale_sigma, len(ids))
         t = float(t)
         self._retired_now = np.zeros(0, np.int64)
         if len(self.retired):
             fresh = ~np.isin(ids, self.retired)
             ids, uv = ids[fresh], uv[fresh]
+            if scale is not None:
+                scale, scale_sigma = scale[fresh], scale_sigma[fresh]
         if self.t_prev is not None and not t > self.t_prev:
             raise InputError(f"frame times must increase: {t} after {self.t_prev}")
         xy = self.camera.pixels_to_normalized(uv)
@@ -228,6 +244,15 @@ class RangeEstimator:
         n_rej = int(np.sum(~self._update(ids[in_ekf], xy[in_ekf], R, p, t, pend_ids, pend_xy)))
         if np.any(in_ekf):
             self.t_seen[self.ekf.index_of(ids[in_ekf])] = t
+        n_loom, loom_reasons = 0, {}
+        if scale is not None and self.prior_bank is not None and self.ekf.config.looming and self.t_prev is not None:
+            sel_p = np.flatnonzero(rest)[in_pend]
+            parts = [(self.ekf, ids[in_ekf], scale[in_ekf], scale_sigma[in_ekf]),
+                     (self.prior_bank, pend_ids, scale[sel_p], scale_sigma[sel_p])]
+            res = AnchoredInverseDepthEKF.update_looming_banks(parts, *self.pose_prev, self.t_prev, R, p, t)
+            n_loom = int(sum(np.count_nonzero(r.accepted) for r in res))
+            reasons = np.concatenate([r.reason[~r.accepted] for r in res])
+            loom_reasons = {UPDATE_REASON_NAMES[int(c)]: int(np.sum(reasons == c)) for c in np.unique(reasons)}
 
         # 2. new landmarks, then try to initialize the pending ones
         room = self.config.max_landmarks - len(self.ekf) - len(self.pending)
@@ -242,7 +267,27 @@ class RangeEstimator:
         self._expire(t)
         self.t_prev = t
         self.pose_prev = (R, p)
-        return self._output(t, R, p, n_tri, n_prior, n_rej, reasons)
+        out = self._output(t, R, p, n_tri, n_prior, n_rej, reasons)
+        out.n_looming, out.looming_reasons = n_loom, loom_reasons
+        return out
+
+    @staticmethod
+    def _validate_scale(scale, scale_sigma, m):
+        """(M,) float arrays or (None, None).  NaN or bad values are not errors here: the looming
+        update skips NaN and refuses non-positive scales with a named reason."""
+        if scale is None:
+            if scale_sigma is not None:
+                raise InputError("scale_sigma given without scale")
+            return None, None
+        scale = np.asarray(scale, float).reshape(-1) if np.ndim(scale) else np.full(m, float(scale))
+        if scale.shape != (m,):
+            raise InputError(f"scale must have shape ({m},) to match ids, got {scale.shape}")
+        if scale_sigma is None:
+            scale_sigma = np.zeros(m)
+        scale_sigma = np.asarray(scale_sigma, float).reshape(-1) if np.ndim(scale_sigma) else np.full(m, float(scale_sigma))
+        if scale_sigma.shape != (m,):
+            raise InputError(f"scale_sigma must have shape ({m},) to match ids, got {scale_sigma.shape}")
+        return scale, scale_sigma
 
     def drop(self, ids) -> None:
         """Forget landmarks whose tracks ended (e.g. the track manager's dropped ids)."""
