@@ -158,3 +158,142 @@ def test_estimator_counts_nan_scales_and_does_not_raise():
     for t, R, p, ids, uv, s, ss in frames:
         out = est.process(t, R, p, ids, uv, scale=np.array([np.nan, -1.0]), scale_sigma=ss)
     assert out.looming_reasons == {"nan_scale": 1, "nonpositive_scale": 1} and out.n_looming == 0
+
+
+# -- the matcher's scale estimate and templates that follow scale ------------------------------
+import cv2  # noqa: E402
+
+from companion.core import ncc  # noqa: E402
+from companion.core.harris import HarrisConfig, detect_harris  # noqa: E402
+from companion.core.ncc import NCCConfig, estimate_scale, match_ncc  # noqa: E402
+from companion.core.tracks import TrackConfig, TrackManager  # noqa: E402
+
+SS = 4
+
+
+class ZoomScene:
+    """Band-limited noise rendered 4× supersampled and zoomed by ``s`` about ``centre`` (exact scale)."""
+
+    def __init__(self, w=320, h=240, seed=3):
+        r = np.random.default_rng(seed)
+        big = r.standard_normal((h * SS, w * SS)).astype(np.float32)
+        self.big = cv2.GaussianBlur(big, (0, 0), 1.2 * SS)
+        self.big /= self.big.std()
+        self.w, self.h = w, h
+        self.centre = np.array([w / 2 + 0.3, h / 2 - 0.2])
+
+    def render(self, s=1.0, noise=0.0, rng=None):
+        c = (self.centre + 0.5) * SS - 0.5  # the pixel centre in supersampled coordinates
+        M = np.array([[s, 0, (1 - s) * c[0]], [0, s, (1 - s) * c[1]]])
+        big = cv2.warpAffine(self.big, M, (self.w * SS, self.h * SS), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        img = 128 + 45 * cv2.resize(big, (self.w, self.h), interpolation=cv2.INTER_AREA)
+        if noise:
+            img = img + noise * rng.standard_normal(img.shape)
+        return np.clip(img, 0, 255).round().astype(np.uint8)
+
+    def move(self, pts, s):
+        return (pts - self.centre) * s + self.centre
+
+
+@pytest.fixture(scope="module")
+def zoom():
+    return ZoomScene()
+
+
+@pytest.mark.parametrize("s", [1.0, 1.005, 1.03, 1.1, 0.96])
+def test_scale_of_a_synthetically_zoomed_image(zoom, s):
+    r = np.random.default_rng(5)
+    img0 = zoom.render(1.0, noise=1.0, rng=r)
+    img1 = zoom.render(s, noise=1.0, rng=r)
+    pts, _ = detect_harris(img0, HarrisConfig(max_corners=60))
+    moved = zoom.move(pts, s)
+    pts = pts[np.all((moved > 15) & (moved < [zoom.w - 16, zoom.h - 16]), 1)]  # stays inside the next frame
+    est, sig = estimate_scale(img0, img1, pts, zoom.move(pts, s), NCCConfig(), np.full(len(pts), s))
+    ok = np.isfinite(est)
+    assert ok.mean() > 0.8
+    assert abs(np.median(est[ok]) - s) < 0.0015
+    z = (est[ok] - s) / sig[ok]
+    assert np.mean(np.abs(z) < 3) > 0.9  # σ bounds the error
+    assert np.all(sig[ok] > 0) and np.all(sig[ok] < 0.02)
+
+
+def test_scale_is_nan_where_it_cannot_be_measured(zoom):
+    flat = np.full((240, 320), 100, np.uint8)
+    edge = flat.copy()
+    edge[:, 160:] = 200
+    pts = np.array([[100.0, 100.0], [160.0, 120.0], [3.0, 120.0]])  # flat, on the edge, at the border
+    for img in (flat, edge):
+        est, sig = estimate_scale(img, img, pts, pts, NCCConfig())
+        assert np.all(np.isnan(est[[0, 2]])) and np.all(np.isnan(sig[[0, 2]]))
+    est, _ = estimate_scale(edge, edge, pts, pts, NCCConfig())
+    assert np.isnan(est[1])  # a straight edge: the scale along it is undefined
+    # the matcher reports NaN for rejected matches and a finite scale for accepted ones
+    img0 = zoom.render(1.0)
+    pts, _ = detect_harris(img0, HarrisConfig(max_corners=30))
+    res = match_ncc(img0, zoom.render(1.02), pts, zoom.move(pts, 1.02), NCCConfig(), 3)
+    assert np.all(np.isnan(res.scale[~res.ok])) and np.mean(np.isfinite(res.scale[res.ok])) > 0.8
+    res = match_ncc(img0, zoom.render(1.02), pts, zoom.move(pts, 1.02), NCCConfig(scale_estimation=False), 3)
+    assert np.all(np.isnan(res.scale))
+
+
+def test_scale_fits_are_bounded_least_parallax_first(zoom):
+    img0 = zoom.render(1.0)
+    pts, _ = detect_harris(img0, HarrisConfig(max_corners=60))
+    res = match_ncc(img0, zoom.render(1.03), pts, zoom.move(pts, 1.03), NCCConfig(max_scale_points=10), 4)
+    done = np.isfinite(res.scale)
+    assert 5 <= done.sum() <= 10
+    d = np.linalg.norm(pts - zoom.centre, axis=1)  # zoom flow grows with the distance from the centre
+    assert d[done].max() <= np.median(d[res.ok])
+
+
+def test_rescaled_templates_correlate_when_the_patch_grows_fast(zoom):
+    img0, img1 = zoom.render(1.0), zoom.render(1.2)
+    pts, _ = detect_harris(img0, HarrisConfig(max_corners=60))
+    pts = pts[np.linalg.norm(pts - zoom.centre, axis=1) < 80]
+    pred = zoom.move(pts, 1.2)
+    plain = match_ncc(img0, img1, pts, pred, NCCConfig(), 3)
+    scaled = match_ncc(img0, img1, pts, pred, NCCConfig(), 3, scale_pred=np.full(len(pts), 1.2), rescale_threshold=0.05)
+    assert np.median(scaled.score) > np.median(plain.score) + 0.05
+    assert scaled.ok.sum() >= plain.ok.sum()
+    err = np.linalg.norm(scaled.pts[scaled.ok] - pred[scaled.ok], axis=1)
+    assert np.median(err) < 0.2
+    with pytest.raises(Exception, match="scale_pred"):
+        match_ncc(img0, img1, pts, pred, NCCConfig(), 3, scale_pred=np.zeros(len(pts)))
+
+
+def _zoom_tracks(zoom, rate, threshold, K=12):
+    cam = CameraModel(CameraConfig(width=320, height=240, fx=300.0, fy=300.0, cx=160.0, cy=120.0))
+    tm = TrackManager(cam, HarrisConfig(max_corners=80), NCCConfig(), TrackConfig(max_tracks=80, template_rescale_threshold=threshold))
+    s = 1.0
+    first = tm.step(zoom.render(s), 0.0, 0)
+    scales, scores = [], []
+    for k in range(1, K):
+        s_prev, s = s, s * rate
+        tf = tm.step(zoom.render(s), k / 30.0, k, predict=lambda uv, ids, a=s / s_prev: (zoom.move(uv, a), 3.0))
+        old = np.isin(tf.ids, first.ids)
+        scales.append(tf.scale[old])
+        scores.append(tf.score[old])
+    alive = np.isin(first.ids, tm.live_ids())
+    near = np.linalg.norm(first.uv - zoom.centre, axis=1) < 40
+    return alive[near].mean(), np.concatenate(scales), np.concatenate(scores), tf
+
+
+def test_tracks_report_scale_and_survive_fast_growth(zoom):
+    frac_on, scales, score_on, tf = _zoom_tracks(zoom, 1.15, 0.05, K=8)
+    frac_off, _, score_off, _ = _zoom_tracks(zoom, 1.15, 0.0, K=8)
+    ok = np.isfinite(scales)
+    assert ok.mean() > 0.8 and abs(np.median(scales[ok]) - 1.15) < 0.01
+    assert frac_on >= frac_off and frac_on > 0.8  # near the centre the tracks live through a 2.7× zoom
+    assert np.mean(score_on) > np.mean(score_off)  # resampled templates correlate better
+    assert tf.scale.shape == tf.ids.shape == tf.scale_sigma.shape
+    assert np.all(np.isnan(tf.scale[np.isin(tf.ids, tf.new_ids)]))  # new tracks: not measured
+
+
+def test_scale_config_is_validated():
+    for kw, name in ((dict(scale_half=1), "scale_half"), (dict(max_scale_change=1.5), "max_scale_change"),
+                     (dict(max_scale_points=-1), "max_scale_points"), (dict(scale_sigma_slope=-1.0), "scale_sigma_slope")):
+        with pytest.raises(ConfigError, match=name):
+            NCCConfig(**kw)
+    with pytest.raises(ConfigError, match="template_rescale_threshold"):
+        TrackConfig(template_rescale_threshold=float("nan"))
+    assert ncc.NCCResult(np.zeros((2, 2)), np.zeros(2), np.ones(2, bool), np.zeros(2, np.int8)).scale.shape == (2,)

@@ -42,6 +42,26 @@ and since each frame's match becomes the next frame's template, that bias would 
 along a track; Lucas–Kanade is exact for whole-pixel shifts and within a few hundredths of a
 pixel otherwise.
 
+Scale change (looming, DESIGN §7).  For each accepted match of two frames, :func:`estimate_scale`
+refines a scale + translation warp of the patch: I_cur(p_cur + s·x + d) ≈ a·I_prev(p_prev + x) + b
+over x in a (2·scale_half+1)² grid, by inverse-compositional Gauss–Newton on the zero-mean,
+unit-norm patches (gain/offset invariant like eq. 13), vectorized over points.  With f̂ the
+normalized template, J = [∇f̂·x, ∇f̂] projected off the mean and off f̂ (the directions the
+normalization removes), the step is Δ = (JᵀJ)⁻¹ Jᵀ (ĝ − f̂) and the warp is composed with the
+inverse of the step: s ← s/(1 + Δs), d ← d − s Δd/(1 + Δs).  σ_s is the scale entry of
+σ_r² (JᵀJ)⁻¹, σ_r² the residual variance per pixel (both frames' noise and the model error),
+inflated by ``scale_sigma_factor`` for the pixels' correlation (bilinear resampling, blur), plus
+``scale_sigma_slope`` · |s − 1| in quadrature (resampling a patch by s is not exactly the scene
+seen from closer: on band-limited texture scaled by a known s the error grows ~0.06 |s − 1|
+beyond the residual σ).  At most ``max_scale_points`` fits per call (cost bound), the matches with
+the least parallax first (image motion farthest below the median: the focus of expansion, where
+looming is needed).  The
+scale is NaN where it cannot be measured: rejected match, window not inside both frames, flat or
+edge patch (singular normal matrix), no convergence, |s − 1| > ``max_scale_change`` or
+σ_s > ``max_scale_sigma``.  Templates that follow scale: :func:`match_ncc` resamples the template
+at a predicted scale (``scale_pred``, e.g. the track's last measured scale) when it departs from 1
+by more than ``rescale_threshold``, so NCC still correlates when a patch grows fast (close in).
+
 Cost: windows up to ``batch_search_half`` px are scored for all points at once in numpy
 (:func:`_ncc_batch`, ~2× cheaper than one OpenCV call per point at these sizes); larger windows
 take one ``cv2.matchTemplate`` per point (the only per-point Python loop).  Everything else —
@@ -98,6 +118,14 @@ class NCCConfig:
     lk_iterations: int = 3  # Lucas–Kanade iterations of the sub-pixel step
     min_template_std: float = 3.0  # grey levels; flatter templates are refused
     min_eigen_ratio: float = 0.08  # structure-tensor λmin/λmax below this: an edge, refused (0 = off)
+    scale_estimation: bool = True  # estimate each match's scale change (looming) between the two frames
+    scale_half: int = 7  # the scale is fitted over (2h+1)² = 15×15 px
+    scale_iterations: int = 3  # Gauss–Newton iterations of the scale fit
+    max_scale_points: int = 100  # scale fits per call (cost bound): those with the least parallax first
+    scale_sigma_slope: float = 0.06  # σ added in quadrature per unit |s − 1| (resampling / model error)
+    max_scale_change: float = 0.3  # |s − 1| beyond this: scale reported NaN
+    max_scale_sigma: float = 0.05  # scale σ beyond this: scale reported NaN
+    scale_sigma_factor: float = 1.5  # inflation of the Gauss–Newton σ for correlated pixel errors
 
     def __post_init__(self) -> None:
         for name in ("template_half", "search_half", "max_search_half"):
@@ -124,6 +152,18 @@ class NCCConfig:
         require_finite("min_template_std", self.min_template_std, nonnegative=True)
         require_finite("min_eigen_ratio", self.min_eigen_ratio, nonnegative=True)
         require(self.min_eigen_ratio < 1.0, f"min_eigen_ratio must be < 1, got {self.min_eigen_ratio}")
+        require(isinstance(self.scale_estimation, bool), f"scale_estimation must be true or false, got {self.scale_estimation!r}")
+        for name in ("scale_half", "scale_iterations"):
+            v = getattr(self, name)
+            require(isinstance(v, int) and not isinstance(v, bool) and v >= 1, f"{name} must be an integer >= 1, got {v!r}")
+        require(self.scale_half >= 2, f"scale_half must be >= 2, got {self.scale_half}")
+        require(isinstance(self.max_scale_points, int) and not isinstance(self.max_scale_points, bool) and self.max_scale_points >= 0,
+                f"max_scale_points must be an integer >= 0, got {self.max_scale_points!r}")
+        require_finite("scale_sigma_slope", self.scale_sigma_slope, nonnegative=True)
+        require_finite("max_scale_change", self.max_scale_change, positive=True)
+        require(self.max_scale_change < 1.0, f"max_scale_change must be < 1, got {self.max_scale_change}")
+        require_finite("max_scale_sigma", self.max_scale_sigma, positive=True)
+        require_finite("scale_sigma_factor", self.scale_sigma_factor, positive=True)
 
 
 @dataclasses.dataclass
@@ -138,6 +178,15 @@ class NCCResult:
     score: np.ndarray  # (N,) float64
     ok: np.ndarray  # (N,) bool
     reason: np.ndarray  # (N,) int8, one of the module constants
+    scale: np.ndarray | None = None  # (N,) image size now / before (looming), NaN where not measured
+    scale_sigma: np.ndarray | None = None  # (N,) its σ, NaN where not measured
+
+    def __post_init__(self) -> None:
+        n = len(self.score)
+        if self.scale is None:
+            self.scale = np.full(n, np.nan)
+        if self.scale_sigma is None:
+            self.scale_sigma = np.full(n, np.nan)
 
 
 def _check_pts(name: str, pts, n: int | None = None) -> np.ndarray:
@@ -545,6 +594,8 @@ def match_ncc(
     pts_pred: np.ndarray,
     config: NCCConfig,
     search_radius=None,
+    scale_pred=None,
+    rescale_threshold: float = 0.0,
 ) -> NCCResult:
     """Find each point of ``img_prev`` in ``img_cur`` by NCC (DESIGN.md §3.2, eq. 13–14).
 
@@ -556,10 +607,14 @@ def match_ncc(
     config : matcher settings.
     search_radius : scalar or (N,) px, the largest displacement from ``pts_pred`` searched
         (rounded up, clipped to [1, ``max_search_half``]); default ``config.search_half``.
+    scale_pred : None or (N,) predicted scale change of each patch (e.g. its last measured one);
+        where |scale_pred − 1| > ``rescale_threshold`` (> 0) the template is resampled at that
+        scale before the search, and the scale fit starts from it.
 
     Returns
     -------
-    :class:`NCCResult` with matched pixels, scores, accepted flags and verdicts.
+    :class:`NCCResult` with matched pixels, scores, accepted flags, verdicts and (with
+    ``config.scale_estimation``) the scale change of each accepted match and its σ.
     """
     img_prev = as_gray_u8(img_prev, "img_prev")
     img_cur = as_gray_u8(img_cur, "img_cur")
@@ -567,7 +622,140 @@ def match_ncc(
         raise InputError(f"img_prev and img_cur differ in shape: {img_prev.shape} vs {img_cur.shape}")
     pts_prev = _check_pts("pts_prev", pts_prev)
     pts_pred = _check_pts("pts_pred", pts_pred, len(pts_prev))
+    n = len(pts_prev)
+    if scale_pred is not None:
+        scale_pred = np.asarray(scale_pred, float).reshape(-1)
+        if scale_pred.shape != (n,) or not np.all(np.isfinite(scale_pred)) or np.any(scale_pred <= 0):
+            raise InputError(f"scale_pred must be ({n},) finite and > 0")
     templates, frac, inside = extract_templates(img_prev, pts_prev, config.template_half)
-    return match_templates(
+    if scale_pred is not None and rescale_threshold > 0:
+        big = np.flatnonzero(np.abs(scale_pred - 1.0) > rescale_threshold)
+        if len(big):
+            templates[big], frac[big], inside[big] = extract_scaled_templates(
+                img_prev, pts_prev[big], config.template_half, scale_pred[big])
+    res = match_templates(
         templates, frac, img_cur, pts_pred, config, search_radius, valid=inside, img_prev=img_prev, pts_prev=pts_prev
     )
+    if config.scale_estimation and np.any(res.ok) and config.max_scale_points > 0:
+        g = np.flatnonzero(res.ok)
+        if len(g) > config.max_scale_points:  # least parallax first: image motion farthest below the median
+            flow = res.pts[g] - pts_prev[g]
+            g = g[np.argsort(np.linalg.norm(flow - np.median(flow, axis=0), axis=1), kind="stable")[: config.max_scale_points]]
+        s0 = None if scale_pred is None else scale_pred[g]
+        res.scale[g], res.scale_sigma[g] = estimate_scale(img_prev, img_cur, pts_prev[g], res.pts[g], config, s0)
+    return res
+
+
+def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples (float32) of float32 image ``img`` at (x, y) (equal shapes (N, ...)), border
+    replicated: one ``cv2.remap`` (for a float32 image its bilinear weights are not quantized)."""
+    shape = x.shape
+    X = np.ascontiguousarray(x, np.float32).reshape(shape[0], -1)
+    Y = np.ascontiguousarray(y, np.float32).reshape(shape[0], -1)
+    step = 32000  # cv2.remap wants fewer than SHRT_MAX rows
+    out = [cv2.remap(img, X[i : i + step], Y[i : i + step], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+           for i in range(0, len(X), step)]
+    return (out[0] if len(out) == 1 else np.concatenate(out)).reshape(shape)
+
+
+def extract_scaled_templates(image: np.ndarray, pts: np.ndarray, half: int, scale: np.ndarray):
+    """Templates like :func:`extract_templates` (with rim) resampled at scale change ``scale`` (N,):
+    pixel y of the template is the image at pts + y/scale (bilinear), i.e. the patch as it will look
+    after growing by ``scale``.  Centred on the sub-pixel point, so ``frac`` is 0."""
+    image = as_gray_u8(image, "image")
+    pts = _check_pts("pts", pts)
+    scale = np.asarray(scale, float).reshape(len(pts))
+    H, W = image.shape
+    r = half + 1
+    off = np.arange(-r, r + 1, dtype=float)
+    ext = r / scale + 1.0
+    inside = (pts[:, 0] - ext >= 0) & (pts[:, 0] + ext <= W - 1) & (pts[:, 1] - ext >= 0) & (pts[:, 1] + ext <= H - 1)
+    X = pts[:, 0, None, None] + off[None, None, :] / scale[:, None, None]
+    Y = pts[:, 1, None, None] + off[None, :, None] / scale[:, None, None]
+    X, Y = np.broadcast_arrays(X, Y)
+    tpl = np.clip(np.rint(_bilinear(image.astype(np.float32), X, Y)), 0, 255).astype(np.uint8)
+    tpl[~inside] = 0
+    return tpl, np.zeros((len(pts), 2)), inside
+
+
+def estimate_scale(img_prev, img_cur, pts_prev, pts_cur, config: NCCConfig, scale0=None) -> tuple[np.ndarray, np.ndarray]:
+    """Scale change s (N,) of the patches at ``pts_prev`` (in ``img_prev``) matched at ``pts_cur``
+    (in ``img_cur``) and its σ (N,), NaN where not measurable (module docstring).  ``scale0`` (N,):
+    starting scale (default 1)."""
+    img_prev = as_gray_u8(img_prev, "img_prev")
+    img_cur = as_gray_u8(img_cur, "img_cur")
+    pts_prev = _check_pts("pts_prev", pts_prev)
+    n = len(pts_prev)
+    pts_cur = _check_pts("pts_cur", pts_cur, n)
+    nan = np.full(n, np.nan)
+    if n == 0:
+        return nan, nan.copy()
+    h = config.scale_half
+    smax = 1.0 + config.max_scale_change
+    H, W = img_prev.shape
+    s = np.ones(n) if scale0 is None else np.clip(np.asarray(scale0, float).reshape(n), 1.0 / smax, smax)
+    mp, mc = h + 2.0, h * smax + 2.0  # margins of the template (with its rim) and of the warped window
+
+    def fits(p, m):
+        return (p[:, 0] >= m) & (p[:, 0] <= W - 1 - m) & (p[:, 1] >= m) & (p[:, 1] <= H - 1 - m)
+
+    ok = fits(pts_prev, mp) & fits(pts_cur, mc)
+    f32 = np.float32
+    # template with a 1-px rim at the exact sub-pixel point, its gradients, normalization
+    off = np.arange(-h - 1, h + 2, dtype=f32)
+    Xt = pts_prev[:, 0, None, None].astype(f32) + off[None, None, :]
+    Yt = pts_prev[:, 1, None, None].astype(f32) + off[None, :, None]
+    T = _bilinear(img_prev.astype(f32), *np.broadcast_arrays(Xt, Yt))
+    npx = (2 * h + 1) ** 2
+    f = T[:, 1:-1, 1:-1].reshape(n, npx)
+    gx = (T[:, 1:-1, 2:] - T[:, 1:-1, :-2]).reshape(n, npx) * f32(0.5)
+    gy = (T[:, 2:, 1:-1] - T[:, :-2, 1:-1]).reshape(n, npx) * f32(0.5)
+    f = f - f.mean(1, keepdims=True)
+    nf = np.sqrt(_rowdot(f, f))
+    ok &= nf > 1e-3 * np.sqrt(npx)
+    nf = np.where(nf > 0, nf, f32(1.0))[:, None]
+    f /= nf
+    gx /= nf
+    gy /= nf
+    grid = off[1:-1]
+    xx = np.broadcast_to(grid[None, :], (2 * h + 1, 2 * h + 1)).reshape(-1)
+    yy = np.broadcast_to(grid[:, None], (2 * h + 1, 2 * h + 1)).reshape(-1)
+    J = np.stack([gx * xx + gy * yy, gx, gy], 1)  # (n, 3, npx): ∂/∂(s, dx, dy)
+    J -= J.mean(2, keepdims=True)
+    J -= (J @ f[:, :, None]) * f[:, None, :]  # off f̂: the gain is free
+    A = (J @ np.swapaxes(J, 1, 2)).astype(np.float64)
+    detA = np.linalg.det(A)
+    tr = np.trace(A, axis1=1, axis2=2)
+    ok &= detA > 1e-9 * np.maximum(tr, 1e-30) ** 3
+    A_inv = np.linalg.inv(np.where(ok[:, None, None], A, np.eye(3)))
+    AJ = (A_inv.astype(f32) @ J)  # (n, 3, npx): the Gauss–Newton step is AJ · r
+    img_c = img_cur.astype(f32)
+    d = np.zeros((n, 2))
+    step_s = np.zeros(n)
+    r = np.zeros((n, npx), f32)
+    for _ in range(config.scale_iterations):
+        Xc = (pts_cur[:, 0] + d[:, 0]).astype(f32)[:, None] + s.astype(f32)[:, None] * xx[None, :]
+        Yc = (pts_cur[:, 1] + d[:, 1]).astype(f32)[:, None] + s.astype(f32)[:, None] * yy[None, :]
+        g = _bilinear(img_c, Xc, Yc)
+        g -= g.mean(1, keepdims=True)
+        ng = np.sqrt(_rowdot(g, g))
+        ok &= ng > 1e-3 * np.sqrt(npx)
+        r = g / np.where(ng > 0, ng, f32(1.0))[:, None] - f
+        delta = (AJ @ r[:, :, None])[:, :, 0].astype(np.float64)
+        step_s = delta[:, 0]
+        one = 1.0 + step_s
+        ok &= one > 0.5
+        one = np.where(one > 0.5, one, 1.0)
+        d = d - s[:, None] * delta[:, 1:] / one[:, None]
+        s = np.clip(s / one, 1.0 / smax, smax)
+    ok &= np.abs(step_s) < 0.01 * s
+    var_r = _rowdot(r, r).astype(np.float64) / max(npx - 5, 1)
+    sigma = np.hypot(config.scale_sigma_factor * np.sqrt(np.maximum(var_r * A_inv[:, 0, 0], 0.0)) * s,
+                     config.scale_sigma_slope * np.abs(s - 1.0))
+    ok &= (np.abs(s - 1.0) <= config.max_scale_change) & (sigma <= config.max_scale_sigma) & np.isfinite(s) & np.isfinite(sigma)
+    return np.where(ok, s, np.nan), np.where(ok, sigma, np.nan)
+
+
+def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products of (N, K) arrays, (N,)."""
+    return (a[:, None, :] @ b[:, :, None])[:, 0, 0]

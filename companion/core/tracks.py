@@ -19,6 +19,16 @@ unbiased at integer shifts (Lucas–Kanade on the two frames, see :mod:`companio
 the anchor observation (frame, time, pixel) is kept for the estimators, which need the longest
 baseline rather than the template.
 
+Scale (looming, DESIGN §7): every match of two consecutive frames also gets the patch's scale
+change s = size now / size in the previous frame and its σ from the matcher
+(:func:`~companion.core.ncc.estimate_scale`), reported per track in :class:`TrackFrame` (``scale``,
+``scale_sigma``, NaN where not measured: new tracks, tracks matched from a stored template, flat or
+edge patches, beyond the matcher's cost bound).  Templates that follow scale: the template is
+re-cut every frame, so it follows a slow scale change by itself; when the predicted change to
+the next frame (the track's last measured scale) departs from 1 by more than
+``template_rescale_threshold`` — close in, where a patch grows several % per frame — the template
+is resampled at that scale before the search, so NCC still correlates and the track survives.
+
 Storage is a fixed set of ``max_tracks`` slots held in numpy arrays (positions, scores, failure
 counts and a ring buffer of the last ``max_history`` observations per slot), so a step costs a
 handful of vectorized operations plus the matcher — no Python object per track per frame.
@@ -62,6 +72,7 @@ class TrackConfig:
     min_new_distance_px: float = 10.0  # new corners at least this far from live tracks
     max_failures: int = 1  # consecutive failed matches before a track is dropped (1 = at once)
     duplicate_distance_px: float = 1.0  # two tracks closer than this: the younger is dropped
+    template_rescale_threshold: float = 0.05  # |predicted scale change − 1| beyond this: template resampled to it (0 = never)
 
     def __post_init__(self) -> None:
         require(isinstance(self.max_tracks, int) and self.max_tracks >= 1, f"max_tracks must be an integer >= 1, got {self.max_tracks!r}")
@@ -71,6 +82,7 @@ class TrackConfig:
         require_finite("min_new_distance_px", self.min_new_distance_px, nonnegative=True)
         require(isinstance(self.max_failures, int) and self.max_failures >= 1, f"max_failures must be an integer >= 1, got {self.max_failures!r}")
         require_finite("duplicate_distance_px", self.duplicate_distance_px, nonnegative=True)
+        require_finite("template_rescale_threshold", self.template_rescale_threshold, nonnegative=True)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -101,6 +113,14 @@ class TrackFrame:
     new_ids: np.ndarray  # (K,) int64, tracks born in this frame
     dropped_ids: np.ndarray  # (D,) int64, tracks dropped in this frame
     drop_reason: np.ndarray  # (D,) int8, see DROP_REASON_NAMES
+    scale: np.ndarray | None = None  # (M,) patch scale change since the previous frame (looming), NaN = not measured
+    scale_sigma: np.ndarray | None = None  # (M,) its σ, NaN = not measured
+
+    def __post_init__(self) -> None:
+        if self.scale is None:
+            self.scale = np.full(len(self.ids), np.nan)
+        if self.scale_sigma is None:
+            self.scale_sigma = np.full(len(self.ids), np.nan)
 
 
 class _TrackView(Mapping):
@@ -145,6 +165,9 @@ class TrackManager:
         self._n_obs = np.zeros(s, np.int64)
         self._score = np.zeros(s)
         self._fail = np.zeros(s, np.int64)
+        self._scale = np.full(s, np.nan)  # scale change measured in the latest match (NaN = none)
+        self._scale_sigma = np.full(s, np.nan)
+        self._scale_rate = np.ones(s)  # last measured scale change: the prediction for the next frame
         self._tpl = np.zeros((s, tr, tr), np.uint8)  # kept only for tracks that missed a frame
         self._tpl_frac = np.zeros((s, 2))
         self._tpl_ok = np.zeros(s, bool)
@@ -277,10 +300,14 @@ class TrackManager:
             pts = np.zeros((len(live), 2))
             score = np.zeros(len(live))
             reason = np.zeros(len(live), np.int8)
+            scale = np.full(len(live), np.nan)
+            scale_sigma = np.full(len(live), np.nan)
             f = np.flatnonzero(fresh)
             if len(f):
-                r = match_ncc(self._prev_gray, gray, uv_prev[f], uv_pred[f], self.ncc, radius[f])
+                r = match_ncc(self._prev_gray, gray, uv_prev[f], uv_pred[f], self.ncc, radius[f],
+                              scale_pred=self._scale_rate[live[f]], rescale_threshold=cfg.template_rescale_threshold)
                 pts[f], score[f], reason[f] = r.pts, r.score, r.reason
+                scale[f], scale_sigma[f] = r.scale, r.scale_sigma
             c = np.flatnonzero(~fresh)
             if len(c):
                 sl = live[c]
@@ -294,6 +321,10 @@ class TrackManager:
             self._last_frame[s_ok] = frame_index
             self._score[s_ok] = score[ok]
             self._fail[s_ok] = 0
+            self._scale[s_ok] = scale[ok]
+            self._scale_sigma[s_ok] = scale_sigma[ok]
+            measured = np.isfinite(scale[ok])
+            self._scale_rate[s_ok[measured]] = scale[ok][measured]
             self._tpl_ok[s_ok] = False
             k = self._n_obs[s_ok] % hlen
             self._h_uv[s_ok, k] = pts[ok]
@@ -372,6 +403,8 @@ class TrackManager:
             new_ids=np.sort(self._id[new_slots]),
             dropped_ids=dropped_ids[order_d],
             drop_reason=drop_reason[order_d],
+            scale=self._scale[obs].copy(),
+            scale_sigma=self._scale_sigma[obs].copy(),
         )
 
     def _birth(self, slots: np.ndarray, pts: np.ndarray, t: float, frame_index: int) -> None:
@@ -387,6 +420,9 @@ class TrackManager:
         self._n_obs[slots] = 1
         self._score[slots] = 1.0
         self._fail[slots] = 0
+        self._scale[slots] = np.nan
+        self._scale_sigma[slots] = np.nan
+        self._scale_rate[slots] = 1.0
         self._tpl_ok[slots] = False
         self._h_uv[slots, 0] = pts
         self._h_frame[slots, 0] = frame_index
