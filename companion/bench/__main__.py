@@ -4,6 +4,7 @@ Subcommands:
   seed004   seed-004 scenario, Monte Carlo over pixel noise (and the gyro model)
   seed000   seed-000 scenario, relative range error against L = V·T/D0
   timing    per-stage timings on one core
+  looming   head-on approaches at the focus of expansion: range with and without looming (DESIGN §7)
   all       all of these plus the simulator's speed; with --write FILE, rewrite docs/BENCHMARKS.md
 """
 
@@ -90,6 +91,14 @@ def cmd_sitl(args) -> dict:
         logging.disable(logging.NOTSET)
 
 
+def cmd_looming(args, runs: int, rendered_runs: int) -> dict:
+    from companion.bench import looming
+
+    n = 2 * len(looming.SYNTHETIC) * runs + 2 * rendered_runs
+    with _progress(n, "looming approaches", args.json) as tick:
+        return looming.run_all(runs, rendered_runs, progress=tick)
+
+
 def cmd_timing(args) -> dict:
     from companion.bench import timing
 
@@ -103,6 +112,7 @@ def main(argv=None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Examples:\n  python -m companion.bench seed004 --runs 100\n"
                "  python -m companion.bench timing --json\n"
+               "  python -m companion.bench looming --runs 20\n"
                "  python -m companion.bench all --runs 200 --write docs/BENCHMARKS.md",
     )
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -125,6 +135,13 @@ def main(argv=None) -> int:
                        description="lockstep SITL speed and the SITL campaigns scored against truth; prints the "
                                    "'Software in the loop' section of docs/BENCHMARKS.md")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
+    p = sub.add_parser("looming", help="head-on approaches: range at the focus of expansion with and without looming",
+                       description="head-on approaches (quad 4 m/s from 30 m, fixed-wing 25 m/s from 200 m, points 0–3° off "
+                                   "the direction of travel; and a rendered wall tracked end to end): range error, "
+                                   "convergence time and NEES with and without the looming measurement (DESIGN §7)")
+    p.add_argument("--runs", type=int, default=20, help="Monte Carlo runs per synthetic case (default 20)")
+    p.add_argument("--rendered-runs", type=int, default=3, help="rendered flights per case (default 3; 0 = skip)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")
     p.add_argument("--repeats", type=int, default=50, help="repeats per measurement; the median is reported")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
@@ -146,6 +163,13 @@ def main(argv=None) -> int:
     elif args.cmd == "sitl":
         res = cmd_sitl(args)
         print(json.dumps(res, default=str) if args.json else report.sitl_markdown(res))
+    elif args.cmd == "looming":
+        from companion.bench import looming
+
+        if args.rendered_runs < 0:
+            ap.error("--rendered-runs must be >= 0")
+        res = cmd_looming(args, args.runs, args.rendered_runs)
+        print(json.dumps(res) if args.json else looming.markdown(res))
     elif args.cmd == "timing":
         res = cmd_timing(args)
         print(json.dumps(report.timing_json(res)) if args.json else report.timing_markdown(res))
@@ -154,11 +178,14 @@ def main(argv=None) -> int:
 
         res = {"seed004": cmd_seed004(args), "seed000": cmd_seed000(args), "timing": cmd_timing(args),
                "latency": latency.run_all(), "pipeline004": cmd_pipeline004(args, max(5, args.runs // 10)),
-               "flightsim": flightsim_bench.run_all(), "sitl": cmd_sitl(args)}
+               "flightsim": flightsim_bench.run_all(), "sitl": cmd_sitl(args),
+               "looming": cmd_looming(args, max(5, args.runs // 10), 3)}
         if args.json:
             print(json.dumps(res))
         else:
-            text = report.full_markdown(res, args.runs, args.repeats)
+            from companion.bench import looming
+
+            text = report.full_markdown(res, args.runs, args.repeats).rstrip("\n") + "\n\n" + looming.markdown(res["looming"]) + "\n"
             if args.write:
                 with open(args.write, "w", encoding="utf-8") as fh:
                     fh.write(text)
