@@ -65,7 +65,8 @@ since the anchor: ∂h_s/∂ρ ≈ ζ − ζ' = the distance travelled between t
 for a patch parallel to the image plane; a tilted patch or the camera's rotation between two
 frames changes the scale by O(angle²) more, which the noise floor covers.  Noise
 R_s = σ_s² + σ_floor² (σ_s from the matcher's Gauss–Newton covariance, ``looming_sigma_floor``);
-χ² (1 dof) gate ``looming_gate_probability``; iterated update in Joseph form
+χ² (1 dof) gate ``looming_gate_probability``; update (iterated ``looming_iterations`` times: one
+step suffices for a measurement this weak per frame) in Joseph form
 P = (I − K H) P (I − K H)ᵀ + K R Kᵀ, batched over landmarks.  Input that cannot be a scale is
 not an error in flight: NaN (the matcher could not measure it) is skipped and counted
 (``LOOM_NAN``), a non-positive or non-finite scale or σ is refused (``LOOM_NONPOSITIVE``).
@@ -104,6 +105,7 @@ class AnchoredEKFConfig:
     looming: bool = True  # fuse the matcher's patch scale change (looming, DESIGN §7) when given
     looming_sigma_floor: float = 0.003  # floor added (in quadrature) to the matcher's scale σ
     looming_gate_probability: float = 0.999  # χ² (1 dof) gate of the looming innovation
+    looming_iterations: int = 1  # iterated-EKF relinearizations of the looming update (1 = plain EKF)
 
     def __post_init__(self) -> None:
         require_finite("sigma_px", self.sigma_px, positive=True)
@@ -123,6 +125,8 @@ class AnchoredEKFConfig:
         require(isinstance(self.looming, bool), f"looming must be true or false, got {self.looming!r}")
         require_finite("looming_sigma_floor", self.looming_sigma_floor, positive=True)
         require_finite("looming_gate_probability", self.looming_gate_probability)
+        require(isinstance(self.looming_iterations, int) and 1 <= self.looming_iterations <= 20,
+                "looming_iterations must be an integer in 1..20")
         require(
             0.5 < self.looming_gate_probability < 1.0,
             f"looming_gate_probability must be in (0.5, 1), got {self.looming_gate_probability}",
@@ -309,10 +313,25 @@ def _hc_jacobian(x, ray_map, a, R_cam_world, D):
     return V
 
 
-def _looming_predict(x, ray_map, a_prev, Rcw_prev, D_prev, a_now, Rcw_now, D_now):
-    """h_z' (N,), h_z (N,), h_s = h_z'/h_z (N,) and H_s (N,n) of the looming model (module docstring)."""
-    Vp = _hc_jacobian(x, ray_map, a_prev, Rcw_prev, D_prev)[:, 2, :]
-    Vn = _hc_jacobian(x, ray_map, a_now, Rcw_now, D_now)[:, 2, :]
+def _looming_args(RA, pA, tA, Rp, Cp, t_prev, Rc, C, t, drift: bool):
+    """The fixed parts of :func:`_looming_predict` for N landmarks, both poses stacked (2N rows):
+    ray map, p_world_camA − C, R_cam_world and the drift integral D (None without drift)."""
+    n = len(RA)
+    ray_map = _ray_map(RA)
+    R2 = np.concatenate([np.broadcast_to(np.swapaxes(Rp, -1, -2), (n, 3, 3)), np.broadcast_to(np.swapaxes(Rc, -1, -2), (n, 3, 3))])
+    a2 = np.concatenate([np.broadcast_to(pA - Cp, (n, 3)), np.broadcast_to(pA - C, (n, 3))])
+    D2 = None
+    if drift:
+        D2 = np.concatenate([(0.5 * (t_prev - tA))[:, None, None] * (RA + Rp), (0.5 * (t - tA))[:, None, None] * (RA + Rc)])
+    return np.concatenate([ray_map, ray_map]), a2, R2, D2
+
+
+def _looming_predict(x, ray_map2, a2, R2, D2):
+    """h_z' (N,), h_z (N,), h_s = h_z'/h_z (N,) and H_s (N,n) of the looming model (module docstring)
+    at states x (N,n); the other arguments from :func:`_looming_args` (one evaluation for both poses)."""
+    n = len(x)
+    V = _hc_jacobian(np.concatenate([x, x]), ray_map2, a2, R2, D2)[:, 2, :]
+    Vp, Vn = V[:n], V[n:]
     hz_prev, hz_now = Vp[:, 0], Vn[:, 0]
     inv = 1.0 / np.where(np.abs(hz_now) > 1e-12, hz_now, 1e-12)
     hs = hz_prev * inv
@@ -646,15 +665,14 @@ class AnchoredInverseDepthEKF:
         """Predicted scale change h_s (N,) and H_s (N,n) of states x (N,n) between the previous pose
         (R_world_cam_prev, p_world_cam_prev) and the current one; poses (3,3)/(3,) or per landmark.
         With n = 6, ``dt_prev`` and ``dt`` (N,) are t' − t_anchor and t − t_anchor."""
-        RA = np.asarray(R_world_camA, float)
+        n = len(x)
+        RA = np.broadcast_to(np.asarray(R_world_camA, float), (n, 3, 3))
         drift = x.shape[1] == 6
-
-        def parts(R, p, d):
-            D = (0.5 * d)[:, None, None] * (RA + R) if drift else None
-            return p_world_camA - p, np.swapaxes(R, -1, -2), D
-
-        _, _, hs, Hs = _looming_predict(x, _ray_map(RA), *parts(np.asarray(R_world_cam_prev, float), p_world_cam_prev, dt_prev),
-                                        *parts(np.asarray(R_world_cam, float), p_world_cam, dt))
+        zero = np.zeros(n)
+        args = _looming_args(RA, np.asarray(p_world_camA, float), zero, np.asarray(R_world_cam_prev, float),
+                             np.asarray(p_world_cam_prev, float), dt_prev if drift else zero,
+                             np.asarray(R_world_cam, float), np.asarray(p_world_cam, float), dt if drift else zero, drift)
+        _, _, hs, Hs = _looming_predict(x, *args)
         return hs, Hs
 
     def update_looming(self, ids, scale, scale_sigma, R_world_cam_prev, p_world_cam_prev, t_prev,
@@ -730,11 +748,7 @@ class AnchoredInverseDepthEKF:
         """Iterated scalar EKF update (Joseph form) of states x0 (M,n), P0 (M,n,n) with scale
         measurements z (M,) of variance var (M,): (x, P, accepted, nis, reason)."""
         cfg = self.config
-        ray_map = _ray_map(RA)
-        drift = self.n == 6
-        Dp = (0.5 * (t_prev - tA))[:, None, None] * (RA + Rp) if drift else None
-        Dn = (0.5 * (t - tA))[:, None, None] * (RA + Rc) if drift else None
-        args = (ray_map, pA - Cp, Rp.T, Dp, pA - C, Rc.T, Dn)
+        args = _looming_args(RA, pA, tA, Rp, Cp, t_prev, Rc, C, t, self.n == 6)
         hzp, hzn, hs, Hs = _looming_predict(x0, *args)
         behind = (hzp <= 1e-9) | (hzn <= 1e-9)
         PHt = (P0 @ Hs[:, :, None])[:, :, 0]  # (M,n)
@@ -749,7 +763,7 @@ class AnchoredInverseDepthEKF:
         K = PHt / S[:, None]
         innov = y
         H = Hs
-        for it in range(cfg.iterations):
+        for it in range(cfg.looming_iterations):
             if it > 0:
                 hzp, hzn, hs, H = _looming_predict(xi, *args)
                 ok &= (hzp > 1e-9) & (hzn > 1e-9)

@@ -121,7 +121,7 @@ class NCCConfig:
     scale_estimation: bool = True  # estimate each match's scale change (looming) between the two frames
     scale_half: int = 7  # the scale is fitted over (2h+1)² = 15×15 px
     scale_iterations: int = 3  # Gauss–Newton iterations of the scale fit
-    max_scale_points: int = 100  # scale fits per call (cost bound): those with the least parallax first
+    max_scale_points: int = 60  # scale fits per call (cost bound): those with the least parallax first
     scale_sigma_slope: float = 0.06  # σ added in quadrature per unit |s − 1| (resampling / model error)
     max_scale_change: float = 0.3  # |s − 1| beyond this: scale reported NaN
     max_scale_sigma: float = 0.05  # scale σ beyond this: scale reported NaN
