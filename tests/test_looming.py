@@ -83,6 +83,27 @@ def test_nan_and_nonpositive_scales_have_named_reasons():
     assert np.all(r.reason == GATED)  # a 50 % jump in one 0.2 m step at ~100 m
 
 
+def test_banks_in_one_batch_equal_banks_one_by_one():
+    """update_looming_banks over two banks (running + pending) = update_looming on each, with drift states."""
+    kw = dict(attitude_drift_deg_s=0.03, looming_iterations=2)
+    poses = (so3_exp([0.01, 0.0, 0.0]), [0.1, 0.0, 1.0], 0.5, so3_exp([0.012, 0.001, 0.0]), [0.1, 0.0, 1.2], 0.55)
+    banks = []
+    for _ in range(2):
+        a, b = _bank(**kw), AnchoredInverseDepthEKF(AnchoredEKFConfig(**kw), 400.0, 400.0)
+        b.add(np.arange(10, 13), np.full((3, 2), 0.05), np.eye(3), np.zeros(3), 0.0, 0.05, 0.02)
+        banks.append((a, b))
+    s_a, s_b = np.array([1.004, np.nan, 1.01, 1.002, -2.0]), np.array([1.006, 1.003, 1.0])
+    (a1, b1), (a2, b2) = banks
+    r = AnchoredInverseDepthEKF.update_looming_banks([(a1, a1.ids, s_a, None), (b1, b1.ids, s_b, np.full(3, 0.002))], *poses)
+    ra = a2.update_looming(a2.ids, s_a, None, *poses)
+    rb = b2.update_looming(b2.ids, s_b, np.full(3, 0.002), *poses)
+    np.testing.assert_array_equal(r[0].reason, ra.reason)
+    np.testing.assert_array_equal(r[1].reason, rb.reason)
+    np.testing.assert_allclose(a1.x, a2.x, rtol=1e-12)
+    np.testing.assert_allclose(b1.P, b2.P, rtol=1e-12)
+    assert r[0].reason[1] == LOOM_NAN and r[0].reason[4] == LOOM_NONPOSITIVE and b1.n_looming.sum() == 3
+
+
 def test_looming_config_is_validated():
     with pytest.raises(ConfigError, match="looming_sigma_floor"):
         AnchoredEKFConfig(looming_sigma_floor=0.0)
@@ -90,6 +111,8 @@ def test_looming_config_is_validated():
         AnchoredEKFConfig(looming_gate_probability=1.0)
     with pytest.raises(ConfigError, match="looming must be"):
         AnchoredEKFConfig(looming=1)
+    with pytest.raises(ConfigError, match="looming_iterations"):
+        AnchoredEKFConfig(looming_iterations=0)
     assert abs(AnchoredEKFConfig(looming_gate_probability=0.95).looming_gate_threshold - 3.841) < 1e-3
 
 
