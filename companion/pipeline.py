@@ -121,6 +121,7 @@ class FrameResult:
     restart: str = ""  # non-empty: tracks and filters restarted on this frame, and why
     n_map: int = 0  # points held by the local obstacle map
     n_remembered: int = 0  # map points no longer tracked (published from memory)
+    n_looming: int = 0  # looming (patch scale) updates fused in this frame
     t_boot_capture: float | None = None  # capture time on the autopilot's boot clock (s), if mapped
 
     @property
@@ -397,7 +398,7 @@ class Pipeline:
         self._k += 1
         if len(tf.dropped_ids):
             self.estimator.drop(tf.dropped_ids)
-        out = self.estimator.process(t, R_wc, p_wc, tf.ids, tf.uv)
+        out = self.estimator.process(t, R_wc, p_wc, tf.ids, tf.uv, scale=tf.scale, scale_sigma=tf.scale_sigma)  # looming (§7)
         if len(out.retired_ids):
             self.tracks.kill(out.retired_ids)
         self._t_prev, self._cam_prev, self._out_prev = t, (R_wc, p_wc), out
@@ -418,6 +419,7 @@ class Pipeline:
         res.n_tracks = len(tf.ids)
         res.n_new_tracks = len(tf.new_ids)
         res.n_landmarks = len(out.ids)
+        res.n_looming = out.n_looming
         res.n_converged = int(np.count_nonzero(out.converged & out.valid))
         res.ok, res.reason = True, "ok"
 

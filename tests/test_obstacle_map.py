@@ -275,12 +275,13 @@ def _hover_run(map_enabled: bool, yaw_turn: bool = False):
     tel = TelemetryBuffer(cfg.telemetry)
     tel.set_clock_offset(0.0)
     pipe = Pipeline(cam, cfg, PipelineConfig(), tel)
-    fps, fed, held, n, sectors = 10.0, 0.0, 0, 0, None
+    fps, fed, held, n, sectors, looming = 10.0, 0.0, 0, 0, None, 0
     for k in range(int((APPROACH_S + 8.0) * fps)):
         t = k / fps
         feed_telemetry(tel, flight, fed, t + 0.021)
         fed = t + 0.021
         res = pipe.process(Frame(k, t, flight.render(t)), t + 0.021)
+        looming += res.n_looming
         if t > APPROACH_S + (5.0 if yaw_turn else 1.0):
             n += 1
             s = res.sectors
@@ -289,6 +290,7 @@ def _hover_run(map_enabled: bool, yaw_turn: bool = False):
             held += bool(res.ok and s is not None and s.state[sec] == SectorState.OBSTACLE
                          and s.distances_cm[sec] <= 500 + 10)  # never farther than the wall (5 m)
             sectors = s
+    assert looming > 0  # the pipeline hands the matcher's scales to the estimator (head-on approach)
     return held / n, sectors
 
 
