@@ -286,7 +286,7 @@ def test_rescaled_templates_correlate_when_the_patch_grows_fast(zoom):
 
 def _zoom_tracks(zoom, rate, threshold, K=12):
     cam = CameraModel(CameraConfig(width=320, height=240, fx=300.0, fy=300.0, cx=160.0, cy=120.0))
-    tm = TrackManager(cam, HarrisConfig(max_corners=80), NCCConfig(), TrackConfig(max_tracks=80, template_rescale_threshold=threshold))
+    tm = TrackManager(cam, HarrisConfig(max_corners=80), NCCConfig(max_scale_points=80), TrackConfig(max_tracks=80, template_rescale_threshold=threshold))
     s = 1.0
     first = tm.step(zoom.render(s), 0.0, 0)
     scales, scores = [], []

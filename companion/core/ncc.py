@@ -120,8 +120,8 @@ class NCCConfig:
     min_eigen_ratio: float = 0.08  # structure-tensor λmin/λmax below this: an edge, refused (0 = off)
     scale_estimation: bool = True  # estimate each match's scale change (looming) between the two frames
     scale_half: int = 7  # the scale is fitted over (2h+1)² = 15×15 px
-    scale_iterations: int = 3  # Gauss–Newton iterations of the scale fit
-    max_scale_points: int = 60  # scale fits per call (cost bound): those with the least parallax first
+    scale_iterations: int = 2  # Gauss–Newton iterations of the scale fit (started from the track's last scale)
+    max_scale_points: int = 40  # scale fits per call (cost bound): those with the least parallax first
     scale_sigma_slope: float = 0.06  # σ added in quadrature per unit |s − 1| (resampling / model error)
     max_scale_change: float = 0.3  # |s − 1| beyond this: scale reported NaN
     max_scale_sigma: float = 0.05  # scale σ beyond this: scale reported NaN
@@ -724,30 +724,51 @@ def estimate_scale(img_prev, img_cur, pts_prev, pts_cur, config: NCCConfig, scal
     J -= J.mean(2, keepdims=True)
     J -= (J @ f[:, :, None]) * f[:, None, :]  # off f̂: the gain is free
     A = (J @ np.swapaxes(J, 1, 2)).astype(np.float64)
-    detA = np.linalg.det(A)
-    tr = np.trace(A, axis1=1, axis2=2)
+    # symmetric 3×3 inverse by cofactors (cheaper than np.linalg for small stacks)
+    cof = np.empty_like(A)
+    cof[:, 0, 0] = A[:, 1, 1] * A[:, 2, 2] - A[:, 1, 2] ** 2
+    cof[:, 0, 1] = A[:, 0, 2] * A[:, 1, 2] - A[:, 0, 1] * A[:, 2, 2]
+    cof[:, 0, 2] = A[:, 0, 1] * A[:, 1, 2] - A[:, 0, 2] * A[:, 1, 1]
+    cof[:, 1, 1] = A[:, 0, 0] * A[:, 2, 2] - A[:, 0, 2] ** 2
+    cof[:, 1, 2] = A[:, 0, 2] * A[:, 0, 1] - A[:, 0, 0] * A[:, 1, 2]
+    cof[:, 2, 2] = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] ** 2
+    cof[:, 1, 0], cof[:, 2, 0], cof[:, 2, 1] = cof[:, 0, 1], cof[:, 0, 2], cof[:, 1, 2]
+    detA = A[:, 0, 0] * cof[:, 0, 0] + A[:, 0, 1] * cof[:, 0, 1] + A[:, 0, 2] * cof[:, 0, 2]
+    tr = A[:, 0, 0] + A[:, 1, 1] + A[:, 2, 2]
     ok &= detA > 1e-9 * np.maximum(tr, 1e-30) ** 3
-    A_inv = np.linalg.inv(np.where(ok[:, None, None], A, np.eye(3)))
+    A_inv = cof / np.where(ok, detA, 1.0)[:, None, None]
     AJ = (A_inv.astype(f32) @ J)  # (n, 3, npx): the Gauss–Newton step is AJ · r
     img_c = img_cur.astype(f32)
     d = np.zeros((n, 2))
     step_s = np.zeros(n)
     r = np.zeros((n, npx), f32)
-    for _ in range(config.scale_iterations):
-        Xc = (pts_cur[:, 0] + d[:, 0]).astype(f32)[:, None] + s.astype(f32)[:, None] * xx[None, :]
-        Yc = (pts_cur[:, 1] + d[:, 1]).astype(f32)[:, None] + s.astype(f32)[:, None] * yy[None, :]
-        g = _bilinear(img_c, Xc, Yc)
+    step_s = np.full(n, np.inf)
+
+    def gauss_newton(k):
+        """One step on rows ``k`` (updates s, d, step_s, r, ok in place)."""
+        c = (pts_cur[k] + d[k]).astype(f32)
+        sf = s[k].astype(f32)[:, None]
+        g = _bilinear(img_c, c[:, 0, None] + sf * xx[None, :], c[:, 1, None] + sf * yy[None, :])
         g -= g.mean(1, keepdims=True)
         ng = np.sqrt(_rowdot(g, g))
-        ok &= ng > 1e-3 * np.sqrt(npx)
-        r = g / np.where(ng > 0, ng, f32(1.0))[:, None] - f
-        delta = (AJ @ r[:, :, None])[:, :, 0].astype(np.float64)
-        step_s = delta[:, 0]
-        one = 1.0 + step_s
-        ok &= one > 0.5
+        ok[k] &= ng > 1e-3 * np.sqrt(npx)
+        r[k] = g / np.where(ng > 0, ng, f32(1.0))[:, None] - f[k]
+        delta = (AJ[k] @ r[k][:, :, None])[:, :, 0].astype(np.float64)
+        one = 1.0 + delta[:, 0]
+        ok[k] &= one > 0.5
         one = np.where(one > 0.5, one, 1.0)
-        d = d - s[:, None] * delta[:, 1:] / one[:, None]
-        s = np.clip(s / one, 1.0 / smax, smax)
+        step_s[k] = delta[:, 0]
+        d[k] = d[k] - s[k][:, None] * delta[:, 1:] / one[:, None]
+        s[k] = np.clip(s[k] / one, 1.0 / smax, smax)
+
+    every = np.arange(n)
+    for _ in range(config.scale_iterations):
+        gauss_newton(every)
+    for _ in range(2):  # a poor start (a track's first fit, a sudden change): two more steps where not settled
+        k = np.flatnonzero(ok & (np.abs(step_s) >= 0.002 * s))
+        if len(k) == 0:
+            break
+        gauss_newton(k)
     ok &= np.abs(step_s) < 0.01 * s
     var_r = _rowdot(r, r).astype(np.float64) / max(npx - 5, 1)
     sigma = np.hypot(config.scale_sigma_factor * np.sqrt(np.maximum(var_r * A_inv[:, 0, 0], 0.0)) * s,
