@@ -745,7 +745,7 @@ def estimate_scale(img_prev, img_cur, pts_prev, pts_cur, config: NCCConfig, scal
     step_s = np.full(n, np.inf)
 
     def gauss_newton(k):
-        """One step on rows ``k`` (updates s, d, step_s, r, ok in place)."""
+        """One step on rows ``k`` (index array or slice; updates s, d, step_s, r, ok in place)."""
         c = (pts_cur[k] + d[k]).astype(f32)
         sf = s[k].astype(f32)[:, None]
         g = _bilinear(img_c, c[:, 0, None] + sf * xx[None, :], c[:, 1, None] + sf * yy[None, :])
@@ -761,9 +761,8 @@ def estimate_scale(img_prev, img_cur, pts_prev, pts_cur, config: NCCConfig, scal
         d[k] = d[k] - s[k][:, None] * delta[:, 1:] / one[:, None]
         s[k] = np.clip(s[k] / one, 1.0 / smax, smax)
 
-    every = np.arange(n)
     for _ in range(config.scale_iterations):
-        gauss_newton(every)
+        gauss_newton(slice(None))  # every row (a slice: no copies)
     for _ in range(2):  # a poor start (a track's first fit, a sudden change): two more steps where not settled
         k = np.flatnonzero(ok & (np.abs(step_s) >= 0.002 * s))
         if len(k) == 0:
