@@ -320,3 +320,14 @@ def test_scale_config_is_validated():
     with pytest.raises(ConfigError, match="template_rescale_threshold"):
         TrackConfig(template_rescale_threshold=float("nan"))
     assert ncc.NCCResult(np.zeros((2, 2)), np.zeros(2), np.ones(2, bool), np.zeros(2, np.int8)).scale.shape == (2,)
+
+
+def test_benchmark_table_shows_looming_at_the_focus_of_expansion():
+    from companion.bench import looming as bench
+
+    ap = bench.Approach("quad", 4.0, 20.0, 3.5, offsets_deg=(0.0, 2.0))
+    off, on = (bench.run_synthetic(ap, 1, lo) for lo in (False, True))
+    assert off["rows"][0]["converged"] == 0.0 and on["rows"][0]["converged"] == 1.0
+    assert on["rows"][0]["mean_abs_err_m"] < 0.1 * on["rows"][0]["final_range_m"]
+    text = bench.markdown({"runs": 1, "rendered_runs": 0, "cases": [off, on]})
+    assert "python -m companion.bench looming" in text and "| quad | on | 0 |" in text
