@@ -44,6 +44,7 @@ from flightsim.score import ScoreConfig, _jsonable, mark, nees_stats
 log = logging.getLogger(__name__)
 
 MODES = ("auto", "replay", "sitl")
+_BIN_COUNTS = ("obstacle_cells", "ranges", "valid", "unknown", "clear", "claimed")
 RATE_KEYS = ("detection", "valid_range", "dangerous_clear", "false_obstacle_clear_cells", "too_near", "over_range",
              "messages_without_false_obstacle", "messages_with_claims")
 
@@ -145,10 +146,15 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
 
     ok = [r for r in results if r["status"] == "ok" and r.get("score")]
     scores = [r["score"] for r in ok]
-    cells: dict[str, int] = {}
-    for s in scores:
-        for k, v in s["cells"].items():
-            cells[k] = cells.get(k, 0) + int(v or 0)
+    def sum_cells(key: str) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for s in scores:
+            for k, v in (s.get(key) or {}).items():
+                out[k] = out.get(k, 0) + int(v or 0)
+        return out
+
+    cells = sum_cells("cells")
+    cells_iv, cells_oov = sum_cells("cells_in_view"), sum_cells("cells_out_of_view")
 
     def rate(num, den):
         return None if not cells.get(den) else cells.get(num, 0) / cells[den]
@@ -159,16 +165,30 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
         "over_range": rate("over_range", "obstacle"), "false_obstacle_clear_cells": rate("false_obstacles_clear_cells", "clear"),
         "messages_without_false_obstacle": rate("messages_without_false_obstacle", "messages_eligible_no_false"),
     }
+    def pooled_of(c: dict) -> dict:
+        r = lambda num, den: None if not c.get(den) else c.get(num, 0) / c[den]  # noqa: E731
+        return {"detection": r("detections", "obstacle"), "valid_range": r("valid_ranges", "obstacle"),
+                "dangerous_clear": r("dangerous_clears", "obstacle"), "unknown_in_obstacle_cells": r("unknown_in_obstacle_cells", "obstacle"),
+                "false_obstacle_clear_cells": r("false_obstacles_clear_cells", "clear"), "too_near": r("too_near", "obstacle"),
+                "over_range": r("over_range", "obstacle"), "messages_without_false_obstacle": r("messages_without_false_obstacle", "messages_eligible_no_false")}
+
     per_run = {k: _mean_std(s["rates"].get(k) for s in scores) for k in RATE_KEYS}
+    per_run_in_view = {k: _mean_std((s.get("rates_in_view") or {}).get(k) for s in scores) for k in RATE_KEYS}
     targets = []
     for i, t in enumerate(scores[0]["targets"] if scores else []):
-        key = "messages_without_false_obstacle" if i == 0 else "dangerous_clear"
-        v = pooled[key]
+        same = all(len(s["targets"]) > i and s["targets"][i].get("key") == t.get("key") for s in scores)
+        if t.get("key") is not None and "num" in t and same:  # issue-11 targets: pool numerators and denominators
+            num = sum(int(s["targets"][i]["num"] or 0) for s in scores)
+            n = sum(int(s["targets"][i]["n"] or 0) for s in scores)
+            v = num / n if n else None
+        else:  # older scores: the first two targets of issue 5
+            key = "messages_without_false_obstacle" if i == 0 else "dangerous_clear"
+            v = pooled[key]
+            n = cells.get("messages_eligible_no_false" if i == 0 else "obstacle", 0)
         met = None if v is None else (v >= t["threshold"] if t["op"] == ">=" else v <= t["threshold"])
         runs_met = sum(1 for s in scores if s["targets"][i]["met"])
         runs_known = sum(1 for s in scores if s["targets"][i]["met"] is not None)
-        n = cells.get("messages_eligible_no_false" if i == 0 else "obstacle", 0)
-        targets.append({"name": t["name"], "op": t["op"], "threshold": t["threshold"], "pooled": v, "n": n, "met": met,
+        targets.append({"key": t.get("key"), "name": t["name"], "op": t["op"], "threshold": t["threshold"], "pooled": v, "n": n, "met": met,
                         "runs_met": runs_met, "runs_scored": runs_known})
     cat = lambda key: np.concatenate([np.asarray(series[s][key], float).reshape(-1) for s in series]) if series else np.zeros(0)  # noqa: E731
     bins = config.range_bins_m
@@ -207,9 +227,32 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
                          "runs_never_valid": d["runs_in_range"] - d["runs_valid"],
                          "in_range_at_s": _mean_std(d["in_range_at_s"]), "time_to_first_valid_s": _mean_std(d["ttfv"]),
                          "detected_fraction": _mean_std(d["detected_fraction"])})
+    # detection by true range: the runs' bin counts summed (same bins: one score config per campaign)
+    det_by_range: dict[str, list[dict]] = {}
+    for view in ("in_view", "out_of_view"):
+        rows: list[dict] = []
+        for s in scores:
+            for b, row in enumerate((s.get("detection_by_range") or {}).get(view, [])):
+                if b >= len(rows):
+                    rows.append({k: row[k] for k in ("bin", "lo_m", "hi_m")} | {k: 0 for k in _BIN_COUNTS})
+                for k in _BIN_COUNTS:
+                    rows[b][k] += int(row.get(k) or 0)
+        for row in rows:
+            n_ = row["obstacle_cells"]
+            row.update({"valid_rate": row["valid"] / n_ if n_ else None, "range_rate": row["ranges"] / n_ if n_ else None,
+                        "unknown_rate": row["unknown"] / n_ if n_ else None, "dangerous_rate": row["clear"] / n_ if n_ else None,
+                        "valid_of_claimed": row["valid"] / row["claimed"] if row["claimed"] else None})
+        det_by_range[view] = rows
+    rem = {k: sum(int((s.get("remembered") or {}).get(k) or 0) for s in scores)
+           for k in ("cells", "within_tolerance", "ranges", "unknown", "dangerous_clears")}
+    rem["rate"] = rem["within_tolerance"] / rem["cells"] if rem["cells"] else None
     return _jsonable({
         "runs": len(results), "runs_ok": len(ok), "runs_failed": len(results) - len(ok),
         "cells": cells, "pooled_rates": pooled, "per_run_rates": per_run, "targets": targets,
+        "cells_in_view": cells_iv, "cells_out_of_view": cells_oov, "pooled_rates_in_view": pooled_of(cells_iv),
+        "pooled_rates_out_of_view": pooled_of(cells_oov), "per_run_rates_in_view": per_run_in_view,
+        "detection_by_range": det_by_range, "remembered": rem,
+        "warmup_messages_excluded": sum(int((s.get("warmup") or {}).get("messages_excluded") or 0) for s in scores),
         "range_error": range_error, "latency": latency, "nees": nees, "obstacles": obs_rows,
         "first_claim_at_s": _mean_std(s.get("first_claim_at_s") for s in scores),
     })
@@ -222,7 +265,9 @@ def run_key_figures(score: dict) -> dict:
         "detection": r["detection"], "valid_range": r["valid_range"], "dangerous_clear": r["dangerous_clear"],
         "false_obstacle_clear_cells": r["false_obstacle_clear_cells"], "too_near": r["too_near"],
         "messages_without_false_obstacle": r["messages_without_false_obstacle"],
-        "targets_met": [t["met"] for t in score["targets"]], "latency_p50_ms": score["latency"]["p50_ms"],
+        "targets_met": [t["met"] for t in score["targets"]],
+        "detection_in_view": (score.get("rates_in_view") or {}).get("valid_range"),
+        "remembered": (score.get("remembered") or {}).get("rate"), "latency_p50_ms": score["latency"]["p50_ms"],
         "latency_p99_ms": score["latency"]["p99_ms"], "nees_mean": score["nees"]["mean"], "nees_n": score["nees"]["n"],
         "first_claim_at_s": score["first_claim_at_s"],
         "time_to_first_valid_s": {o["name"]: o["time_to_first_valid_s"] for o in score["obstacles"]},

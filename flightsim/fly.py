@@ -47,7 +47,8 @@ from flightsim.render import Renderer
 from flightsim.scenario import Scenario
 from flightsim.telemetry import TelemetryModel
 from flightsim.tlog import TlogWriter
-from flightsim.world import sector_truth, target_truth
+from flightsim.world import target_truth
+from flightsim.world.truth import sector_truth_360
 
 TRUTH_FIELDS = {
     "t_s": "capture time of each frame, recording clock (Unix s)",
@@ -60,6 +61,8 @@ TRUTH_FIELDS = {
     "R_world_cam": "camera → world NED",
     "p_world_cam": "camera centre, world NED (m)",
     "sector_m": "true horizontal distance to the nearest obstacle per OBSTACLE_DISTANCE sector (72 × 5°, body FRD); inf = nothing within sector_max_m, NaN = not in the camera's view",
+    "sector_all_m": "true horizontal distance per sector over all 72 sectors (360°, body FRD), in view or not; inf = nothing within sector_max_m",
+    "in_view": "sector's centre bearing in the camera's image (72 bools per frame); sector_m = sector_all_m where in_view, else NaN",
     "sector_max_m": "max distance of the sector truth (m)",
     "target_names": "names of the world's targets",
     "target_p_world": "target positions, world NED (m)",
@@ -264,11 +267,12 @@ class Flight:
                                      frame_index=self.next_frame, depth=False)
         w1 = time.perf_counter()
         tt = target_truth(sc.world, p_wc, R_wc, cam_cfg)
+        sector_all, in_view = sector_truth_360(sc.world, R_wb, state.p_ned, cam_cfg, meta.sector_max_distance_m)
         truth = self.truth
         for key, val in (("t_s", meta.epoch_s + t), ("t_sim_s", t), ("p_ned", state.p_ned), ("v_ned", state.v_ned),
                          ("rpy", state.rpy), ("pqr", state.pqr), ("R_world_body", R_wb), ("R_world_cam", R_wc),
                          ("p_world_cam", p_wc),
-                         ("sector_m", sector_truth(sc.world, R_wb, state.p_ned, cam_cfg, meta.sector_max_distance_m)),
+                         ("sector_m", np.where(in_view, sector_all, np.nan)), ("sector_all_m", sector_all), ("in_view", in_view),
                          ("target_range_m", tt.range_m),
                          ("target_visible", tt.visible if tt.visible is not None else np.zeros(len(tt.names), bool))):
             truth[key].append(np.asarray(val))

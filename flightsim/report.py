@@ -13,7 +13,8 @@
   "clear", unknown left blank);
 * ``latency_hist.png`` — exposure → message latency, pooled;
 * ``index.md`` — the tables of campaign.json (targets ✓/✗, pooled rates, per-run mean ± std,
-  range error by bin, time to the first valid range per obstacle, latency, NEES, runs) linking
+  in view / out of view (issue 11, DESIGN.md §7), detection and unknown by true-range bin,
+  remembered obstacles, range error by bin, time to the first valid range per obstacle, latency, NEES, runs) linking
   the plots and each run's score.md.
 
 Only reads what it is handed (campaign dict, per-run series arrays); no figure here comes from
@@ -279,7 +280,8 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
          f"--mode {c['mode']} --fixed-processing-ms {c['fixed_processing_ms']:g} --out DIR`.", "",
          "Definitions (cells, tolerance, false obstacle, dangerous clear, NEES, latency): the module docstring of "
          "`flightsim/score.py`, repeated at the end of every run's score.md.", "",
-         "## Targets (issue 5), pooled over runs", "",
+         f"## Targets (issues 5 and 11), pooled over runs (after a {c.get('score_config', {}).get('warmup_s', 0):g} s warm-up; "
+         f"{a.get('warmup_messages_excluded', 0)} messages excluded)", "",
          "| target | pooled | threshold | n | met | runs meeting it |", "|---|---|---|---|---|---|"]
     for t in a["targets"]:
         L.append(f"| {t['name']} | {_pc(t['pooled'])} | {t['op']} {100 * t['threshold']:g} % | {t['n']} | {mark(t['met'])} | "
@@ -296,6 +298,33 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
              "messages_without_false_obstacle", "messages_eligible_no_false"))
     for label, key, num, den in rows:
         L.append(f"| {label} | {_pc(pr.get(key))} | {_ms(per.get(key), pct=True)} | {cells.get(num, 0)} / {cells.get(den, 0)} |")
+    civ, cov = a.get("cells_in_view") or {}, a.get("cells_out_of_view") or {}
+    piv, pov = a.get("pooled_rates_in_view") or {}, a.get("pooled_rates_out_of_view") or {}
+    if civ or cov:
+        L += ["", "In view and out of view (out of view only cells with a claim count; unknown there is neutral), pooled:", "",
+              "| rate | in view | cells | out of view | cells |", "|---|---|---|---|---|"]
+        for label, key, num, den in rows[:6]:
+            L.append(f"| {label} | {_pc(piv.get(key))} | {civ.get(num, 0)} / {civ.get(den, 0)} | {_pc(pov.get(key))} | "
+                     f"{cov.get(num, 0)} / {cov.get(den, 0)} |")
+        L.append(f"| unknown in obstacle cells | {_pc(piv.get('unknown_in_obstacle_cells'))} | "
+                 f"{civ.get('unknown_in_obstacle_cells', 0)} / {civ.get('obstacle', 0)} | neutral | "
+                 f"{cov.get('unknown_neutral', 0)} cells |")
+    rem = a.get("remembered")
+    if rem:
+        L += ["", f"Remembered obstacles out of view: {rem['cells']} cells, within tolerance {rem['within_tolerance']} "
+              f"({_pc(rem['rate'])}), unknown {rem['unknown']}, dangerous clears {rem['dangerous_clears']}."]
+    dbr = a.get("detection_by_range")
+    if dbr:
+        L += ["", "## Detection by true range, pooled", "",
+              "Detection = a range within tolerance; out of view all obstacle cells are listed (unknown included), "
+              "'of claimed' = within tolerance among cells with a range or clear.", ""]
+        for key, label in (("in_view", "In view"), ("out_of_view", "Out of view")):
+            L += [f"{label}:", "", "| true range | obstacle cells | detection | range reported | unknown | clear (dangerous) | of claimed |",
+                  "|---|---|---|---|---|---|---|"]
+            for b in dbr.get(key, []):
+                L.append(f"| {b['bin']} | {b['obstacle_cells']} | {_pc(b['valid_rate'], 1)} | {_pc(b['range_rate'], 1)} | "
+                         f"{_pc(b['unknown_rate'], 1)} | {b['clear']} | {_pc(b['valid_of_claimed'], 1)} |")
+            L.append("")
     L += ["", f"Ranges beyond the truth horizon (unverifiable): {cells.get('unverifiable_beyond_truth', 0)}; claims in "
           f"unseen sectors: {cells.get('unscored_claims', 0)}; first claim {_ms(a['first_claim_at_s'])} s after the first frame.", ""]
     L += ["## Range error (value − true) by true range, pooled", ""]
@@ -328,8 +357,8 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
                        ("radar", "Sector radar"), ("latency", "Latency histogram")):
         if key in files:
             L += [f"### {title}", "", f"![{title}]({files[key].name})", ""]
-    L += ["## Runs", "", "| seed | status | detection | no false obstacle (msgs) | dangerous clear | latency p50 ms | NEES | "
-          "wall s | score |", "|---|---|---|---|---|---|---|---|---|"]
+    L += ["## Runs", "", "| seed | status | detection | detection in view (within tol.) | remembered | no false obstacle (msgs) | "
+          "dangerous clear | latency p50 ms | NEES | wall s | score |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in c["runs"]:
         kf = r.get("key_figures") or {}
         rel = Path(r["dir"])
@@ -338,7 +367,8 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
         except ValueError:
             pass
         link = f"[score.md]({rel.as_posix()}/score.md)" if r["status"] == "ok" else (r.get("error") or "").replace("|", "/")[:120]
-        L.append(f"| {r['seed']} | {r['status']} | {_pc(kf.get('detection'), 1)} | {_pc(kf.get('messages_without_false_obstacle'), 1)} | "
+        L.append(f"| {r['seed']} | {r['status']} | {_pc(kf.get('detection'), 1)} | {_pc(kf.get('detection_in_view'), 1)} | "
+                 f"{_pc(kf.get('remembered'), 1)} | {_pc(kf.get('messages_without_false_obstacle'), 1)} | "
                  f"{_pc(kf.get('dangerous_clear'))} | {_f(kf.get('latency_p50_ms'), '{:.1f}')} | {_f(kf.get('nees_mean'))} | "
                  f"{_f(r.get('wall_s'), '{:.0f}')} | {link} |")
     return "\n".join(L) + "\n"

@@ -18,8 +18,8 @@ A *cell* is one (message, sector).  With ``T`` the true horizontal distance of t
 (:mod:`flightsim.world.truth`: nearest obstacle footprint inside the ±2.5° wedge, within the
 vertical band) and ``max`` the message's own ``max_distance``:
 
-* **unseen cell**: ``T`` is NaN (the camera does not see the sector's centre bearing); claims
-  there are counted as *unscored claims*, nothing else;
+* **unknown-truth cell**: ``T`` is NaN (an older truth.npz knows only the sectors the camera
+  sees); claims there are counted as *unscored claims*, nothing else;
 * **obstacle cell**: ``T`` finite and ``T ≤ max``;
 * **clear cell**: ``T`` is inf (nothing within the truth's ``sector_max_m``) or ``T > max``.
 
@@ -46,8 +46,29 @@ Per message: the share of messages *with no false obstacle in a clear sector*, o
 that make at least one claim (a range or "clear" in any sector) and have at least one clear cell
 in view (an all-unknown message claims nothing and is not counted).
 
-Targets (issue 5): no false obstacle in clear sectors in ≥ 95 % of messages; dangerous clears in
-≤ 1 % of obstacle cells.
+Over 360° (issue 11 item 6; DESIGN.md §6 — an unknown sector means no constraint — and §7 — the
+local map publishes remembered obstacles beside and behind the vehicle).  A truth.npz with
+``sector_all_m`` and ``in_view`` knows every sector.  Cells in the camera's view are scored as
+above.  Out of view only a *claim* is scored (a range or "clear"): a range within tolerance on an
+obstacle cell is a (remembered) detection, too near in a clear cell a false obstacle, "clear" on
+an obstacle cell a dangerous clear; unknown there is neutral (neither a cell nor a miss).  Counts
+and rates are reported in view, out of view and pooled (``cells``/``rates`` are pooled), and the
+safety targets are judged pooled.
+
+*Remembered* cells (:func:`remembered_cells`): out-of-view obstacle cells whose obstacle (the
+grouping below) was in view within ``remember_window_s`` with the vehicle moved less than
+``remember_max_travel_m`` since; their share reported within tolerance (unknown counts as not
+reported).  Detection by true range (``detection_bins_m``): per bin, in view and out of view (all
+out-of-view obstacle cells), the share within tolerance, the share with any range, unknown and
+clear.  Warm-up: messages stamped within ``warmup_s`` of the first truth frame are not scored
+(cells, the forward DISTANCE_SENSOR and NEES); latency and the first claim include them.
+
+Targets (issues 5 and 11, thresholds in configs/score.toml): no false obstacle in clear sectors in
+≥ 98 % of messages; dangerous clears ≤ 0.5 % of obstacle cells; false obstacles ≤ 1 % of clear
+cells; detection (within tolerance) ≥ 90 % of in-view obstacle cells and ≥ 95 % of those within
+``near_range_m``; remembered ≥ 90 %.  "Detection" in the issue-11 targets and the by-range tables
+means a range *within tolerance* (``valid``); the ``detection`` rate below keeps its issue-5
+meaning (any range in an obstacle cell).
 
 Range error by range bin (of the true distance ``T``), absolute and in % of ``T``: of the
 conservative published value over all detections, and for the forward sector of the estimate
@@ -118,13 +139,22 @@ class ScoreConfig:
     sigma_k: float = 2.0  # k of the companion's conservative value (estimate − k·σ), [sectors] sigma_k
     quality_zero_rel_sigma: float = 0.5  # the companion's [outputs] quality_zero_rel_sigma (σ from signal_quality)
     range_bins_m: tuple[float, ...] = (0.0, 10.0, 20.0, 40.0)  # lower edges of the range bins, m (the last bin is open)
+    detection_bins_m: tuple[float, ...] = (0.0, 5.0, 10.0, 20.0, 30.0, 40.0)  # lower edges of the detection-by-true-range bins, m
+    warmup_s: float = 2.0  # cells of messages stamped within this long after the first truth frame are not scored, s
+    near_range_m: float = 10.0  # "near" obstacle cells: true range below this (target_detection_near), m
+    remember_window_s: float = 10.0  # remembered: the obstacle was in view at most this long before, s
+    remember_max_travel_m: float = 20.0  # ... and the vehicle moved less than this since, m
     truth_max_age_s: float = 0.1  # the truth frame used for a message may be at most this much older than its stamp, s
     capture_snap: float = 0.5  # a mapped exposure time snaps to the nearest truth frame within this many frame periods
     pair_window_s: float = 0.005  # a DISTANCE_SENSOR pairs with the OBSTACLE_DISTANCE sent at most this much before it, s
     obstacle_link_m: float = 3.0  # truth points this close (m) belong to one obstacle
     obstacle_link_rel: float = 0.12  # ... or this fraction of their distance, whichever is larger (sector spacing is 8.7 %)
-    target_no_false_obstacle: float = 0.95  # target: share of messages with no false obstacle in a clear sector (>=)
-    target_dangerous_clear: float = 0.01  # target: share of obstacle cells reported clear (<=)
+    target_no_false_obstacle: float = 0.98  # target: share of messages with no false obstacle in a clear sector (>=)
+    target_dangerous_clear: float = 0.005  # target: share of obstacle cells reported clear (<=)
+    target_false_obstacle: float = 0.01  # target: share of clear cells with a false obstacle (<=)
+    target_detection: float = 0.90  # target: share of in-view obstacle cells with a range within tolerance (>=)
+    target_detection_near: float = 0.95  # target: the same for in-view obstacle cells nearer than near_range_m (>=)
+    target_remembered: float = 0.90  # target: share of remembered out-of-view obstacle cells within tolerance (>=)
     nees_confidence: float = 0.95  # two-sided probability of the NEES band
 
     def __post_init__(self) -> None:
@@ -132,18 +162,24 @@ class ScoreConfig:
         require_finite("tolerance_rel", self.tolerance_rel, nonnegative=True)
         require_finite("sigma_k", self.sigma_k, nonnegative=True)
         require_finite("quality_zero_rel_sigma", self.quality_zero_rel_sigma, positive=True)
-        b = self.range_bins_m
-        require(isinstance(b, tuple) and len(b) >= 1, "range_bins_m must be a non-empty list of lower edges")
-        for v in b:
-            require_finite("range_bins_m", v, nonnegative=True)
-        require(all(b[i] < b[i + 1] for i in range(len(b) - 1)), f"range_bins_m must increase, got {list(b)}")
+        for name in ("range_bins_m", "detection_bins_m"):
+            b = getattr(self, name)
+            require(isinstance(b, tuple) and len(b) >= 1, f"{name} must be a non-empty list of lower edges")
+            for v in b:
+                require_finite(name, v, nonnegative=True)
+            require(all(b[i] < b[i + 1] for i in range(len(b) - 1)), f"{name} must increase, got {list(b)}")
+        require_finite("warmup_s", self.warmup_s, nonnegative=True)
+        require_finite("near_range_m", self.near_range_m, positive=True)
+        require_finite("remember_window_s", self.remember_window_s, positive=True)
+        require_finite("remember_max_travel_m", self.remember_max_travel_m, positive=True)
         require_finite("truth_max_age_s", self.truth_max_age_s, positive=True)
         require_finite("capture_snap", self.capture_snap, positive=True)
         require(self.capture_snap <= 0.5, f"capture_snap must be <= 0.5 (half a frame), got {self.capture_snap}")
         require_finite("pair_window_s", self.pair_window_s, nonnegative=True)
         require_finite("obstacle_link_m", self.obstacle_link_m, positive=True)
         require_finite("obstacle_link_rel", self.obstacle_link_rel, nonnegative=True)
-        for name in ("target_no_false_obstacle", "target_dangerous_clear", "nees_confidence"):
+        for name in ("target_no_false_obstacle", "target_dangerous_clear", "target_false_obstacle", "target_detection",
+                     "target_detection_near", "target_remembered", "nees_confidence"):
             v = getattr(self, name)
             require_finite(name, v)
             require(0 <= v <= 1, f"{name} must be in [0, 1], got {v}")
@@ -223,13 +259,27 @@ class RangeMessages:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SectorTruth:
-    """The parts of ``truth.npz`` the score needs (see flightsim/fly.py TRUTH_FIELDS)."""
+    """The parts of ``truth.npz`` the score needs (see flightsim/fly.py TRUTH_FIELDS).
+
+    ``sector_m`` is the truth of every sector known (NaN = unknown: not scored); ``in_view`` says
+    which sectors the camera sees.  A 360° truth (``truth.npz`` with ``sector_all_m`` and
+    ``in_view``, issue 11; DESIGN.md §7) knows every sector; an older one knows only the sectors in
+    view (``in_view`` None: in view = known).
+    """
 
     t_s: np.ndarray  # (F,) capture time of each frame, recording clock
-    sector_m: np.ndarray  # (F, 72) true horizontal distance per sector; inf = nothing within sector_max_m; NaN = unseen
+    sector_m: np.ndarray  # (F, 72) true horizontal distance per sector; inf = nothing within sector_max_m; NaN = unknown
     p_ned: np.ndarray  # (F, 3) vehicle position, world NED
     yaw: np.ndarray  # (F,) vehicle yaw, rad
     sector_max_m: float
+    in_view: np.ndarray | None = None  # (F, 72) bool, sector in the camera's view (None: the known sectors)
+
+    @property
+    def view(self) -> np.ndarray:
+        """(F, 72) bool: sectors in the camera's view."""
+        if self.in_view is None:
+            return ~np.isnan(np.asarray(self.sector_m, float))
+        return np.asarray(self.in_view, bool)
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, float)
@@ -244,6 +294,8 @@ class SectorTruth:
             raise InputError("truth t_s must be finite and strictly increasing")
         if not (math.isfinite(self.sector_max_m) and self.sector_max_m > 0):
             raise InputError(f"truth sector_max_m must be > 0, got {self.sector_max_m}")
+        if self.in_view is not None and np.asarray(self.in_view).shape != (f, N_SECTORS):
+            raise InputError(f"truth in_view must be ({f}, {N_SECTORS}), got {np.asarray(self.in_view).shape}")
 
     @property
     def frame_period_s(self) -> float:
@@ -492,6 +544,9 @@ class Evaluation:
     od_capture_t: np.ndarray  # (N,) exposure, recording clock (NaN unknown)
     od_capture_frame: np.ndarray  # (N,) truth frame of the exposure (−1 unknown / not matched)
     od_latency_s: np.ndarray  # (N,)
+    od_in_view: np.ndarray  # (N, 72) bool, the truth frame's sector is in the camera's view
+    od_warmup: np.ndarray  # (N,) bool, stamped within warmup_s of the first truth frame (not scored)
+    od_remember: np.ndarray  # (N, 72) bool, out-of-view obstacle cell of an obstacle seen recently nearby ("remembered")
     # DISTANCE_SENSOR (forward)
     ds_t: np.ndarray
     ds_frame: np.ndarray
@@ -510,6 +565,7 @@ class Evaluation:
     capture_residual_s: np.ndarray  # |mapped exposure − nearest frame| of matched messages
     messages: RangeMessages
     notes: list[str]
+    truth_360: bool = False  # the truth knows the sectors out of view (truth.npz in_view / sector_all_m)
 
 
 def _classify_published(cm: np.ndarray, min_cm: np.ndarray, max_cm: np.ndarray) -> np.ndarray:
@@ -518,6 +574,38 @@ def _classify_published(cm: np.ndarray, min_cm: np.ndarray, max_cm: np.ndarray) 
     rep[cm == max_cm + 1] = REP_CLEAR
     rep[(cm >= min_cm) & (cm <= max_cm)] = REP_RANGE
     return rep
+
+
+def remembered_cells(truth: SectorTruth, labels: np.ndarray, view_f: np.ndarray, frame: np.ndarray, lab: np.ndarray,
+                     candidates: np.ndarray, config: ScoreConfig) -> np.ndarray:
+    """(N, 72) bool: the *remembered* cells among ``candidates`` (out-of-view obstacle cells of the
+    messages; issue 11 targets, DESIGN.md §7).
+
+    Rule (per obstacle, by the grouping of :func:`group_obstacles`): the cell's obstacle ``k``
+    (``lab``) occupied an in-view finite truth cell in some truth frame at most
+    ``remember_window_s`` before the message's truth frame (``frame``), and the vehicle moved less
+    than ``remember_max_travel_m`` (3-D) from its position in the *latest* such frame.  One group
+    may be large (a long wall): a part of it that never was in view counts when another part was.
+    """
+    cfg = config
+    n = len(frame)
+    out = np.zeros((n, N_SECTORS), bool)
+    K = int(labels.max()) + 1 if labels.size else 0
+    if K == 0 or n == 0 or not np.any(candidates):
+        return out
+    F = len(truth.t_s)
+    seen = np.zeros((F, K), bool)
+    ff, ss = np.nonzero((labels >= 0) & view_f)
+    seen[ff, labels[ff, ss]] = True
+    last = np.maximum.accumulate(np.where(seen, np.arange(F)[:, None], -1), axis=0)  # latest in-view frame, (F, K)
+    nn, ii = np.nonzero(candidates & (lab >= 0) & (frame >= 0)[:, None])
+    j = frame[nn]
+    ls = last[j, lab[nn, ii]]
+    lsj = np.maximum(ls, 0)
+    ok = (ls >= 0) & (truth.t_s[j] - truth.t_s[lsj] <= cfg.remember_window_s + 1e-9)
+    ok &= np.linalg.norm(np.asarray(truth.p_ned, float)[j] - np.asarray(truth.p_ned, float)[lsj], axis=1) < cfg.remember_max_travel_m
+    out[nn[ok], ii[ok]] = True
+    return out
 
 
 def _boot_offset(msgs: RangeMessages) -> float:
@@ -541,9 +629,17 @@ def evaluate(msgs: RangeMessages, truth: SectorTruth, config: ScoreConfig = Scor
     rep = _classify_published(cm, min_cm, max_cm)
     r = np.where(rep == REP_RANGE, cm / 100.0, np.nan)
     frame = truth.frame_at(msgs.od_t, cfg.truth_max_age_s)
-    scored = msgs.od_geometry_ok & (frame >= 0)
+    has_truth = msgs.od_geometry_ok & (frame >= 0)
+    warm = np.asarray(msgs.od_t, float) - float(truth.t_s[0]) < cfg.warmup_s - 1e-9
+    scored = has_truth & ~warm
     T = np.full((n, N_SECTORS), np.nan)
-    T[scored] = truth.sector_m[frame[scored]]
+    T[has_truth] = truth.sector_m[frame[has_truth]]
+    view_f = truth.view
+    view = np.zeros((n, N_SECTORS), bool)
+    view[has_truth] = view_f[frame[has_truth]]
+    if cfg.warmup_s > 0 and np.any(has_truth & warm):
+        notes.append(f"{int(np.sum(has_truth & warm))} OBSTACLE_DISTANCE messages in the first {cfg.warmup_s:g} s "
+                     "(warm-up) were not scored")
     max_m = msgs.od_max_cm / 100.0
     tcls = np.full((n, N_SECTORS), TRUTH_NONE, np.int8)
     tcls[scored] = TRUTH_UNSEEN
@@ -561,6 +657,7 @@ def evaluate(msgs: RangeMessages, truth: SectorTruth, config: ScoreConfig = Scor
     lab = np.full((n, N_SECTORS), -1, np.int64)
     lab[scored] = labels[frame[scored]]
     lab[tcls != TRUTH_OBSTACLE] = -1
+    remember = remembered_cells(truth, labels, view_f, frame, lab, (tcls == TRUTH_OBSTACLE) & ~view, cfg)
     # --- exposure and latency -----------------------------------------------------------------
     off = _boot_offset(msgs)
     cap_t = np.full(n, np.nan)
@@ -606,30 +703,34 @@ def evaluate(msgs: RangeMessages, truth: SectorTruth, config: ScoreConfig = Scor
     src[by_q] = 2
     est = pub + cfg.sigma_k * sig
     ds_frame = truth.frame_at(ds_t, cfg.truth_max_age_s)
+    ds_frame[ds_t - float(truth.t_s[0]) < cfg.warmup_s - 1e-9] = -1  # warm-up: not scored
     t_arr = np.where(ds_frame >= 0, truth.sector_m[np.maximum(ds_frame, 0), 0], np.nan)
     # pair each DISTANCE_SENSOR with the OBSTACLE_DISTANCE sent just before it (same result)
     t_exp = np.full(len(ds_t), np.nan)
     if n and len(ds_t):
         j = np.searchsorted(msgs.od_t, ds_t + 1e-9, side="right") - 1
         jj = np.maximum(j, 0)
-        paired = (j >= 0) & (ds_t - msgs.od_t[jj] <= cfg.pair_window_s + 1e-9) & (cap_f[jj] >= 0)
+        paired = (j >= 0) & (ds_t - msgs.od_t[jj] <= cfg.pair_window_s + 1e-9) & (cap_f[jj] >= 0) & (ds_frame >= 0)
         t_exp[paired] = truth.sector_m[cap_f[jj[paired]], 0]
     ds_max_m = dmax / 100.0
     return Evaluation(
         config=cfg, t0=float(truth.t_s[0]), frame_period_s=fp, sector_max_m=float(truth.sector_max_m),
         od_t=msgs.od_t, od_frame=frame, od_scored=scored, od_rep=rep, od_r=r, od_cm=cm, od_truth=T, od_tcls=tcls,
         od_max_m=max_m, od_label=lab, od_capture_t=cap_t, od_capture_frame=cap_f, od_latency_s=latency,
+        od_in_view=view, od_warmup=warm, od_remember=remember,
         ds_t=ds_t, ds_frame=ds_frame, ds_state=ds_state, ds_published_m=pub, ds_sigma_m=sig, ds_sigma_source=src,
         ds_estimate_m=est, ds_truth_arrival=t_arr, ds_truth_exposure=t_exp, ds_max_m=ds_max_m,
         obstacle_names=names, obstacle_centroids=centroids, boot_offset_s=off, capture_residual_s=resid,
-        messages=msgs, notes=notes,
+        messages=msgs, notes=notes, truth_360=truth.in_view is not None,
     )
 
 
 # ---------------------------------------------------------------------- cell masks -------------
 @dataclasses.dataclass(frozen=True, eq=False)
 class CellMasks:
-    """Boolean (N, 72) masks of the cell categories (module docstring)."""
+    """Boolean (N, 72) masks of the cell categories (module docstring), over all *counted* cells:
+    every cell in view, and out of view the cells with a claim (a range or "clear"; unknown out of
+    view is neutral).  ``in_view`` splits them (issue 11 item 6)."""
 
     obstacle: np.ndarray
     clear: np.ndarray
@@ -644,14 +745,24 @@ class CellMasks:
     claimed_clear: np.ndarray  # clear reported in a clear cell
     unscored_claim: np.ndarray  # range or clear in an unseen cell
     invalid: np.ndarray  # published value neither unknown, clear nor a range (scored messages)
+    in_view: np.ndarray  # the cell's sector is in the camera's view
+    obstacle_any: np.ndarray  # obstacle truth, counted or not (out of view: with unknown too)
+    clear_any: np.ndarray  # clear truth, counted or not
+    unknown_out_of_view: np.ndarray  # unknown in an out-of-view cell whose truth is known (neutral)
+    remembered: np.ndarray  # out-of-view obstacle cells of an obstacle in view recently nearby (remembered_cells)
 
 
 def cell_masks(ev: Evaluation) -> CellMasks:
     cfg = ev.config
     rep, T, tc = ev.od_rep, ev.od_truth, ev.od_tcls
-    obstacle = tc == TRUTH_OBSTACLE
-    clear = tc == TRUTH_CLEAR
+    view = ev.od_in_view
     rng = rep == REP_RANGE
+    claim = rng | (rep == REP_CLEAR)
+    counted = view | claim
+    obstacle_any = tc == TRUTH_OBSTACLE
+    clear_any = tc == TRUTH_CLEAR
+    obstacle = obstacle_any & counted
+    clear = clear_any & counted
     with np.errstate(invalid="ignore"):
         tol = np.where(np.isfinite(T), cfg.tolerance(np.where(np.isfinite(T), T, 0.0)), np.inf)
         under = T - ev.od_r > tol
@@ -669,7 +780,10 @@ def cell_masks(ev: Evaluation) -> CellMasks:
         obstacle=obstacle, clear=clear, detection=detection, valid=detection & ~too_near & ~over_range,
         dangerous=obstacle & (rep == REP_CLEAR), false_clear=false_clear, unverifiable=unverifiable, too_near=too_near, over_range=over_range,
         missed_unknown=obstacle & (rep == REP_UNKNOWN), claimed_clear=clear & (rep == REP_CLEAR),
-        unscored_claim=(tc == TRUTH_UNSEEN) & (rng | (rep == REP_CLEAR)), invalid=scored & (rep == REP_INVALID),
+        unscored_claim=(tc == TRUTH_UNSEEN) & claim, invalid=scored & (rep == REP_INVALID),
+        in_view=view, obstacle_any=obstacle_any, clear_any=clear_any,
+        unknown_out_of_view=(obstacle_any | clear_any) & ~view & (rep == REP_UNKNOWN),
+        remembered=ev.od_remember & obstacle_any,
     )
 
 
@@ -683,7 +797,7 @@ def _obstacle_rows(ev: Evaluation, m: CellMasks) -> list[dict]:
     rows = []
     t_rel = ev.od_t - ev.t0
     for k, name in enumerate(ev.obstacle_names):
-        cells = ev.od_label == k
+        cells = (ev.od_label == k) & m.in_view  # in view: time to the first valid range after it comes into view
         in_msgs = np.flatnonzero(np.any(cells & m.obstacle, axis=1))
         row = {"id": k, "name": name, "centroid_ne_m": [round(float(v), 2) for v in ev.obstacle_centroids[k]],
                "messages_in_range": int(in_msgs.size), "in_range_at_s": None, "last_in_range_at_s": None,
@@ -708,41 +822,124 @@ def _obstacle_rows(ev: Evaluation, m: CellMasks) -> list[dict]:
     return rows
 
 
+def _target(key: str, name: str, num: int, den: int, op: str, threshold: float) -> dict:
+    v = _rate(num, den)
+    return {"key": key, "name": name, "value": v, "num": int(num), "n": int(den), "op": op, "threshold": threshold,
+            "met": None if v is None else bool(v >= threshold if op == ">=" else v <= threshold)}
+
+
+def cell_counts(m: CellMasks, sel: np.ndarray, claims: np.ndarray) -> tuple[dict, dict]:
+    """Cell counts and rates over the counted cells selected by ``sel`` (N, 72) (all, in view, out
+    of view).  Per message: messages with a claim (``claims``, (N,)) and a clear cell in ``sel``;
+    of those, the ones without a false obstacle in a clear cell of ``sel``."""
+    ob, cl = m.obstacle & sel, m.clear & sel
+    c = {
+        "obstacle": int(ob.sum()), "clear": int(cl.sum()), "detections": int((m.detection & sel).sum()),
+        "valid_ranges": int((m.valid & sel).sum()), "dangerous_clears": int((m.dangerous & sel).sum()),
+        "false_obstacles_clear_cells": int((m.false_clear & sel).sum()), "unverifiable_beyond_truth": int((m.unverifiable & sel).sum()),
+        "too_near": int((m.too_near & sel).sum()), "over_range": int((m.over_range & sel).sum()),
+        "unknown_in_obstacle_cells": int((m.missed_unknown & sel).sum()),
+        "clear_claimed_in_clear_cells": int((m.claimed_clear & sel).sum()), "unscored_claims": int((m.unscored_claim & sel).sum()),
+        "invalid_values": int((m.invalid & sel).sum()),
+    }
+    eligible = claims & np.any(cl, axis=1)
+    c["messages_eligible_no_false"] = int(eligible.sum())
+    c["messages_without_false_obstacle"] = int((eligible & ~np.any(m.false_clear & sel, axis=1)).sum())
+    n_obs, n_clear = c["obstacle"], c["clear"]
+    r = {
+        "detection": _rate(c["detections"], n_obs), "valid_range": _rate(c["valid_ranges"], n_obs),
+        "dangerous_clear": _rate(c["dangerous_clears"], n_obs), "unknown_in_obstacle_cells": _rate(c["unknown_in_obstacle_cells"], n_obs),
+        "false_obstacle_clear_cells": _rate(c["false_obstacles_clear_cells"], n_clear), "too_near": _rate(c["too_near"], n_obs),
+        "over_range": _rate(c["over_range"], n_obs), "clear_claimed_in_clear_cells": _rate(c["clear_claimed_in_clear_cells"], n_clear),
+        "messages_without_false_obstacle": _rate(c["messages_without_false_obstacle"], c["messages_eligible_no_false"]),
+    }
+    return c, r
+
+
+def _bin_labels(bins_m: Sequence[float]) -> list[tuple[str, float, float]]:
+    edges = list(bins_m)
+    out = []
+    for i, lo in enumerate(edges):
+        hi = edges[i + 1] if i + 1 < len(edges) else math.inf
+        out.append((f"{lo:g}–{hi:g} m" if math.isfinite(hi) else f"{lo:g}+ m", lo, hi))
+    return out
+
+
+def detection_table(true_m: np.ndarray, rep: np.ndarray, valid: np.ndarray, cells: np.ndarray,
+                    bins_m: Sequence[float]) -> list[dict]:
+    """Per bin of the true range (lower edges ``bins_m``, the last open) over the ``cells`` mask:
+    obstacle cells, ranges, ranges within tolerance (``valid``: *detection* in issue 11's sense),
+    unknown, "clear" (dangerous) and their shares of the bin's cells; ``claimed`` = ranges + clear
+    and ``valid_of_claimed`` (what matters out of view, where unknown is neutral)."""
+    T = np.asarray(true_m, float)[cells]
+    rp = np.asarray(rep)[cells]
+    ok = np.asarray(valid, bool)[cells]
+    lab = _bin_labels(bins_m)
+    idx = np.searchsorted(np.asarray(bins_m, float), T, side="right") - 1  # below the first edge: −1, dropped
+    keep = idx >= 0
+    idx, rp, ok = idx[keep], rp[keep], ok[keep]
+    nb = len(lab)
+    cnt = lambda w: np.bincount(idx, weights=w.astype(float), minlength=nb).astype(int)  # noqa: E731
+    n = np.bincount(idx, minlength=nb)
+    rng, unk, clr, val = cnt(rp == REP_RANGE), cnt(rp == REP_UNKNOWN), cnt(rp == REP_CLEAR), cnt(ok)
+    rows = []
+    for b, (name, lo, hi) in enumerate(lab):
+        rows.append({"bin": name, "lo_m": lo, "hi_m": hi if math.isfinite(hi) else None, "obstacle_cells": int(n[b]),
+                     "ranges": int(rng[b]), "valid": int(val[b]), "unknown": int(unk[b]), "clear": int(clr[b]),
+                     "claimed": int(rng[b] + clr[b]), "valid_rate": _rate(int(val[b]), int(n[b])),
+                     "range_rate": _rate(int(rng[b]), int(n[b])), "unknown_rate": _rate(int(unk[b]), int(n[b])),
+                     "dangerous_rate": _rate(int(clr[b]), int(n[b])),
+                     "valid_of_claimed": _rate(int(val[b]), int(rng[b] + clr[b]))})
+    return rows
+
+
 def summarize(ev: Evaluation) -> dict:
     """The JSON-ready score of one run (the contents of ``score.json``)."""
     cfg = ev.config
     m = cell_masks(ev)
     msgs = ev.messages
     scored = ev.od_scored
-    n_obs, n_clear = int(m.obstacle.sum()), int(m.clear.sum())
-    det, dang = int(m.detection.sum()), int(m.dangerous.sum())
-    fclear, tnear = int(m.false_clear.sum()), int(m.too_near.sum())
     claims = np.any((ev.od_rep == REP_RANGE) | (ev.od_rep == REP_CLEAR), axis=1) & scored
-    eligible = claims & np.any(m.clear, axis=1)
-    msg_false = np.any(m.false_clear, axis=1)
-    n_elig = int(eligible.sum())
-    n_ok_msgs = int((eligible & ~msg_false).sum())
-    rates = {
-        "detection": _rate(det, n_obs),
-        "valid_range": _rate(int(m.valid.sum()), n_obs),
-        "dangerous_clear": _rate(dang, n_obs),
-        "unknown_in_obstacle_cells": _rate(int(m.missed_unknown.sum()), n_obs),
-        "false_obstacle_clear_cells": _rate(fclear, n_clear),
-        "too_near": _rate(tnear, n_obs),
-        "over_range": _rate(int(m.over_range.sum()), n_obs),
-        "clear_claimed_in_clear_cells": _rate(int(m.claimed_clear.sum()), n_clear),
-        "messages_without_false_obstacle": _rate(n_ok_msgs, n_elig),
-        "messages_with_claims": _rate(int(claims.sum()), int(scored.sum())),
+    everywhere = np.ones(m.obstacle.shape, bool)
+    cells, rates = cell_counts(m, everywhere, claims)
+    cells_iv, rates_iv = cell_counts(m, m.in_view, claims)
+    cells_oov, rates_oov = cell_counts(m, ~m.in_view, claims)
+    oov = ~m.in_view
+    cells_oov.update({"obstacle_cells_total": int((m.obstacle_any & oov).sum()), "clear_cells_total": int((m.clear_any & oov).sum()),
+                      "unknown_neutral": int(m.unknown_out_of_view.sum())})
+    rates["messages_with_claims"] = _rate(int(claims.sum()), int(scored.sum()))
+    n_obs, n_clear, dang, fclear = cells["obstacle"], cells["clear"], cells["dangerous_clears"], cells["false_obstacles_clear_cells"]
+    n_elig, n_ok_msgs = cells["messages_eligible_no_false"], cells["messages_without_false_obstacle"]
+    # detection by true range (issue 11): in view, and out of view (every out-of-view obstacle cell, unknown included)
+    det_tables = {
+        "in_view": detection_table(ev.od_truth, ev.od_rep, m.valid, m.obstacle_any & m.in_view, cfg.detection_bins_m),
+        "out_of_view": detection_table(ev.od_truth, ev.od_rep, m.valid, m.obstacle_any & oov, cfg.detection_bins_m),
+    }
+    near = m.obstacle & m.in_view & (ev.od_truth < cfg.near_range_m)
+    n_near, v_near = int(near.sum()), int((near & m.valid).sum())
+    n_rem, v_rem = int(m.remembered.sum()), int((m.remembered & m.valid).sum())
+    remembered = {
+        "cells": n_rem, "within_tolerance": v_rem, "rate": _rate(v_rem, n_rem),
+        "ranges": int((m.remembered & (ev.od_rep == REP_RANGE)).sum()),
+        "unknown": int((m.remembered & (ev.od_rep == REP_UNKNOWN)).sum()),
+        "dangerous_clears": int((m.remembered & (ev.od_rep == REP_CLEAR)).sum()),
+        "window_s": cfg.remember_window_s, "max_travel_m": cfg.remember_max_travel_m,
     }
     targets = [
-        {"name": "no false obstacle in clear sectors, share of messages", "value": rates["messages_without_false_obstacle"],
-         "op": ">=", "threshold": cfg.target_no_false_obstacle, "n": n_elig},
-        {"name": "dangerous clear (max_distance + 1 in an obstacle cell), share of obstacle cells",
-         "value": rates["dangerous_clear"], "op": "<=", "threshold": cfg.target_dangerous_clear, "n": n_obs},
+        _target("messages_without_false_obstacle", "no false obstacle in clear sectors (in and out of view), share of messages",
+                n_ok_msgs, n_elig, ">=", cfg.target_no_false_obstacle),
+        _target("dangerous_clear", "dangerous clear (max_distance + 1 in an obstacle cell, in and out of view), share of "
+                "obstacle cells", dang, n_obs, "<=", cfg.target_dangerous_clear),
+        _target("false_obstacle_clear_cells", "false obstacle in clear cells (in and out of view), share of clear cells",
+                fclear, n_clear, "<=", cfg.target_false_obstacle),
+        _target("detection_in_view", "detection (a range within tolerance), share of in-view obstacle cells",
+                cells_iv["valid_ranges"], cells_iv["obstacle"], ">=", cfg.target_detection),
+        _target("detection_near_in_view", f"detection within 0–{cfg.near_range_m:g} m, share of in-view obstacle cells",
+                v_near, n_near, ">=", cfg.target_detection_near),
+        _target("remembered", f"remembered obstacles out of view (in view within {cfg.remember_window_s:g} s, vehicle moved "
+                f"< {cfg.remember_max_travel_m:g} m): share of their cells within tolerance", v_rem, n_rem, ">=",
+                cfg.target_remembered),
     ]
-    for t in targets:
-        v = t["value"]
-        t["met"] = None if v is None else (v >= t["threshold"] if t["op"] == ">=" else v <= t["threshold"])
     # per sector
     sectors = []
     for i in range(N_SECTORS):
@@ -785,7 +982,8 @@ def summarize(ev: Evaluation) -> dict:
         "sigma_from_covariance": int(np.sum(ev.ds_sigma_source == 1)),
         "sigma_from_signal_quality": int(np.sum(ev.ds_sigma_source == 2)),
     }
-    first_claim = np.flatnonzero(claims)
+    any_claim = np.any((ev.od_rep == REP_RANGE) | (ev.od_rep == REP_CLEAR), axis=1) & msgs.od_geometry_ok & (ev.od_frame >= 0)
+    first_claim = np.flatnonzero(any_claim)  # warm-up included: how soon the companion claims anything
     hb = msgs.heartbeat_status
     counts = dict(msgs.counts)
     out = {
@@ -799,7 +997,18 @@ def summarize(ev: Evaluation) -> dict:
                               "sector_max_m, the most favourable case; within tolerance of it = unverifiable); too_near: the same "
                               "in an obstacle cell",
             "dangerous_clear": "max_distance + 1 reported in an obstacle cell",
-            "messages_without_false_obstacle": "over messages with a claim and at least one clear cell in view",
+            "messages_without_false_obstacle": "over messages with a claim and at least one scored clear cell",
+            "in_view": "the sector's centre bearing projects into the camera image (truth.npz in_view); truth files "
+                       "without it: the sectors whose truth is known",
+            "out_of_view": "cells outside the camera's view are scored only where a claim (a range or clear) is made: "
+                           "a range within tolerance on an obstacle is a (remembered) detection, too near in a clear cell "
+                           "a false obstacle, clear on an obstacle a dangerous clear; unknown there is neutral (not a miss)",
+            "detection_issue11": "a range within tolerance (valid range)",
+            "remembered": f"out-of-view obstacle cells whose obstacle (grouped by position) occupied an in-view cell "
+                          f"within the last {cfg.remember_window_s:g} s, the vehicle having moved < {cfg.remember_max_travel_m:g} m "
+                          "since the latest such frame; unknown there counts as not reported",
+            "warmup": f"messages stamped within {cfg.warmup_s:g} s of the first truth frame are not scored (latency and "
+                      "first claim include them)",
         },
         "config": dataclasses.asdict(cfg),
         "duration_s": float(ev.od_t[-1] - ev.t0) if len(ev.od_t) else 0.0,
@@ -807,6 +1016,7 @@ def summarize(ev: Evaluation) -> dict:
         "messages": {
             "by_type": counts.get("by_type", {}),
             "obstacle_distance": int(len(ev.od_t)), "obstacle_distance_scored": int(scored.sum()),
+            "in_warmup": int(np.sum(ev.od_warmup & msgs.od_geometry_ok & (ev.od_frame >= 0))),
             "without_truth": int(np.sum(msgs.od_geometry_ok & (ev.od_frame < 0))),
             "with_claims": int(claims.sum()),
             "reader": {k: v for k, v in counts.items() if k != "by_type"},
@@ -814,15 +1024,16 @@ def summarize(ev: Evaluation) -> dict:
             "statustext": [f"{t - ev.t0:.2f} s: {txt}" for t, _, txt in msgs.texts][:50],
         },
         "first_claim_at_s": float(ev.od_t[first_claim[0]] - ev.t0) if first_claim.size else None,
-        "cells": {
-            "obstacle": n_obs, "clear": n_clear, "detections": det, "valid_ranges": int(m.valid.sum()),
-            "dangerous_clears": dang, "false_obstacles_clear_cells": fclear, "unverifiable_beyond_truth": int(m.unverifiable.sum()), "too_near": tnear,
-            "over_range": int(m.over_range.sum()), "unknown_in_obstacle_cells": int(m.missed_unknown.sum()),
-            "clear_claimed_in_clear_cells": int(m.claimed_clear.sum()), "unscored_claims": int(m.unscored_claim.sum()),
-            "invalid_values": int(m.invalid.sum()),
-            "messages_eligible_no_false": n_elig, "messages_without_false_obstacle": n_ok_msgs,
-        },
+        "warmup": {"s": cfg.warmup_s, "messages_excluded": int(np.sum(ev.od_warmup & msgs.od_geometry_ok & (ev.od_frame >= 0)))},
+        "truth_360": ev.truth_360,
+        "cells": cells,
         "rates": rates,
+        "cells_in_view": cells_iv,
+        "rates_in_view": rates_iv,
+        "cells_out_of_view": cells_oov,
+        "rates_out_of_view": rates_oov,
+        "detection_by_range": det_tables,
+        "remembered": remembered,
         "targets": targets,
         "sectors": sectors,
         "range_error": range_error,
@@ -866,7 +1077,8 @@ def series_arrays(ev: Evaluation) -> dict[str, np.ndarray]:
         "t0": np.array(ev.t0), "sector_max_m": np.array(ev.sector_max_m),
         "od_t": ev.od_t, "od_scored": ev.od_scored, "od_rep": ev.od_rep, "od_cm": ev.od_cm.astype(np.int32), "od_truth": ev.od_truth.astype(np.float32),
         "od_tcls": ev.od_tcls, "od_label": ev.od_label.astype(np.int16), "od_max_m": ev.od_max_m,
-        "od_latency_s": ev.od_latency_s, "det_true_m": ev.od_truth[m.detection], "det_published_m": ev.od_r[m.detection],
+        "od_latency_s": ev.od_latency_s, "od_in_view": ev.od_in_view, "od_remember": ev.od_remember,
+        "od_warmup": ev.od_warmup, "det_true_m": ev.od_truth[m.detection], "det_published_m": ev.od_r[m.detection],
         "ds_t": ev.ds_t, "ds_state": ev.ds_state, "ds_published_m": ev.ds_published_m, "ds_sigma_m": ev.ds_sigma_m,
         "ds_estimate_m": ev.ds_estimate_m, "ds_truth_arrival": ev.ds_truth_arrival, "ds_truth_exposure": ev.ds_truth_exposure,
         "ds_max_m": ev.ds_max_m, "nees_exposure": nees_samples(ev, "exposure"), "nees_arrival": nees_samples(ev, "arrival"),
@@ -913,27 +1125,64 @@ def markdown(score: dict, title: str = "Score") -> str:
     L = [f"# {title}", ""]
     if s.get("inputs"):
         L += [f"Ranges: `{s['inputs'].get('ranges')}`  ", f"Truth: `{s['inputs'].get('truth')}`", ""]
-    L += ["## Targets (issue 5)", "", "| target | value | threshold | n | met |", "|---|---|---|---|---|"]
+    wu = s.get("warmup") or {"s": cfg.get("warmup_s", 0.0), "messages_excluded": 0}
+    L += ["## Targets (issues 5 and 11)", "",
+          f"Warm-up: cells of the first {wu['s']:g} s of the run are not scored ({wu['messages_excluded']} messages).  "
+          + ("Truth over 360°: out-of-view claims are scored, unknown out of view is neutral." if s.get("truth_360")
+             else "Truth of the sectors in view only (an older truth.npz): out-of-view claims are not scored."), "",
+          "| target | value | threshold | n | met |", "|---|---|---|---|---|"]
     for t in s["targets"]:
         L.append(f"| {t['name']} | {_pc(t['value'], 2)} | {t['op']} {100 * t['threshold']:g} % | {t['n']} | {mark(t['met'])} |")
+    civ, cov = s.get("cells_in_view") or {}, s.get("cells_out_of_view") or {}
+    riv, rov = s.get("rates_in_view") or {}, s.get("rates_out_of_view") or {}
+
+    def row(label, key, rkey=None, d=1):
+        def one(cc, rr):
+            v = f"{cc.get(key, 0)}"
+            return v + (f" ({_pc(rr.get(rkey), d)})" if rkey and rr.get(rkey) is not None else "")
+        return f"| {label} | {one(civ, riv)} | {one(cov, rov)} | {one(c, r)} |"
+
     L += ["", "## Cells", "",
           f"Scored OBSTACLE_DISTANCE messages: {s['messages']['obstacle_distance_scored']} of "
-          f"{s['messages']['obstacle_distance']} ({s['messages']['without_truth']} without a truth frame); "
-          f"with a claim: {s['messages']['with_claims']}; first claim {_f(s['first_claim_at_s'], '{:.2f} s')} after the first frame.", "",
-          "| quantity | count | rate |", "|---|---|---|",
-          f"| obstacle cells | {c['obstacle']} | |",
-          f"| detections (range reported) | {c['detections']} | {_pc(r['detection'])} |",
-          f"| valid ranges (within tolerance) | {c['valid_ranges']} | {_pc(r['valid_range'])} |",
-          f"| unknown in obstacle cells | {c['unknown_in_obstacle_cells']} | {_pc(r['unknown_in_obstacle_cells'])} |",
-          f"| **dangerous clears** | {c['dangerous_clears']} | {_pc(r['dangerous_clear'], 2)} |",
-          f"| too near (false obstacle in an obstacle cell) | {c['too_near']} | {_pc(r['too_near'])} |",
-          f"| over range | {c['over_range']} | {_pc(r['over_range'])} |",
-          f"| clear cells | {c['clear']} | |",
-          f"| false obstacles in clear cells | {c['false_obstacles_clear_cells']} | {_pc(r['false_obstacle_clear_cells'], 2)} |",
-          f"| ranges beyond the truth horizon ({s['truth_horizon_m']:g} m), unverifiable | {c['unverifiable_beyond_truth']} | |",
-          f"| clear claimed in clear cells | {c['clear_claimed_in_clear_cells']} | {_pc(r['clear_claimed_in_clear_cells'])} |",
-          f"| claims in unseen cells (not scored) | {c['unscored_claims']} | |",
-          f"| invalid values | {c['invalid_values']} | |", ""]
+          f"{s['messages']['obstacle_distance']} ({s['messages']['without_truth']} without a truth frame, "
+          f"{s['messages'].get('in_warmup', 0)} in the warm-up); "
+          f"with a claim: {s['messages']['with_claims']}; first claim {_f(s['first_claim_at_s'], '{:.2f} s')} after the first frame.  "
+          "Out of view only cells with a claim count (unknown there is neutral).", "",
+          "| quantity | in view | out of view | all scored |", "|---|---|---|---|",
+          row("obstacle cells", "obstacle"),
+          row("detections (range reported)", "detections", "detection"),
+          row("valid ranges (within tolerance)", "valid_ranges", "valid_range"),
+          row("unknown in obstacle cells", "unknown_in_obstacle_cells", "unknown_in_obstacle_cells"),
+          row("**dangerous clears**", "dangerous_clears", "dangerous_clear", 2),
+          row("too near (false obstacle in an obstacle cell)", "too_near", "too_near"),
+          row("over range", "over_range", "over_range"),
+          row("clear cells", "clear"),
+          row("false obstacles in clear cells", "false_obstacles_clear_cells", "false_obstacle_clear_cells", 2),
+          row(f"ranges beyond the truth horizon ({s['truth_horizon_m']:g} m), unverifiable", "unverifiable_beyond_truth"),
+          row("clear claimed in clear cells", "clear_claimed_in_clear_cells", "clear_claimed_in_clear_cells"),
+          row("messages without a false obstacle / eligible", "messages_without_false_obstacle", "messages_without_false_obstacle"),
+          row("claims in cells of unknown truth (not scored)", "unscored_claims"),
+          row("invalid values", "invalid_values"), ""]
+    if cov:
+        L += [f"Out of view in total: {cov.get('obstacle_cells_total', 0)} obstacle cells and {cov.get('clear_cells_total', 0)} "
+              f"clear cells; unknown there (neutral): {cov.get('unknown_neutral', 0)}.", ""]
+    rem = s.get("remembered")
+    if rem:
+        L += [f"Remembered obstacles out of view (in view within {rem['window_s']:g} s, vehicle moved < {rem['max_travel_m']:g} m): "
+              f"{rem['cells']} cells, within tolerance {rem['within_tolerance']} ({_pc(rem['rate'])}), ranges {rem['ranges']}, "
+              f"unknown {rem['unknown']}, dangerous clears {rem['dangerous_clears']}.", ""]
+    dbr = s.get("detection_by_range")
+    if dbr:
+        L += ["## Detection by true range", "",
+              "Detection = a range within tolerance.  Out of view every obstacle cell is listed (unknown included); "
+              "'of claimed' is the share within tolerance of the cells with a range or clear.", ""]
+        for key, label in (("in_view", "In view"), ("out_of_view", "Out of view")):
+            L += [f"{label}:", "", "| true range | obstacle cells | detection | range reported | unknown | clear (dangerous) | of claimed |",
+                  "|---|---|---|---|---|---|---|"]
+            for b in dbr[key]:
+                L.append(f"| {b['bin']} | {b['obstacle_cells']} | {_pc(b['valid_rate'])} | {_pc(b['range_rate'])} | "
+                         f"{_pc(b['unknown_rate'])} | {b['clear']} | {_pc(b['valid_of_claimed'])} |")
+            L.append("")
     L += ["## Range error (published − true), by true range", ""]
     for key, label in (("published_all_sectors", "Conservative published value, all sectors (detections)"),
                        ("published_forward", "Conservative published value, forward DISTANCE_SENSOR"),

@@ -126,7 +126,12 @@ def read_ranges_tlog(path: str | Path, component_id: int = COMPANION_COMPONENT, 
 
 
 def read_truth_npz(path: str | Path) -> SectorTruth:
-    """:class:`SectorTruth` from a flightsim ``truth.npz`` (``t_s``, ``sector_m``, ``p_ned``, ``rpy``, ``sector_max_m``)."""
+    """:class:`SectorTruth` from a flightsim ``truth.npz`` (``t_s``, ``sector_m``, ``p_ned``, ``rpy``, ``sector_max_m``).
+
+    A truth over 360° (issue 11; DESIGN.md §7) also holds ``sector_all_m`` (every sector, in view or
+    not) and ``in_view`` (F, 72): then the score uses them; an older file has only ``sector_m``
+    (NaN out of view) and out-of-view claims stay unscored.
+    """
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"{p}: no such truth file")
@@ -136,9 +141,12 @@ def read_truth_npz(path: str | Path) -> SectorTruth:
             if missing:
                 raise ConfigError(f"{p}: not a flightsim truth.npz (missing {', '.join(missing)})")
             rpy = np.asarray(z["rpy"], float)
-            tr = SectorTruth(t_s=np.asarray(z["t_s"], float), sector_m=np.asarray(z["sector_m"], float),
+            full = "sector_all_m" in z.files and "in_view" in z.files
+            tr = SectorTruth(t_s=np.asarray(z["t_s"], float),
+                             sector_m=np.asarray(z["sector_all_m" if full else "sector_m"], float),
                              p_ned=np.asarray(z["p_ned"], float), yaw=rpy[:, 2] if rpy.ndim == 2 and rpy.shape[1] == 3 else rpy,
-                             sector_max_m=float(z["sector_max_m"]))
+                             sector_max_m=float(z["sector_max_m"]),
+                             in_view=np.asarray(z["in_view"], bool) if full else None)
     except ConfigError:
         raise
     except InputError as exc:
@@ -193,7 +201,7 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
         raise ConfigError(f"score_run: unknown option(s) {', '.join(unknown)}")
     over.update(fields)
     if over:
-        cfg = dataclasses.replace(cfg, **{k: (tuple(v) if k == "range_bins_m" else v) for k, v in over.items()})
+        cfg = dataclasses.replace(cfg, **{k: (tuple(v) if k in ("range_bins_m", "detection_bins_m") else v) for k, v in over.items()})
     msgs = read_ranges_tlog(ranges_tlog, component_id)
     truth = read_truth_npz(truth_npz)
     ev = evaluate(msgs, truth, cfg, namer=world_namer(world) if world is not None else None)

@@ -20,6 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 U = 65535
 MAX_CM, MIN_CM = 4000, 50
 CLEAR = MAX_CM + 1
+NOWARM = S.ScoreConfig(warmup_s=0.0)  # hand-built runs start scoring at once (the 2-s warm-up has its own test)
 
 
 def truth_of(sector_rows, t0=1000.0, rate=10.0, sector_max_m=60.0, yaw=None, p_ned=None):
@@ -56,7 +57,7 @@ def four_messages():
 
 def test_cells_are_classified_as_defined():
     truth, msgs = four_messages()
-    s = S.summarize(S.evaluate(msgs, truth))
+    s = S.summarize(S.evaluate(msgs, truth, NOWARM))
     c, r = s["cells"], s["rates"]
     assert c["obstacle"] == 8 and c["clear"] == 8
     assert c["detections"] == 4 and c["valid_ranges"] == 2
@@ -68,7 +69,9 @@ def test_cells_are_classified_as_defined():
     assert r["false_obstacle_clear_cells"] == pytest.approx(2 / 8)
     # per message: A and B have a false obstacle in a clear sector, D does not, C claims nothing
     assert c["messages_eligible_no_false"] == 3 and c["messages_without_false_obstacle"] == 1
-    t_msg, t_dang = s["targets"]
+    t_msg, t_dang = s["targets"][:2]
+    assert [t["key"] for t in s["targets"]] == ["messages_without_false_obstacle", "dangerous_clear", "false_obstacle_clear_cells",
+                                               "detection_in_view", "detection_near_in_view", "remembered"]
     assert t_msg["value"] == pytest.approx(1 / 3) and t_msg["met"] is False and t_msg["n"] == 3
     assert t_dang["value"] == pytest.approx(1 / 8) and t_dang["met"] is False
     sec0 = next(x for x in s["sectors"] if x["sector"] == 0)
@@ -79,7 +82,7 @@ def test_cells_are_classified_as_defined():
 
 def test_range_error_bins():
     truth, msgs = four_messages()
-    rows = S.summarize(S.evaluate(msgs, truth))["range_error"]["published_all_sectors"]
+    rows = S.summarize(S.evaluate(msgs, truth, NOWARM))["range_error"]["published_all_sectors"]
     assert [r["bin"] for r in rows] == ["0–10 m", "10–20 m", "20–40 m", "40+ m"]
     assert [r["n"] for r in rows] == [0, 0, 4, 0]
     b = rows[2]  # errors −1 (19 vs 20), −10, −1 (34 vs 35), +10
@@ -92,15 +95,15 @@ def test_range_error_bins():
 def test_no_false_obstacle_and_no_dangerous_clear_meet_the_targets():
     truth = truth_of([{0: 20.0, 1: np.inf}] * 5)
     msgs = S.RangeMessages.build(od=[od(1000.05 + 0.1 * k, {0: 1800, 1: CLEAR}) for k in range(5)])
-    s = S.summarize(S.evaluate(msgs, truth))
-    assert [t["met"] for t in s["targets"]] == [True, True]
+    s = S.summarize(S.evaluate(msgs, truth, NOWARM))
+    assert [t["met"] for t in s["targets"]] == [True, True, True, True, None, None]  # nothing near, nothing out of view
     assert s["rates"]["messages_without_false_obstacle"] == 1.0 and s["cells"]["valid_ranges"] == 5
 
 
 def test_truth_horizon_makes_near_horizon_ranges_unverifiable():
     truth = truth_of([{1: np.inf}] * 3, sector_max_m=40.0)  # "inf" = nothing within 40 m only
     msgs = S.RangeMessages.build(od=[od(1000.05, {1: 3800}), od(1000.15, {1: 2000})])
-    ev = S.evaluate(msgs, truth)
+    ev = S.evaluate(msgs, truth, NOWARM)
     s = S.summarize(ev)
     # 38 m: the truth may be 40.1 m, within tolerance (8 m) → unverifiable; 20 m: false in any case
     assert s["cells"]["unverifiable_beyond_truth"] == 1 and s["cells"]["false_obstacles_clear_cells"] == 1
@@ -110,7 +113,7 @@ def test_messages_without_truth_are_counted_not_scored():
     truth = truth_of([{0: 20.0}] * 3)  # frames at 1000.0, 1000.1, 1000.2
     msgs = S.RangeMessages.build(od=[od(999.9, {0: 2000}), od(1000.05, {0: 2000}), od(1000.35, {0: 2000}),
                                      od(1000.1, {0: 2000}, ) + (False,)])
-    s = S.summarize(S.evaluate(msgs, truth, S.ScoreConfig(truth_max_age_s=0.1)))
+    s = S.summarize(S.evaluate(msgs, truth, S.ScoreConfig(truth_max_age_s=0.1, warmup_s=0.0)))
     # before the first frame, 0.15 s after the last frame, and a message not in 72 × 5° BODY_FRD
     assert s["messages"]["obstacle_distance_scored"] == 1 and s["messages"]["without_truth"] == 2
     assert s["cells"]["obstacle"] == 1 and any("not in 72" in n for n in s["notes"])
@@ -120,7 +123,7 @@ def test_truth_is_the_latest_frame_at_or_before_the_stamp():
     truth = truth_of([{0: 30.0}, {0: 20.0}, {0: 10.0}])
     assert list(truth.frame_at(np.array([1000.0, 1000.099, 1000.1, 1000.25, 1000.31]), 0.1)) == [0, 0, 1, 2, -1]
     msgs = S.RangeMessages.build(od=[od(1000.199, {0: 2000}), od(1000.2, {0: 1000})])
-    ev = S.evaluate(msgs, truth)
+    ev = S.evaluate(msgs, truth, NOWARM)
     assert list(ev.od_truth[:, 0]) == [20.0, 10.0]
 
 
@@ -137,7 +140,7 @@ def test_latency_maps_exposure_through_the_companions_boot_clock():
         od_rows.append(od(t_cap + L, {0: 2000}, usec))
         boot.append((t_cap + L + 0.0005, int(round((t_cap + L - boot0) * 1000))))  # DISTANCE_SENSOR send stamps
     od_rows.append(od(truth.t_s[-1], {}, 0))  # an all-unknown message without an exposure
-    ev = S.evaluate(S.RangeMessages.build(od=od_rows, boot=boot), truth)
+    ev = S.evaluate(S.RangeMessages.build(od=od_rows, boot=boot), truth, NOWARM)
     s = S.summarize(ev)["latency"]
     assert s["n"] == 20 and s["unmatched_exposures"] == 0
     assert s["p50_ms"] == pytest.approx(np.percentile(lat * 1000, 50), abs=1e-6)
@@ -148,7 +151,7 @@ def test_latency_maps_exposure_through_the_companions_boot_clock():
 
 def test_latency_unknown_without_sending_times():
     truth = truth_of([{0: 20.0}] * 3)
-    ev = S.evaluate(S.RangeMessages.build(od=[od(1000.05, {0: 2000}, 10_000_000)]), truth)
+    ev = S.evaluate(S.RangeMessages.build(od=[od(1000.05, {0: 2000}, 10_000_000)]), truth, NOWARM)
     s = S.summarize(ev)
     assert s["latency"]["n"] == 0 and any("time_boot_ms" in n for n in s["notes"])
 
@@ -181,7 +184,7 @@ def nees_campaign(noise_scale: float, n: int = 3000, seed: int = 7, delay_s: flo
         od_rows.append(od(t_send, {0: cm}, int(round((t_cap - boot0) * 1e6))))
         ds_rows.append((t_send, cm, MIN_CM, MAX_CM, cov, q))
         boot.append((t_send, int(round((t_send - boot0) * 1000))))
-    ev = S.evaluate(S.RangeMessages.build(od=od_rows, ds=ds_rows, boot=boot), truth, S.ScoreConfig(sigma_k=k))
+    ev = S.evaluate(S.RangeMessages.build(od=od_rows, ds=ds_rows, boot=boot), truth, S.ScoreConfig(sigma_k=k, warmup_s=0.0))
     return S.summarize(ev)
 
 
@@ -215,7 +218,7 @@ def test_sigma_sources_and_clamped_values():
           (1000.15, 1900, MIN_CM, MAX_CM, 255, 2),  # saturated quality: σ unknown
           (1000.20, MAX_CM, MIN_CM, MAX_CM, 255, 50),  # clamped at max: not undone
           (1000.25, CLEAR, MIN_CM, MAX_CM, 255, 100)]  # "clear" while an obstacle is ahead
-    ev = S.evaluate(S.RangeMessages.build(ds=ds), truth)
+    ev = S.evaluate(S.RangeMessages.build(ds=ds), truth, NOWARM)
     assert ev.ds_sigma_m[0] == pytest.approx(0.1) and ev.ds_sigma_m[1] == pytest.approx(0.95)
     assert np.isnan(ev.ds_sigma_m[2:]).all() and list(ev.ds_sigma_source) == [1, 2, 0, 0, 0]
     assert ev.ds_estimate_m[1] == pytest.approx(19.0 + 2 * 0.95)
@@ -275,7 +278,7 @@ def test_time_to_first_valid_range(approach_truth):
             elif f >= 20:
                 vals[int(i)] = int(round(0.5 * T * 100))  # half the distance: a detection, not valid
         rows.append(od(t + 0.02, vals))
-    s = S.summarize(S.evaluate(S.RangeMessages.build(od=rows), truth, namer=S.world_namer(world)))
+    s = S.summarize(S.evaluate(S.RangeMessages.build(od=rows), truth, NOWARM, namer=S.world_namer(world)))
     o = next(x for x in s["obstacles"] if x["name"] == "mast")
     first_in = np.flatnonzero(np.any(labels == k_mast, axis=1) & np.any(truth.sector_m <= 40.0, axis=1))[0]
     assert o["in_range_at_s"] == pytest.approx(truth.t_s[first_in] + 0.02 - truth.t_s[0])
@@ -319,7 +322,7 @@ def test_reader_and_writers_round_trip(tmp_path):
     truth = truth_of([{0: 20.0, 1: np.inf}] * 5)
     save_npz_deterministic(tmp_path / "truth.npz", {"t_s": truth.t_s, "sector_m": truth.sector_m, "p_ned": truth.p_ned,
                                                     "rpy": np.zeros((5, 3)), "sector_max_m": np.array(60.0)})
-    s = score_run(tlog, tmp_path / "truth.npz", series_out=tmp_path / "score_series.npz")
+    s = score_run(tlog, tmp_path / "truth.npz", series_out=tmp_path / "score_series.npz", warmup_s=0.0)
     assert s["cells"]["detections"] == 1 and s["cells"]["dangerous_clears"] == 1
     assert s["cells"]["false_obstacles_clear_cells"] == 1 and s["cells"]["clear_claimed_in_clear_cells"] == 1
     write_score(tmp_path / "out", s)
@@ -355,7 +358,7 @@ def test_bad_inputs_are_named(tmp_path):
     # an empty tlog scores to zero counts, never crashes
     (tmp_path / "empty.tlog").write_bytes(b"")
     msgs = read_ranges_tlog(tmp_path / "empty.tlog")
-    s = S.summarize(S.evaluate(msgs, truth_of([{0: 20.0}] * 3)))
+    s = S.summarize(S.evaluate(msgs, truth_of([{0: 20.0}] * 3), NOWARM))
     assert s["cells"]["obstacle"] == 0 and s["targets"][0]["met"] is None
 
 

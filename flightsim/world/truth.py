@@ -14,10 +14,14 @@ the two edge rays.  An obstacle counts only if its vertical extent overlaps the 
 ``[z − band, z + band]`` around the vehicle (``band_half_height_m``), as the companion reports
 points within a vertical band around the flight path; the ground never counts.
 
-Unseen sectors are NaN: a sector is *seen* when the horizontal direction of its centre bearing,
-from the camera centre at the camera's own height, projects inside the image (through the
-companion's camera model, distortion and mount included).  Sectors with nothing within
-``max_distance_m`` are ``inf``.
+Unseen sectors are NaN in :func:`sector_truth`: a sector is *seen* (in view) when the horizontal
+direction of its centre bearing, from the camera centre at the camera's own height, projects inside
+the image (through the companion's camera model, distortion and mount included).  Sectors with
+nothing within ``max_distance_m`` are ``inf``.
+
+Scoring over 360° (issue 11 item 6; DESIGN.md §7: the local obstacle map publishes remembered
+obstacles beside and behind the vehicle): :func:`sector_truth_360` gives the true distance of *all*
+72 sectors and the in-view mask separately, so claims outside the camera's view can be scored too.
 """
 
 from __future__ import annotations
@@ -90,6 +94,24 @@ def sectors_seen(R_world_body: np.ndarray, p_world_body: np.ndarray, camera_conf
     b = yaw + sector_bearings_body()
     d_world = np.stack([np.cos(b), np.sin(b), np.zeros_like(b)], 1)
     return _directions_in_image(camera_config, d_world @ R_world_cam)
+
+
+def sector_truth_360(
+    world: World,
+    R_world_body: np.ndarray,
+    p_world_body: np.ndarray,
+    camera_config: CameraConfig | None,
+    max_distance_m: float,
+    *,
+    band_half_height_m: float | None = DEFAULT_BAND_HALF_HEIGHT_M,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(distance (72,), in_view (72,) bool)``: the true horizontal distance of every sector over
+    360° (``inf`` where nothing lies within ``max_distance_m``; never NaN) and which sectors the
+    camera sees (all True when ``camera_config`` is None).  DESIGN.md §5 (sectors), §7 (360°)."""
+    dist = sector_truth(world, R_world_body, p_world_body, None, max_distance_m, band_half_height_m=band_half_height_m)
+    if camera_config is None:
+        return dist, np.ones(N_SECTORS, bool)
+    return dist, sectors_seen(R_world_body, np.asarray(p_world_body, float).reshape(3), camera_config)
 
 
 def sector_truth(
