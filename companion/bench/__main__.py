@@ -86,7 +86,7 @@ def cmd_sitl(args) -> dict:
 
     logging.disable(logging.WARNING)
     try:
-        return sitl_bench.run_all(quad_runs=8, fixedwing_runs=2)
+        return sitl_bench.run_all(quad_runs=8, fixedwing_runs=8)
     finally:
         logging.disable(logging.NOTSET)
 
@@ -97,6 +97,13 @@ def cmd_looming(args, runs: int, rendered_runs: int) -> dict:
     n = 2 * len(looming.SYNTHETIC) * runs + 2 * rendered_runs
     with _progress(n, "looming approaches", args.json) as tick:
         return looming.run_all(runs, rendered_runs, progress=tick)
+
+
+def cmd_map_memory(minutes: float, fps: float, quiet: bool) -> dict:
+    from companion.bench import map_memory
+
+    with _progress(int(minutes), "map memory (simulated minutes)", quiet) as tick:
+        return map_memory.run(minutes, fps, progress=lambda _s: tick(1))
 
 
 def cmd_timing(args) -> dict:
@@ -131,7 +138,7 @@ def main(argv=None) -> int:
                        description="seed004_straight flown in flightsim and replayed through the whole pipeline")
     p.add_argument("--runs", type=int, default=20, help="flights (seeds) (default 20)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
-    p = sub.add_parser("sitl", help="lockstep SITL speed and the SITL campaigns (quad_approach 8 runs, fixedwing_pass 2)",
+    p = sub.add_parser("sitl", help="lockstep SITL speed and the SITL campaigns (8 seeds per scenario)",
                        description="lockstep SITL speed and the SITL campaigns scored against truth; prints the "
                                    "'Software in the loop' section of docs/BENCHMARKS.md")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
@@ -142,6 +149,12 @@ def main(argv=None) -> int:
     p.add_argument("--runs", type=int, default=20, help="Monte Carlo runs per synthetic case (default 20)")
     p.add_argument("--rendered-runs", type=int, default=3, help="rendered flights per case (default 3; 0 = skip)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    p = sub.add_parser("map_memory", help="the obstacle map's size and RSS over a long synthetic hover in front of a wall",
+                       description="a synthetic hover 5 m in front of a textured wall through the whole pipeline: the local "
+                                   "obstacle map's size and the process's RSS once per simulated minute (DESIGN §7)")
+    p.add_argument("--minutes", type=float, default=30.0, help="simulated hover, minutes (default 30)")
+    p.add_argument("--fps", type=float, default=5.0, help="frames per simulated second (default 5)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
     p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")
     p.add_argument("--repeats", type=int, default=50, help="repeats per measurement; the median is reported")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
@@ -170,6 +183,11 @@ def main(argv=None) -> int:
             ap.error("--rendered-runs must be >= 0")
         res = cmd_looming(args, args.runs, args.rendered_runs)
         print(json.dumps(res) if args.json else looming.markdown(res))
+    elif args.cmd == "map_memory":
+        from companion.bench import map_memory
+
+        res = cmd_map_memory(args.minutes, args.fps, args.json)
+        print(json.dumps(res) if args.json else map_memory.markdown(res))
     elif args.cmd == "timing":
         res = cmd_timing(args)
         print(json.dumps(report.timing_json(res)) if args.json else report.timing_markdown(res))
@@ -179,13 +197,15 @@ def main(argv=None) -> int:
         res = {"seed004": cmd_seed004(args), "seed000": cmd_seed000(args), "timing": cmd_timing(args),
                "latency": latency.run_all(), "pipeline004": cmd_pipeline004(args, max(5, args.runs // 10)),
                "flightsim": flightsim_bench.run_all(), "sitl": cmd_sitl(args),
-               "looming": cmd_looming(args, max(5, args.runs // 10), 3)}
+               "looming": cmd_looming(args, max(5, args.runs // 10), 3),
+               "map_memory": cmd_map_memory(30.0, 5.0, args.json)}
         if args.json:
             print(json.dumps(res))
         else:
-            from companion.bench import looming
+            from companion.bench import looming, map_memory
 
-            text = report.full_markdown(res, args.runs, args.repeats).rstrip("\n") + "\n\n" + looming.markdown(res["looming"]) + "\n"
+            text = (report.full_markdown(res, args.runs, args.repeats).rstrip("\n") + "\n\n" + looming.markdown(res["looming"])
+                    + "\n\n## Local obstacle map: memory over a long hover (issue 11)\n\n" + map_memory.markdown(res["map_memory"]) + "\n")
             if args.write:
                 with open(args.write, "w", encoding="utf-8") as fh:
                     fh.write(text)
