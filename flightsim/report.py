@@ -10,7 +10,8 @@
 * ``error_vs_range.png`` — range error against the true range L, pooled over runs: signed error
   of every detection and of the forward estimate, binned median and 5–95 % band; |error| in % of L;
 * ``radar.png`` — polar sector plots of one run at chosen times: truth vs published (ranges,
-  "clear", unknown left blank);
+  "clear", unknown left blank); over 360° with the out-of-view sectors hatched when the truth
+  covers them (issue 11);
 * ``latency_hist.png`` — exposure → message latency, pooled;
 * ``index.md`` — the tables of campaign.json (targets ✓/✗, pooled rates, per-run mean ± std,
   in view / out of view (issue 11, DESIGN.md §7), detection and unknown by true-range bin,
@@ -199,7 +200,12 @@ def plot_radar(s: dict | None, seed: int | None, path: Path, times: list[float] 
             r = np.asarray(s["od_cm"][j]) / 100.0
             seen = ~np.isnan(T)
             fin = np.isfinite(T)
+            full = "od_in_view" in s  # a 360° truth: draw every sector, shade the ones out of view
+            view = np.asarray(s["od_in_view"][j], bool) if full else seen
             ax.bar(theta[seen & ~fin], mx, width=width, color="0.92", edgecolor="none", label="truth: nothing within range")
+            if full and np.any(~view):
+                ax.bar(theta[~view], mx, width=width, color="none", edgecolor="0.75", hatch="///", lw=0,
+                       label="out of the camera's view")
             clear = rep == REP_CLEAR
             if np.any(clear):
                 ax.bar(theta[clear], mx, width=width, color="tab:green", alpha=0.35, label="published: clear")
@@ -212,8 +218,9 @@ def plot_radar(s: dict | None, seed: int | None, path: Path, times: list[float] 
             ax.set_rticks(np.arange(10.0, mx + 1e-9, 10.0))
             ax.tick_params(labelsize=7)
             ax.set_rmax(mx * 1.05)
-            ax.set_thetamin(-90)
-            ax.set_thetamax(90)
+            if not full:
+                ax.set_thetamin(-90)
+                ax.set_thetamax(90)
             ax.set_title(f"t = {t[j]:.2f} s", fontsize=9)
         seen_labels: dict[str, object] = {}
         for ax_ in fig.axes:

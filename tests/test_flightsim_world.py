@@ -236,6 +236,23 @@ def test_unseen_sectors_are_nan_and_follow_the_camera_mount():
     assert not sectors_seen(np.eye(3), p, down).any()
 
 
+def test_sector_truth_360_knows_every_sector_and_the_view():
+    """Issue 11 item 6: the distance of all 72 sectors (in view or not) and the in-view mask apart."""
+    from flightsim.world.truth import sector_truth_360
+
+    w = _wall_and_cylinder()
+    p = np.array([0.0, 0.0, -10.0])
+    cam = CameraConfig()
+    dist, view = sector_truth_360(w, np.eye(3), p, cam, 100.0)
+    assert not np.isnan(dist).any() and view.dtype == bool
+    np.testing.assert_array_equal(dist, sector_truth(w, np.eye(3), p, None, 100.0))
+    np.testing.assert_array_equal(view, sectors_seen(np.eye(3), p, cam))
+    np.testing.assert_array_equal(np.where(view, dist, np.nan), sector_truth(w, np.eye(3), p, cam, 100.0))
+    assert not view[18] and dist[18] == pytest.approx(28.0)  # the cylinder on the right: out of view, still known
+    d_all, v_all = sector_truth_360(w, np.eye(3), p, None, 100.0)
+    assert v_all.all() and np.array_equal(d_all, dist)
+
+
 # ---------------------------------------------------------------------------- targets and views
 
 
