@@ -1160,7 +1160,9 @@ def markdown(score: dict, title: str = "Score") -> str:
           row("false obstacles in clear cells", "false_obstacles_clear_cells", "false_obstacle_clear_cells", 2),
           row(f"ranges beyond the truth horizon ({s['truth_horizon_m']:g} m), unverifiable", "unverifiable_beyond_truth"),
           row("clear claimed in clear cells", "clear_claimed_in_clear_cells", "clear_claimed_in_clear_cells"),
-          row("messages without a false obstacle / eligible", "messages_without_false_obstacle", "messages_without_false_obstacle"),
+          "| messages without a false obstacle / eligible | " + " | ".join(
+              f"{cc.get('messages_without_false_obstacle', 0)} / {cc.get('messages_eligible_no_false', 0)} "
+              f"({_pc(rr.get('messages_without_false_obstacle'))})" for cc, rr in ((civ, riv), (cov, rov), (c, r))) + " |",
           row("claims in cells of unknown truth (not scored)", "unscored_claims"),
           row("invalid values", "invalid_values"), ""]
     if cov:
