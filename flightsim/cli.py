@@ -212,7 +212,9 @@ def cmd_score(args) -> int:
     def pc(v):
         return "–" if v is None else f"{100 * v:.2f} %"
 
-    print(f"{score['messages']['obstacle_distance_scored']} OBSTACLE_DISTANCE scored: detection {pc(r['detection'])}, "
+    rv = score.get("rates_in_view", r)
+    print(f"{score['messages']['obstacle_distance_scored']} OBSTACLE_DISTANCE scored: in view, a range within tolerance "
+          f"{pc(rv['valid_range'])} and unknown {pc(rv['unknown_in_obstacle_cells'])} of obstacle cells; "
           f"false obstacle (clear cells) {pc(r['false_obstacle_clear_cells'])}, too near {pc(r['too_near'])}")
     for t in score["targets"]:
         print(f"  {mark(t['met'])} {t['name']}: {pc(t['value'])} (target {t['op']} {100 * t['threshold']:g} %, n = {t['n']})")
