@@ -144,6 +144,7 @@ class ScoreConfig:
     near_range_m: float = 10.0  # "near" obstacle cells: true range below this (target_detection_near), m
     remember_window_s: float = 10.0  # remembered: the obstacle was in view at most this long before, s
     remember_max_travel_m: float = 20.0  # ... and the vehicle moved less than this since, m
+    remember_point: bool = True  # remembered also needs the cell's own world point to have been in view then (a long wall counts only where seen)
     truth_max_age_s: float = 0.1  # the truth frame used for a message may be at most this much older than its stamp, s
     capture_snap: float = 0.5  # a mapped exposure time snaps to the nearest truth frame within this many frame periods
     pair_window_s: float = 0.005  # a DISTANCE_SENSOR pairs with the OBSTACLE_DISTANCE sent at most this much before it, s
@@ -604,7 +605,40 @@ def remembered_cells(truth: SectorTruth, labels: np.ndarray, view_f: np.ndarray,
     lsj = np.maximum(ls, 0)
     ok = (ls >= 0) & (truth.t_s[j] - truth.t_s[lsj] <= cfg.remember_window_s + 1e-9)
     ok &= np.linalg.norm(np.asarray(truth.p_ned, float)[j] - np.asarray(truth.p_ned, float)[lsj], axis=1) < cfg.remember_max_travel_m
+    if cfg.remember_point:
+        nn, ii, j = nn[ok], ii[ok], j[ok]
+        ok = _point_seen(truth, view_f, j, ii, cfg)
     out[nn[ok], ii[ok]] = True
+    return out
+
+
+def _point_seen(truth: SectorTruth, view_f: np.ndarray, j: np.ndarray, ii: np.ndarray, cfg: ScoreConfig) -> np.ndarray:
+    """(len(j),) bool: the world point behind cell (truth frame ``j``, sector ``ii``) — at the cell's true
+    distance on its centre bearing — lay in an in-view sector within ``sector_max_m`` of the vehicle in a
+    truth frame at most ``remember_window_s`` earlier, from which the vehicle has moved less than
+    ``remember_max_travel_m``.  A long wall counts only where its own part was in view (occlusion by
+    other obstacles is not checked)."""
+    out = np.zeros(len(j), bool)
+    if len(j) == 0:
+        return out
+    p = np.asarray(truth.p_ned, float)
+    yaw = np.asarray(truth.yaw, float)
+    b = yaw[j] + np.radians(ii * SECTOR_DEG)
+    dist = np.asarray(truth.sector_m, float)[j, ii]
+    pt = p[j, :2] + dist[:, None] * np.stack([np.cos(b), np.sin(b)], 1)  # (C, 2)
+    t = np.asarray(truth.t_s, float)
+    lo = np.searchsorted(t, t[j] - cfg.remember_window_s - 1e-9, side="left")
+    W = int(np.max(j - lo)) + 1
+    for c0 in range(0, len(j), 2048):  # chunks of cells, vectorized over cells × frames of the window
+        c = slice(c0, c0 + 2048)
+        f = j[c, None] - np.arange(W)[None, :]  # (c, W) frames back from the cell's own
+        inwin = f >= lo[c, None]
+        f = np.maximum(f, 0)
+        rel = pt[c, None, :] - p[f, :2]
+        r = np.hypot(rel[..., 0], rel[..., 1])
+        sec = np.mod(np.rint((np.degrees(np.arctan2(rel[..., 1], rel[..., 0]) - np.degrees(yaw[f]))) / SECTOR_DEG).astype(np.int64), N_SECTORS)
+        moved = np.linalg.norm(p[j[c], None, :] - p[f], axis=2) < cfg.remember_max_travel_m
+        out[c] = np.any(inwin & view_f[f, sec] & (r <= truth.sector_max_m) & moved, axis=1)
     return out
 
 

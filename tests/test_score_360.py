@@ -221,3 +221,25 @@ def test_campaign_pools_bins_remembered_and_targets():
     idx = index_markdown(camp, {}, Path("/tmp/rep"))
     assert "## Detection by true range, pooled" in idx and "Remembered obstacles out of view: 10 cells" in idx
     assert "| 20–30 m | 10 | 50.0 % |" in idx
+
+
+def test_remembered_needs_the_cell_s_own_point_in_view_not_only_its_obstacle():
+    """A wall 10 m north seen only straight ahead (sector 0); after a quarter turn left a cell 35° west of
+    north holds another part of the same wall: the obstacle was in view, that part never was."""
+    F = 10
+    sec = np.full((F, 72), np.inf)
+    view = np.zeros((F, 72), bool)
+    view[:, [0, 1, 71]] = True  # a narrow ±7.5° camera
+    yaw = np.r_[np.zeros(5), np.full(5, -math.pi / 2)]
+    sec[:5, [0, 1, 71]] = 10.0
+    # after turning left 90° (facing west) the wall north is at sectors 11…18: sector k is 90° − 5k° west of north
+    for k in range(11, 19):
+        sec[5:, k] = 10.0 / math.cos(math.radians(90.0 - 5.0 * k))  # one wall; only its part at sector 18 was in view
+    truth = S.SectorTruth(1000.0 + np.arange(F) / 10, sec, np.zeros((F, 3)), yaw, 60.0, view)
+    rows = [od(t + 0.02, {0: 1000} if f < 5 else {18: 1000, 11: 1220}) for f, t in enumerate(truth.t_s)]
+    msgs = S.RangeMessages.build(od=rows)
+    ev = S.evaluate(msgs, truth, NOWARM)
+    assert ev.od_remember[5:, 18].all() and not ev.od_remember[5:, 11].any()
+    ev_group = S.evaluate(msgs, truth, S.ScoreConfig(warmup_s=0.0, remember_point=False))
+    assert ev_group.od_label[5, 11] == ev_group.od_label[5, 18]  # one obstacle to the grouping
+    assert ev_group.od_remember[5:, 11].all()  # the obstacle-level rule counted the unseen part
