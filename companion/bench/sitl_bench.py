@@ -119,6 +119,62 @@ def _ms(v) -> str:
     return "n/a" if v is None else f"{v:.1f}"
 
 
+_TARGET_COLUMNS = (("detection_in_view", "detection in view"), ("detection_near_in_view", "detection 0–10 m"),
+                   ("remembered", "remembered out of view"), ("dangerous_clear", "dangerous clears"),
+                   ("false_obstacle_clear_cells", "false obstacles in clear cells"),
+                   ("messages_without_false_obstacle", "messages without a false obstacle"))
+
+
+def _issue11_tables(res: dict) -> list[str]:
+    """The issue-11 targets per scenario (pooled over the runs, after the scorer's warm-up), time to the
+    first valid range per obstacle, and detection by true range in view."""
+    lines = ["", "Issue-11 targets, pooled over each campaign's runs (cells after the 2 s warm-up; detection = a range "
+             "within tolerance; remembered = out-of-view obstacle cells whose own point was in view within 10 s, the "
+             "vehicle having moved < 20 m since; definitions in `flightsim/score.py`):", "",
+             "| scenario | " + " | ".join(f"{label} ({_bound(res, key)})" for key, label in _TARGET_COLUMNS)
+             + " | time to first valid range per obstacle, s (mean over runs; target ≤ 1.0) |",
+             "|---|" + "---|" * (len(_TARGET_COLUMNS) + 1)]
+    for name, c in res["campaigns"].items():
+        a = c.get("aggregate", {})
+        by_key = {t.get("key"): t for t in a.get("targets", [])}
+        cells = []
+        for key, _ in _TARGET_COLUMNS:
+            t = by_key.get(key)
+            if t is None or t.get("pooled") is None:
+                cells.append("–")
+            else:
+                cells.append(f"{100 * t['pooled']:.1f} % {'✓' if t['met'] else '✗'} (n {t.get('n', '?')})")
+        ttfv = []
+        for o in a.get("obstacles", []):
+            m = (o.get("time_to_first_valid_s") or {}).get("mean")
+            never = o.get("runs_never_valid", 0)
+            if m is not None or never:
+                ttfv.append(f"{o['name']} {'–' if m is None else f'{m:.2f}'}" + (f" ({never} runs never)" if never else ""))
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {'; '.join(ttfv) or '–'} |")
+    bins = None
+    rows = []
+    for name, c in res["campaigns"].items():
+        det = (c.get("aggregate", {}).get("detection_by_range") or {}).get("in_view") or []
+        if not det:
+            continue
+        bins = bins or [r["bin"] for r in det]
+        rows.append(f"| {name} | " + " | ".join(
+            "–" if not r.get("obstacle_cells") else f"{_pct(r.get('valid_rate'))} / {_pct(r.get('unknown_rate'))} ({r['obstacle_cells']})"
+            for r in det) + " |")
+    if bins:
+        lines += ["", "Detection by true range, in view: a range within tolerance / unknown (obstacle cells), pooled:", "",
+                  "| scenario | " + " | ".join(bins) + " |", "|---|" + "---|" * len(bins)] + rows
+    return lines
+
+
+def _bound(res: dict, key: str) -> str:
+    for c in res["campaigns"].values():
+        for t in c.get("aggregate", {}).get("targets", []):
+            if t.get("key") == key and "threshold" in t:
+                return f"{t['op'].replace('>=', '≥').replace('<=', '≤')} {100 * t['threshold']:g} %"
+    return "–"
+
+
 def markdown(res: dict) -> str:
     ls = res["lockstep"]
     rtf = ls["realtime_factor"]
@@ -180,6 +236,7 @@ def markdown(res: dict) -> str:
             f"{t_dc['n'] if t_dc else '–'} | {fe} | "
             f"{_num(lat.get('p50_ms'), 0)} / {_num(lat.get('p99_ms'), 0)} | "
             f"{_num(nees.get('mean'))} (band {_num(lo_hi[0])}–{_num(lo_hi[1])}) |")
+    lines += _issue11_tables(res)
     for name, c in res["campaigns"].items():
         t_dc = next((t for t in c.get("aggregate", {}).get("targets", []) if "dangerous" in t["name"]), None)
         if t_dc is not None and not t_dc.get("n"):
