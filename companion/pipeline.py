@@ -59,6 +59,7 @@ from companion.core.estimator import RangeEstimator, RangeOutput
 from companion.core.frames import R_to_euler_zyx
 from companion.core.obstacle_map import ObstacleMap, landmark_covariance, points_on_current_rays, world_to_body
 from companion.core.prediction import make_track_predictor
+from companion.core.priority import detection_priority, live_points_per_sector
 from companion.core.sectors import SECTOR_COUNT, Sectors, compute_sectors
 from companion.core.tracks import TrackManager
 from companion.errors import CompanionError
@@ -278,6 +279,20 @@ class Pipeline:
 
         return depth_of
 
+    def _detection_priority(self, res: FrameResult, R_wb, v_w):
+        """Where the tracker's refill looks first (issue 11 item 3): the band around the flight path,
+        in the direction of travel and in the in-view sectors without a live point in the previous
+        frame (:func:`companion.core.priority.detection_priority`); None when switched off."""
+        tc = self.config.tracks
+        if tc.priority_share <= 0 and tc.priority_min_tracks <= 0:
+            return None
+        prev = self.last_ok.sectors if self.last_ok is not None and self._t_prev is not None else None
+        return detection_priority(
+            self.camera, self.config.sectors, roll_pitch_rad=(res.roll, res.pitch), velocity_body=R_wb.T @ v_w,
+            live_points=live_points_per_sector(prev), band_range_m=tc.priority_band_range_m,
+            path_half_width_deg=tc.priority_path_half_width_deg,
+        )
+
     # -- one frame ----------------------------------------------------------------------------------
     def process(self, frame: Frame, now: float) -> FrameResult:
         """Run one frame captured at ``frame.t``; ``now`` = processing start (same clock)."""
@@ -394,7 +409,7 @@ class Pipeline:
         if self._cam_prev is not None:
             depth_of = self._depth_of(self._out_prev, self._cam_prev) if cfg.depth_prediction else None
             predict = make_track_predictor(self.camera, self.config.prediction, self._cam_prev, (R_wc, p_wc), depth_of)
-        tf = self.tracks.step(gray, t, self._k, predict)
+        tf = self.tracks.step(gray, t, self._k, predict, priority_mask=self._detection_priority(res, R_wb, v_w))
         self._k += 1
         if len(tf.dropped_ids):
             self.estimator.drop(tf.dropped_ids)

@@ -63,6 +63,8 @@ class HarrisConfig:
     border: int = 8  # no corners closer than this to the image edge (px)
     subpix_window: int = 3  # half-size of the sub-pixel refinement window; 0 disables refinement
     subpix_iterations: int = 2
+    priority_min_distance: int = 0  # NMS radius inside the caller's priority region (denser corners there); 0 = min_distance
+    priority_rel_threshold: float = -1.0  # per-cell relative threshold inside the priority region; < 0 = rel_threshold
 
     def __post_init__(self) -> None:
         require_finite("k", self.k, positive=True)
@@ -86,6 +88,10 @@ class HarrisConfig:
             isinstance(self.subpix_iterations, int) and self.subpix_iterations >= 1,
             f"subpix_iterations must be an integer >= 1, got {self.subpix_iterations!r}",
         )
+        require(isinstance(self.priority_min_distance, int) and not isinstance(self.priority_min_distance, bool)
+                and 0 <= self.priority_min_distance, f"priority_min_distance must be an integer >= 0, got {self.priority_min_distance!r}")
+        require_finite("priority_rel_threshold", self.priority_rel_threshold)
+        require(self.priority_rel_threshold < 1, f"priority_rel_threshold must be < 1, got {self.priority_rel_threshold}")
         require(
             self.subpix_window == 0 or self.border >= self.subpix_window + 2,
             f"border ({self.border}) must be >= subpix_window + 2 ({self.subpix_window + 2})",
@@ -252,6 +258,41 @@ def harris_response(gray: np.ndarray, config: HarrisConfig) -> np.ndarray:
     return cv2.cornerHarris(gray, config.block_size, config.aperture, config.k)
 
 
+def _candidates(R: np.ndarray, cand: np.ndarray, b: int, radius: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels (x, y) and responses of the non-zero entries of ``cand`` (offset by the border
+    ``b``), strongest first, plateau ties within ``radius`` removed."""
+    nz = cv2.findNonZero(cand)
+    if nz is None:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    nz = nz.reshape(-1, 2)
+    xs = nz[:, 0].astype(np.int64) + b
+    ys = nz[:, 1].astype(np.int64) + b
+    resp = R[ys, xs].astype(np.float64)
+    order = np.argsort(-resp, kind="stable")
+    xs, ys, resp = xs[order], ys[order], resp[order]
+    keep = _dedupe_ties(xs, ys, resp, radius)
+    return xs[keep], ys[keep], resp[keep]
+
+
+def _bucketed(xs: np.ndarray, ys: np.ndarray, resp: np.ndarray, config: HarrisConfig, h: int, w: int) -> np.ndarray:
+    """Selection order of candidates sorted by descending ``resp``: round robin over the grid cells
+    (every cell's strongest first, then every cell's second, ...), keeping responses >=
+    ``rel_threshold`` × their cell's strongest and at most ``cell_cap`` per cell."""
+    cell = (ys * config.grid_rows // h) * config.grid_cols + (xs * config.grid_cols // w)
+    by_cell = np.lexsort((-resp, cell))
+    cell_sorted = cell[by_cell]
+    first = np.searchsorted(cell_sorted, cell_sorted, side="left")
+    rank = np.empty(len(cell), np.int64)
+    rank[by_cell] = np.arange(len(cell)) - first
+    cell_max = np.empty(len(cell))
+    cell_max[by_cell] = resp[by_cell][first]
+    sel = np.lexsort((-resp, rank))
+    sel = sel[resp[sel] >= config.rel_threshold * cell_max[sel]]
+    if config.cell_cap > 0:
+        sel = sel[rank[sel] < config.cell_cap]
+    return sel
+
+
 def detect_harris(
     gray: np.ndarray,
     config: HarrisConfig,
@@ -259,6 +300,8 @@ def detect_harris(
     exclude_pts: np.ndarray | None = None,
     exclude_radius: float | None = None,
     max_corners: int | None = None,
+    priority: np.ndarray | None = None,
+    priority_max: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Harris corners of ``gray`` (DESIGN.md §3.1, eq. 11–12).
 
@@ -273,6 +316,11 @@ def detect_harris(
         elsewhere.
     exclude_radius : px, default ``config.min_distance``.
     max_corners : how many corners at most, default ``config.max_corners`` (0 returns none).
+    priority : optional (H, W) array, non-zero in a region whose corners are taken first: up to
+        ``priority_max`` of them (default: all ``max_corners``), bucketed among themselves (so
+        weak corners there are not cut by the per-cell threshold of strong ones beside them);
+        the remaining budget goes to the usual ranking over the whole (masked) image.
+    priority_max : corners at most taken first from ``priority``.
 
     Returns
     -------
@@ -289,6 +337,14 @@ def detect_harris(
         mask = np.asarray(mask)
         if mask.shape != gray.shape:
             raise InputError(f"mask must have the image's shape {gray.shape}, got {mask.shape}")
+    if priority is not None:
+        priority = np.asarray(priority)
+        if priority.shape != gray.shape:
+            raise InputError(f"priority must have the image's shape {gray.shape}, got {priority.shape}")
+    n_pri = n_max if priority_max is None else priority_max
+    if not isinstance(n_pri, (int, np.integer)) or isinstance(n_pri, bool) or n_pri < 0:
+        raise InputError(f"priority_max must be a non-negative integer, got {priority_max!r}")
+    n_pri = min(int(n_pri), int(n_max))
     exclude_pts = _points("exclude_pts", exclude_pts)
     radius = float(config.min_distance if exclude_radius is None else exclude_radius)
     if not np.isfinite(radius) or radius < 0:
@@ -308,36 +364,49 @@ def detect_harris(
     cand = cv2.bitwise_and(cv2.compare(inner, dil, cv2.CMP_GE), cv2.compare(inner, config.global_rel_threshold * r_max, cv2.CMP_GT))
     if mask is not None:
         cand[mask[b : h - b, b : w - b] == 0] = 0
+    excl = None
     if exclude_pts is not None and len(exclude_pts) and radius > 0:
-        cand[_exclusion_mask((h, w), exclude_pts, radius)[b : h - b, b : w - b] != 0] = 0
-    nz = cv2.findNonZero(cand)
-    if nz is None:
-        return empty
-    nz = nz.reshape(-1, 2)
-    xs = nz[:, 0].astype(np.int64) + b
-    ys = nz[:, 1].astype(np.int64) + b
-    resp = R[ys, xs].astype(np.float64)
-    order = np.argsort(-resp, kind="stable")
-    xs, ys, resp = xs[order], ys[order], resp[order]
-    keep = _dedupe_ties(xs, ys, resp, config.min_distance)
-    xs, ys, resp = xs[keep], ys[keep], resp[keep]
-
+        excl = _exclusion_mask((h, w), exclude_pts, radius)[b : h - b, b : w - b] != 0
+        cand[excl] = 0
+    xs, ys, resp = _candidates(R, cand, b, config.min_distance)
     # Grid bucketing: rank of each corner inside its cell (0 = strongest), then round robin.
-    cell = (ys * config.grid_rows // h) * config.grid_cols + (xs * config.grid_cols // w)
-    by_cell = np.lexsort((-resp, cell))
-    cell_sorted = cell[by_cell]
-    first = np.searchsorted(cell_sorted, cell_sorted, side="left")
-    rank = np.empty(len(cell), np.int64)
-    rank[by_cell] = np.arange(len(cell)) - first
-    cell_max = np.empty(len(cell))
-    cell_max[by_cell] = resp[by_cell][first]
-    sel = np.lexsort((-resp, rank))
-    sel = sel[resp[sel] >= config.rel_threshold * cell_max[sel]]
-    if config.cell_cap > 0:
-        sel = sel[rank[sel] < config.cell_cap]
+    sel = _bucketed(xs, ys, resp, config, h, w)
+    is_pri = None
     # A few spares: refinement drops corners whose neighbourhood turns out edge-like.
     spare = max(8, n_max // 10) if config.subpix_window > 0 else 0
+    if priority is not None and n_pri > 0:
+        # Priority region first: its own (optionally denser) non-maximum suppression and its own
+        # bucketing (per-cell thresholds relative to the region's corners only, so weak corners
+        # there are not silenced by strong ones beside them); then the rest of the ranking.
+        pd = config.priority_min_distance or config.min_distance
+        pcand = cand
+        if pd != config.min_distance:
+            dp = 2 * pd + 1
+            dil_p = cv2.dilate(R, cv2.getStructuringElement(cv2.MORPH_RECT, (dp, dp)))[b : h - b, b : w - b]
+            pcand = cv2.bitwise_and(cv2.compare(inner, dil_p, cv2.CMP_GE), cv2.compare(inner, config.global_rel_threshold * r_max, cv2.CMP_GT))
+            if mask is not None:
+                pcand[mask[b : h - b, b : w - b] == 0] = 0
+            if excl is not None:
+                pcand[excl] = 0
+        pcand = pcand.copy()
+        pcand[priority[b : h - b, b : w - b] == 0] = 0
+        px, py, pr = _candidates(R, pcand, b, pd)
+        if len(px):
+            prel = config.rel_threshold if config.priority_rel_threshold < 0 else config.priority_rel_threshold
+            psel = _bucketed(px, py, pr, dataclasses.replace(config, rel_threshold=prel), h, w)[: n_pri + min(spare, n_pri)]
+            px, py, pr = px[psel], py[psel], pr[psel]
+            # the usual ranking without the corners already taken (same pixel) or too near them
+            near = _exclusion_mask((h, w), np.stack([px, py], 1).astype(float), pd)[ys, xs] != 0
+            rest = sel[~near[sel]]
+            xs = np.concatenate([px, xs[rest]])
+            ys = np.concatenate([py, ys[rest]])
+            resp = np.concatenate([pr, resp[rest]])
+            sel = np.arange(len(xs))
+            is_pri = np.zeros(len(xs), bool)
+            is_pri[: len(px)] = True
     sel = sel[: n_max + spare]
+    if is_pri is not None:
+        is_pri = is_pri[: len(sel)]
     xs, ys, resp = xs[sel], ys[sel], resp[sel]
 
     pts = np.stack([xs, ys], 1).astype(np.float64)
@@ -353,4 +422,11 @@ def detect_harris(
             & (ref[:, 1] <= h - 1 - b)
         )
         pts, resp = ref[ok], resp[ok]
+        if is_pri is not None:
+            is_pri = is_pri[: len(ok)][ok]
+    if is_pri is not None:
+        # at most n_pri from the region first (spares beyond it go back behind the rest)
+        p_idx = np.flatnonzero(is_pri[: len(pts)])
+        order = np.concatenate([p_idx[:n_pri], np.flatnonzero(~is_pri[: len(pts)]), p_idx[n_pri:]])
+        pts, resp = pts[order], resp[order]
     return pts[:n_max], resp[:n_max]

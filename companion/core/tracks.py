@@ -73,6 +73,10 @@ class TrackConfig:
     max_failures: int = 1  # consecutive failed matches before a track is dropped (1 = at once)
     duplicate_distance_px: float = 1.0  # two tracks closer than this: the younger is dropped
     template_rescale_threshold: float = 0.05  # |predicted scale change − 1| beyond this: template resampled to it (0 = never)
+    priority_share: float = 0.0  # share of a refill's budget given first to corners inside the caller's priority region (0 = off)
+    priority_min_tracks: int = 0  # refill (into the region only) when it holds fewer live tracks than this, whatever the total (0 = off)
+    priority_band_range_m: float = 8.0  # the flight-path band of the region: rows within ± band_half_height_m at this range (pipeline)
+    priority_path_half_width_deg: float = 15.0  # ... and the columns within this bearing of the flight path (pipeline)
 
     def __post_init__(self) -> None:
         require(isinstance(self.max_tracks, int) and self.max_tracks >= 1, f"max_tracks must be an integer >= 1, got {self.max_tracks!r}")
@@ -83,6 +87,14 @@ class TrackConfig:
         require(isinstance(self.max_failures, int) and self.max_failures >= 1, f"max_failures must be an integer >= 1, got {self.max_failures!r}")
         require_finite("duplicate_distance_px", self.duplicate_distance_px, nonnegative=True)
         require_finite("template_rescale_threshold", self.template_rescale_threshold, nonnegative=True)
+        require_finite("priority_share", self.priority_share, nonnegative=True)
+        require(self.priority_share <= 1.0, f"priority_share must be <= 1, got {self.priority_share}")
+        require(isinstance(self.priority_min_tracks, int) and not isinstance(self.priority_min_tracks, bool)
+                and 0 <= self.priority_min_tracks <= self.max_tracks,
+                f"priority_min_tracks must be an integer in 0..max_tracks, got {self.priority_min_tracks!r}")
+        require_finite("priority_band_range_m", self.priority_band_range_m, positive=True)
+        require_finite("priority_path_half_width_deg", self.priority_path_half_width_deg, nonnegative=True)
+        require(self.priority_path_half_width_deg <= 180, "priority_path_half_width_deg must be <= 180")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -274,15 +286,29 @@ class TrackManager:
             raise InputError(f"predict returned an invalid radius (shape {radius.shape}; must be finite, >= 0, scalar or ({n},))")
         return uv_pred, radius
 
-    def step(self, gray: np.ndarray, t: float, frame_index: int, predict: Predictor | None = None) -> TrackFrame:
+    def step(self, gray: np.ndarray, t: float, frame_index: int, predict: Predictor | None = None,
+             priority_mask: np.ndarray | None = None) -> TrackFrame:
         """Track all live tracks into ``gray``, drop failures, refill with Harris corners.
 
         ``gray``: 2-D uint8 frame of the camera's size; ``t``: capture time in seconds, strictly
         increasing; ``frame_index``: strictly increasing integer.  ``predict(uv_prev, ids)`` gets
         the (N, 2) last pixels and ids of the live tracks and returns ``(uv_pred, radius)``: the
         search-window centres in this frame and their radii (px, scalar or (N,)).
+
+        ``priority_mask``: optional (H, W) bool/uint8 image, non-zero where new corners are wanted
+        most (sectors without live points, the band around the flight path; see
+        :func:`companion.core.priority.detection_priority`).  A refill then gives up to
+        ``priority_share`` of its budget to corners inside it first and the rest anywhere; with
+        ``priority_min_tracks`` > 0 a refill into the region alone also runs when it holds fewer
+        live tracks than that, even with enough tracks in total.
         """
         gray, t, frame_index = self._check_inputs(gray, t, frame_index)
+        if priority_mask is not None:
+            priority_mask = np.asarray(priority_mask)
+            if priority_mask.shape != gray.shape:
+                raise InputError(f"priority_mask must have the frame's shape {gray.shape}, got {priority_mask.shape}")
+            if not np.any(priority_mask):
+                priority_mask = None
         cfg = self.config
         hlen = cfg.max_history
         self._just_dropped = {}
@@ -373,12 +399,29 @@ class TrackManager:
         # Refill with Harris corners away from the survivors.
         new_slots = np.zeros(0, np.int64)
         n_live = self.n_live
-        if n_live < cfg.redetect_fraction * cfg.max_tracks or self._prev_gray is None:
+        use_pri = priority_mask is not None and (cfg.priority_share > 0 or cfg.priority_min_tracks > 0)
+        full = n_live < cfg.redetect_fraction * cfg.max_tracks or self._prev_gray is None
+        starving = False
+        if use_pri and not full and cfg.priority_min_tracks > 0:
+            q = np.rint(self._uv[self._id >= 0]).astype(np.int64)
+            h, w = gray.shape
+            inb = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
+            n_in = int(np.count_nonzero(priority_mask[q[inb, 1], q[inb, 0]]))
+            starving = n_in < cfg.priority_min_tracks
+        if full or starving:
             want = cfg.max_tracks - n_live
             if want > 0:
                 survivors = self._uv[self._id >= 0]
+                kw = {}
+                if use_pri:
+                    # a full refill: the share first inside the region; a top-up of a starving
+                    # region: inside it only
+                    n_pri = int(math.ceil(cfg.priority_share * want)) if full else want
+                    kw = {"priority": priority_mask, "priority_max": n_pri}
+                    if not full:
+                        kw["mask"] = priority_mask
                 pts, _ = detect_harris(
-                    gray, self.harris, exclude_pts=survivors, exclude_radius=cfg.min_new_distance_px, max_corners=want
+                    gray, self.harris, exclude_pts=survivors, exclude_radius=cfg.min_new_distance_px, max_corners=want, **kw
                 )
                 if len(pts):
                     new_slots = np.flatnonzero(self._id < 0)[: len(pts)]

@@ -1,0 +1,124 @@
+"""Where new corners are wanted most: the detection priority region (issue 11 item 3, DESIGN §6).
+
+The tracker refills with the strongest Harris corners, which gather where the image is busiest;
+the sectors only count points in a vertical band around the flight path (``[sectors]``), and an
+in-view sector without a live point stays unknown (65535), which ArduPilot treats as no
+constraint and PX4 refuses to fly into.  This module gives the tracker an (H, W) bool image of the
+pixels whose corners matter most:
+
+* **band**: pixels whose viewing ray, in the levelled body frame (yaw kept, roll and pitch
+  removed, as in :mod:`companion.core.sectors`), lies within the sector band at a typical range
+  ``band_range_m``: ``|tan(elevation) − tan γ| ≤ band_half_height_m / band_range_m`` (``"metres"``
+  band) or ``|elevation − γ| ≤ band_half_angle_deg`` (``"degrees"``), γ the flight-path angle
+  (0 below ``flight_path_min_speed_mps``, clamped to ``flight_path_max_angle_deg``);
+* within the band, the columns of the sectors in view that held **no live point** in the previous
+  frame (no converged point of the camera's own, obstacle or clear; remembered map points do not
+  count: they give no new range), and the columns within ``path_half_width_deg`` of the
+  **direction of travel** (the horizontal bearing of the velocity; when slower than
+  ``flight_path_min_speed_mps`` there is no direction and the whole band counts).
+
+Pure and vectorized: the rays of a coarse pixel grid (every ``stride`` px) are classified at once
+and the result is enlarged to full size with nearest-neighbour resampling.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from companion.core.camera import CameraModel
+from companion.core.frames import euler_zyx_to_R
+from companion.core.sectors import SECTOR_COUNT, SectorConfig, sector_index
+from companion.errors import InputError
+
+
+def flight_path(config: SectorConfig, v_level) -> tuple[float, float | None]:
+    """``(γ, ψ)``: flight-path angle (climb +, rad; the sectors' rule) and horizontal bearing of
+    travel in the levelled body frame (rad, clockwise from forward; None when too slow)."""
+    if v_level is None:
+        return 0.0, None
+    v = np.asarray(v_level, dtype=float).reshape(3)
+    if not np.all(np.isfinite(v)):
+        return 0.0, None
+    speed = float(np.linalg.norm(v))
+    if speed < config.flight_path_min_speed_mps or speed == 0.0:
+        return 0.0, None
+    lim = math.radians(config.flight_path_max_angle_deg)
+    gamma = max(-lim, min(lim, math.atan2(-v[2], math.hypot(v[0], v[1]))))
+    h = math.hypot(v[0], v[1])
+    psi = math.atan2(v[1], v[0]) if h >= config.flight_path_min_speed_mps * 0.5 else None
+    return gamma, psi
+
+
+def detection_priority(
+    camera: CameraModel,
+    sectors: SectorConfig,
+    *,
+    roll_pitch_rad: tuple[float, float] = (0.0, 0.0),
+    velocity_body=None,
+    live_points=None,
+    band_range_m: float = 8.0,
+    path_half_width_deg: float = 15.0,
+    stride: int = 4,
+) -> np.ndarray:
+    """(H, W) bool priority region for new corners (see module docstring).
+
+    ``camera``: the camera model (intrinsics, distortion and mount ``R_cam_body``);
+    ``roll_pitch_rad``: vehicle attitude at exposure; ``velocity_body``: velocity in body FRD;
+    ``live_points``: (72,) live points per sector in the previous frame (None: unknown, only the
+    direction of travel counts).
+    """
+    c = camera.config
+    if not (isinstance(stride, int) and stride >= 1):
+        raise InputError(f"stride must be an integer >= 1, got {stride!r}")
+    if not (math.isfinite(band_range_m) and band_range_m > 0):
+        raise InputError(f"band_range_m must be finite and > 0, got {band_range_m!r}")
+    rp = tuple(float(a) for a in roll_pitch_rad)
+    if len(rp) != 2 or not all(math.isfinite(a) for a in rp):
+        raise InputError(f"roll_pitch_rad must be two finite angles, got {roll_pitch_rad!r}")
+    R_lb = euler_zyx_to_R(rp[0], rp[1], 0.0)  # body → levelled
+    v_level = None if velocity_body is None else R_lb @ np.asarray(velocity_body, dtype=float).reshape(3)
+    gamma, psi = flight_path(sectors, v_level)
+
+    us = np.arange(stride // 2, c.width, stride, dtype=float)
+    vs = np.arange(stride // 2, c.height, stride, dtype=float)
+    uu, vv = np.meshgrid(us, vs)
+    rays = camera.unproject(np.stack([uu.ravel(), vv.ravel()], 1))  # (N, 3) camera
+    d = rays @ (R_lb @ c.R_cam_body.T).T  # camera → body → levelled
+    horiz = np.hypot(d[:, 0], d[:, 1])
+    up = -d[:, 2]
+    if sectors.band_mode == "metres":
+        tan_e = up / np.maximum(horiz, 1e-9)
+        band = np.abs(tan_e - math.tan(gamma)) <= sectors.band_half_height_m / band_range_m
+    else:
+        band = np.abs(np.arctan2(up, horiz) - gamma) <= math.radians(sectors.band_half_angle_deg)
+    bearing = np.arctan2(d[:, 1], d[:, 0])
+    if psi is None:
+        want = np.ones(len(d), bool)
+    else:
+        off = np.abs((bearing - psi + math.pi) % (2 * math.pi) - math.pi)
+        want = off <= math.radians(path_half_width_deg)
+    if live_points is not None:
+        lp = np.asarray(live_points).reshape(-1)
+        if lp.shape != (SECTOR_COUNT,):
+            raise InputError(f"live_points must have {SECTOR_COUNT} entries, got {lp.shape}")
+        want |= lp[sector_index(bearing)] <= 0
+    small = (band & want).reshape(len(vs), len(us)).astype(np.uint8)
+    if stride == 1:
+        return small.astype(bool)
+    # each coarse sample stands for the stride × stride block around it
+    big = np.repeat(np.repeat(small, stride, 0), stride, 1)[: c.height, : c.width]
+    if big.shape != (c.height, c.width):
+        big = cv2.copyMakeBorder(big, 0, c.height - big.shape[0], 0, c.width - big.shape[1], cv2.BORDER_REPLICATE)
+    return big.astype(bool)
+
+
+def live_points_per_sector(sectors_prev) -> np.ndarray | None:
+    """(72,) live (camera, not remembered) converged points behind each sector of a
+    :class:`~companion.core.sectors.Sectors` (obstacle and clear), or None without one."""
+    if sectors_prev is None:
+        return None
+    live = np.asarray(sectors_prev.obstacle_points) - np.asarray(sectors_prev.remembered_points) + np.asarray(sectors_prev.clear_points)
+    return np.maximum(live, 0)
