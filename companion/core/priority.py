@@ -18,7 +18,8 @@ pixels whose corners matter most:
   ``flight_path_min_speed_mps`` there is no direction and the whole band counts).
 
 Pure and vectorized: the rays of a coarse pixel grid (every ``stride`` px) are classified at once
-and the result is enlarged to full size with nearest-neighbour resampling.
+and the result is enlarged to full size with nearest-neighbour resampling (``stride`` defaults to
+width / 80, at least 4 px).
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ def detection_priority(
     live_points=None,
     band_range_m: float = 8.0,
     path_half_width_deg: float = 15.0,
-    stride: int = 4,
+    stride: int | None = None,
 ) -> np.ndarray:
     """(H, W) bool priority region for new corners (see module docstring).
 
@@ -71,6 +72,8 @@ def detection_priority(
     direction of travel counts).
     """
     c = camera.config
+    if stride is None:
+        stride = max(4, int(round(c.width / 80)))  # 4 px at 320 wide, 8 px at 640: ~5000 rays
     if not (isinstance(stride, int) and stride >= 1):
         raise InputError(f"stride must be an integer >= 1, got {stride!r}")
     if not (math.isfinite(band_range_m) and band_range_m > 0):
@@ -109,10 +112,10 @@ def detection_priority(
     if stride == 1:
         return small.astype(bool)
     # each coarse sample stands for the stride × stride block around it
-    big = np.repeat(np.repeat(small, stride, 0), stride, 1)[: c.height, : c.width]
+    big = cv2.resize(small, (len(us) * stride, len(vs) * stride), interpolation=cv2.INTER_NEAREST)[: c.height, : c.width]
     if big.shape != (c.height, c.width):
         big = cv2.copyMakeBorder(big, 0, c.height - big.shape[0], 0, c.width - big.shape[1], cv2.BORDER_REPLICATE)
-    return big.astype(bool)
+    return big.view(bool)
 
 
 def live_points_per_sector(sectors_prev) -> np.ndarray | None:
