@@ -611,3 +611,29 @@ def test_sector_points_lie_on_the_rays_measured_now():
         np.testing.assert_allclose(p[i], p_wc + u * rng[i], atol=1e-9)
     np.testing.assert_array_equal(p[1], p_est[1])
     np.testing.assert_allclose(np.linalg.norm(p - p_wc, axis=1), rng, rtol=1e-12)
+
+
+def test_tracker_refill_gets_the_priority_region_from_the_previous_frame():
+    """Issue 11 item 3: with priority_share > 0 the pipeline hands the tracker the band around the
+    flight path and the in-view sectors without a live point (from the previous frame's sectors)."""
+    base = small_config()
+    cfg = dataclasses.replace(base, tracks=dataclasses.replace(base.tracks, priority_share=0.5, priority_min_tracks=10))
+    flight, tel, p = make_pipeline(config=cfg)
+    feed_telemetry(tel, flight, 0.0, 2.0)
+    seen = []
+    step = p.tracks.step
+
+    def spy(*a, **kw):
+        seen.append(kw.get("priority_mask"))
+        return step(*a, **kw)
+
+    p.tracks.step = spy
+    for k in range(5):
+        t = 0.5 + k / 30
+        res = p.process(Frame(k, t, flight.render(t)), now=t + 0.05)
+        assert res.ok, res.reason
+    assert len(seen) == 5 and all(m is not None and m.shape == (CAM.height, CAM.width) and m.dtype == bool for m in seen)
+    assert all(0 < np.count_nonzero(m) < m.size for m in seen), [np.count_nonzero(m) for m in seen]  # the band, not the sky or the ground
+    # off by default: no region computed
+    flight, tel, p = make_pipeline()
+    assert p._detection_priority(res, np.eye(3), np.zeros(3)) is None

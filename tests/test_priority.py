@@ -218,3 +218,9 @@ def test_window_nearer_than_depth_min_uses_the_filtered_depth():
                                 np.array([Z]), depth_sigma=np.array([0.05]), max_radius_px=32.0)
     assert abs(cx - f * b / Z - p.uv[0, 0]) <= p.radius[0]
     assert p.radius[0] < 8.0
+
+
+def test_no_previous_frame_means_the_whole_band(cam):
+    m = detection_priority(cam, SectorConfig(), velocity_body=[0.0, 5.0, 0.0], live_points=None, stride=1)
+    r = int(round(cam.config.cy))
+    assert m[r].all() and not m[0].any()  # flying sideways, out of view: still the band

@@ -68,8 +68,8 @@ def detection_priority(
 
     ``camera``: the camera model (intrinsics, distortion and mount ``R_cam_body``);
     ``roll_pitch_rad``: vehicle attitude at exposure; ``velocity_body``: velocity in body FRD;
-    ``live_points``: (72,) live points per sector in the previous frame (None: unknown, only the
-    direction of travel counts).
+    ``live_points``: (72,) live points per sector in the previous frame (None: no previous frame,
+    so no sector has a live point: the whole band).
     """
     c = camera.config
     if stride is None:
@@ -103,7 +103,9 @@ def detection_priority(
     else:
         off = np.abs((bearing - psi + math.pi) % (2 * math.pi) - math.pi)
         want = off <= math.radians(path_half_width_deg)
-    if live_points is not None:
+    if live_points is None:  # no previous frame: no sector has a live point yet
+        want[:] = True
+    else:
         lp = np.asarray(live_points).reshape(-1)
         if lp.shape != (SECTOR_COUNT,):
             raise InputError(f"live_points must have {SECTOR_COUNT} entries, got {lp.shape}")
