@@ -343,3 +343,33 @@ def test_a_lone_remembered_point_is_not_published_a_surface_is():
     m.observe(0.0, [1, 2, 3, 4], lone + patch, cov(4), live_keys=[])
     assert sorted(m.remembered(0.5, np.zeros(3)).keys.tolist()) == [2, 3, 4]
     assert m.support(np.arange(4)).tolist() == [1, 3, 3, 3]
+
+
+def test_support_radius_grows_with_distance_when_asked():
+    # two wall points 1.5 m apart: lone at 0.6 m; neighbours when the radius is 10 % of their distance
+    pts = [[20.0, 0.0, -5.0], [20.0, 1.5, -5.0], [4.0, 0.0, -5.0], [4.0, 1.5, -5.0]]
+    vehicle = np.array([0.0, 0.0, -5.0])
+    fixed = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6))
+    fixed.observe(0.0, [1, 2, 3, 4], pts, cov(4), live_keys=[])
+    assert len(fixed.remembered(0.5, vehicle)) == 0
+    rel = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6, support_radius_rel=0.1))
+    rel.observe(0.0, [1, 2, 3, 4], pts, cov(4), live_keys=[])
+    # far pair: radius 0.1 × 20 m = 2 m ≥ 1.5 m; near pair: 0.1 × 4 m = 0.4 m → still the 0.6 m floor
+    assert sorted(rel.remembered(0.5, vehicle).keys.tolist()) == [1, 2]
+    assert rel.support(np.arange(4), vehicle).tolist() == [2, 2, 1, 1]
+    with pytest.raises(ConfigError, match="support_radius_rel"):
+        MapConfig(support_radius_rel=-0.1)
+
+
+def test_remembered_point_with_too_uncertain_a_bearing_is_dropped_not_spread():
+    p = np.array([[10.0, 0.0, 0.0], [-10.0, 0.0, 0.0]])
+    kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=p, remembered_sigma=[0.2, 0.2],
+              remembered_tangential_sigma=[0.8, 0.05])  # k·σ/r = 9.2° and 0.6°
+    cfg = SectorConfig(infer_max_gap_sectors=0, remembered_drop_spread_deg=5.0)
+    s = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, cfg, **kw)
+    assert np.flatnonzero(s.state == SectorState.OBSTACLE).tolist() == [36]  # only the sharp point, behind
+    assert s.state[0] == SectorState.UNKNOWN  # never "clear" for a dropped point either
+    keep = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(infer_max_gap_sectors=0), **kw)
+    assert np.flatnonzero(keep.state == SectorState.OBSTACLE).tolist() == [0, 1, 2, 36, 70, 71]
+    with pytest.raises(ConfigError, match="remembered_drop_spread_deg"):
+        SectorConfig(remembered_drop_spread_deg=0.0)

@@ -76,7 +76,8 @@ class MapConfig:
     gate_k: float = 3.0  # depths agree when within gate_k combined σ (found); a live point beyond that is "seen through" (missed)
     image_margin_px: float = 4.0  # a remembered point is predicted in view only this far inside the image border, px
     min_support: int = 2  # a remembered point is published only with at least this many map points (itself included) within support_radius_m
-    support_radius_m: float = 0.6  # neighbourhood of that support test, m
+    support_radius_m: float = 0.6  # neighbourhood of that support test, m (at least)
+    support_radius_rel: float = 0.0  # ... or this fraction of the point's distance from the vehicle, if larger (corners are spaced in pixels, so neighbours lie farther apart far away)
 
     def __post_init__(self) -> None:
         require(isinstance(self.enabled, bool), "enabled must be true or false")
@@ -86,7 +87,7 @@ class MapConfig:
                 f"min_support must be an integer >= 1, got {self.min_support!r}")
         for name in ("radius_m", "max_age_s", "max_rel_sigma", "reobserve_radius_px", "gate_k", "support_radius_m"):
             require_finite(name, getattr(self, name), positive=True)
-        for name in ("position_drift_mps", "position_drift_max_m", "heading_drift_deg_s", "image_margin_px"):
+        for name in ("position_drift_mps", "position_drift_max_m", "heading_drift_deg_s", "image_margin_px", "support_radius_rel"):
             require_finite(name, getattr(self, name), nonnegative=True)
         require_finite("min_score", self.min_score)
         require(-2.0 < self.min_score < 1.0, f"min_score must be in (-2, 1) (s lies in (-inf, 1)), got {self.min_score}")
@@ -403,14 +404,21 @@ class ObstacleMap:
         return out
 
     # -- 5. remembered points out --------------------------------------------------------------------
-    def support(self, rows: np.ndarray) -> np.ndarray:
-        """(len(rows),) number of map points (the point itself included) within ``support_radius_m``."""
+    def support(self, rows: np.ndarray, p_world_vehicle=None) -> np.ndarray:
+        """(len(rows),) number of map points (the point itself included) within the support radius:
+        ``support_radius_m``, or ``support_radius_rel`` × the point's distance from
+        ``p_world_vehicle`` when that is larger (given)."""
         if rows.size == 0:
             return np.zeros(0, np.int64)
+        c = self.config
+        radius = np.full(rows.size, c.support_radius_m)
+        if p_world_vehicle is not None and c.support_radius_rel > 0:
+            dist = np.linalg.norm(self.p[rows] - np.asarray(p_world_vehicle, float).reshape(3), axis=1)
+            radius = np.maximum(radius, c.support_radius_rel * dist)
         q = self.p[rows].astype(np.float32)
         P = self.p.astype(np.float32)
         d2 = np.sum(q * q, 1)[:, None] + np.sum(P * P, 1)[None, :] - 2.0 * (q @ P.T)
-        return np.count_nonzero(d2 <= np.float32(self.config.support_radius_m**2), axis=1)
+        return np.count_nonzero(d2 <= (radius**2).astype(np.float32)[:, None], axis=1)
 
     def remembered(self, t: float, p_world_vehicle: np.ndarray) -> Remembered:
         """Points whose landmark is no longer live, with σ relative to the vehicle (module doc).
@@ -420,9 +428,9 @@ class ObstacleMap:
         mismatch (an occluding edge, a repeated texture), which memory would otherwise keep for
         ``max_age_s``."""
         rows = np.flatnonzero(~self.live)
-        if self.config.min_support > 1 and rows.size:
-            rows = rows[self.support(rows) >= self.config.min_support]
         pv = np.asarray(p_world_vehicle, float).reshape(3)
+        if self.config.min_support > 1 and rows.size:
+            rows = rows[self.support(rows, pv) >= self.config.min_support]
         d = self.p[rows] - pv
         r = np.linalg.norm(d, axis=1)
         u = d / np.maximum(r, 1e-9)[:, None]
