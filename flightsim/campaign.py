@@ -246,12 +246,14 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
     rem = {k: sum(int((s.get("remembered") or {}).get(k) or 0) for s in scores)
            for k in ("cells", "within_tolerance", "ranges", "unknown", "dangerous_clears")}
     rem["rate"] = rem["within_tolerance"] / rem["cells"] if rem["cells"] else None
+    beside = {k: sum(int((s.get("false_obstacles_beside_obstacle") or {}).get(k) or 0) for s in scores)
+              for k in ("in_view", "in_view_total", "out_of_view", "out_of_view_total")}
     return _jsonable({
         "runs": len(results), "runs_ok": len(ok), "runs_failed": len(results) - len(ok),
         "cells": cells, "pooled_rates": pooled, "per_run_rates": per_run, "targets": targets,
         "cells_in_view": cells_iv, "cells_out_of_view": cells_oov, "pooled_rates_in_view": pooled_of(cells_iv),
         "pooled_rates_out_of_view": pooled_of(cells_oov), "per_run_rates_in_view": per_run_in_view,
-        "detection_by_range": det_by_range, "remembered": rem,
+        "detection_by_range": det_by_range, "remembered": rem, "false_obstacles_beside_obstacle": beside,
         "warmup_messages_excluded": sum(int((s.get("warmup") or {}).get("messages_excluded") or 0) for s in scores),
         "range_error": range_error, "latency": latency, "nees": nees, "obstacles": obs_rows,
         "first_claim_at_s": _mean_std(s.get("first_claim_at_s") for s in scores),

@@ -156,6 +156,7 @@ class ScoreConfig:
     target_detection: float = 0.90  # target: share of in-view obstacle cells with a range within tolerance (>=)
     target_detection_near: float = 0.95  # target: the same for in-view obstacle cells nearer than near_range_m (>=)
     target_remembered: float = 0.90  # target: share of remembered out-of-view obstacle cells within tolerance (>=)
+    beside_sectors: int = 2  # a false obstacle within this many sectors of an obstacle at its range is reported as "beside an obstacle" (diagnostic only)
     nees_confidence: float = 0.95  # two-sided probability of the NEES band
 
     def __post_init__(self) -> None:
@@ -173,6 +174,8 @@ class ScoreConfig:
         require_finite("near_range_m", self.near_range_m, positive=True)
         require_finite("remember_window_s", self.remember_window_s, positive=True)
         require_finite("remember_max_travel_m", self.remember_max_travel_m, positive=True)
+        require(isinstance(self.beside_sectors, int) and not isinstance(self.beside_sectors, bool) and 0 <= self.beside_sectors <= 36,
+                f"beside_sectors must be an integer in 0..36, got {self.beside_sectors!r}")
         require_finite("truth_max_age_s", self.truth_max_age_s, positive=True)
         require_finite("capture_snap", self.capture_snap, positive=True)
         require(self.capture_snap <= 0.5, f"capture_snap must be <= 0.5 (half a frame), got {self.capture_snap}")
@@ -927,6 +930,25 @@ def detection_table(true_m: np.ndarray, rep: np.ndarray, valid: np.ndarray, cell
     return rows
 
 
+def false_obstacles_beside(ev: Evaluation, m: CellMasks, sectors: int) -> np.ndarray:
+    """(N, 72) bool: false obstacles in clear cells whose published range matches (within tolerance)
+    the true range of an obstacle cell at most ``sectors`` sectors away in the same message — a
+    real obstacle claimed at the right range on a neighbouring bearing (a thin pole's remembered
+    point spread over its bearing σ), as opposed to a phantom range."""
+    out = np.zeros(m.false_clear.shape, bool)
+    if sectors < 1 or not np.any(m.false_clear):
+        return out
+    cfg = ev.config
+    T = np.where(ev.od_tcls == TRUTH_OBSTACLE, ev.od_truth, np.nan)
+    r = ev.od_r
+    for k in range(1, sectors + 1):
+        for shift in (k, -k):
+            Tn = np.roll(T, shift, axis=1)  # the truth of the sector k away
+            with np.errstate(invalid="ignore"):
+                out |= np.isfinite(Tn) & (np.abs(r - Tn) <= cfg.tolerance(np.where(np.isfinite(Tn), Tn, 0.0)))
+    return out & m.false_clear
+
+
 def summarize(ev: Evaluation) -> dict:
     """The JSON-ready score of one run (the contents of ``score.json``)."""
     cfg = ev.config
@@ -958,6 +980,12 @@ def summarize(ev: Evaluation) -> dict:
         "unknown": int((m.remembered & (ev.od_rep == REP_UNKNOWN)).sum()),
         "dangerous_clears": int((m.remembered & (ev.od_rep == REP_CLEAR)).sum()),
         "window_s": cfg.remember_window_s, "max_travel_m": cfg.remember_max_travel_m,
+    }
+    beside = false_obstacles_beside(ev, m, cfg.beside_sectors)
+    false_beside = {
+        "sectors": cfg.beside_sectors,
+        "in_view": int((beside & m.in_view).sum()), "in_view_total": int((m.false_clear & m.in_view).sum()),
+        "out_of_view": int((beside & oov).sum()), "out_of_view_total": int((m.false_clear & oov).sum()),
     }
     targets = [
         _target("messages_without_false_obstacle", "no false obstacle in clear sectors (in and out of view), share of messages",
@@ -1068,6 +1096,7 @@ def summarize(ev: Evaluation) -> dict:
         "rates_out_of_view": rates_oov,
         "detection_by_range": det_tables,
         "remembered": remembered,
+        "false_obstacles_beside_obstacle": false_beside,
         "targets": targets,
         "sectors": sectors,
         "range_error": range_error,
@@ -1207,6 +1236,11 @@ def markdown(score: dict, title: str = "Score") -> str:
         L += [f"Remembered obstacles out of view (in view within {rem['window_s']:g} s, vehicle moved < {rem['max_travel_m']:g} m): "
               f"{rem['cells']} cells, within tolerance {rem['within_tolerance']} ({_pc(rem['rate'])}), ranges {rem['ranges']}, "
               f"unknown {rem['unknown']}, dangerous clears {rem['dangerous_clears']}.", ""]
+    fb = s.get("false_obstacles_beside_obstacle")
+    if fb and (fb["in_view_total"] or fb["out_of_view_total"]):
+        L += [f"False obstacles beside an obstacle (the range of a true obstacle cell within {fb['sectors']} sectors, within "
+              f"tolerance: a real obstacle on a neighbouring bearing, not a phantom): in view {fb['in_view']} of "
+              f"{fb['in_view_total']}, out of view {fb['out_of_view']} of {fb['out_of_view_total']}.", ""]
     dbr = s.get("detection_by_range")
     if dbr:
         L += ["## Detection by true range", "",

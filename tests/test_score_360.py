@@ -117,6 +117,31 @@ def test_false_obstacle_out_of_view_counts_against_the_message():
     assert s["cells_in_view"]["messages_without_false_obstacle"] == 5  # in view alone: no false obstacle
 
 
+def test_false_obstacle_beside_an_obstacle_is_told_apart_from_a_phantom():
+    truth = turn_truth()  # after the turn the obstacle is behind at 20 m (sector 36), every other sector clear
+    rows = []
+    for f, t in enumerate(truth.t_s):
+        if f < 5:
+            rows.append(od(t + 0.02, {0: 2000}))
+        elif f == 5:
+            rows.append(od(t + 0.02, {36: 2000, 37: 1950}))  # the obstacle's range one sector off: beside
+        elif f == 6:
+            rows.append(od(t + 0.02, {36: 2000, 38: 1000}))  # 10 m two sectors off: a phantom (range does not match)
+        else:
+            rows.append(od(t + 0.02, {36: 2000, 40: 2000}))  # the right range four sectors off: beyond 2 sectors
+    s = score(truth, S.RangeMessages.build(od=rows))
+    fb = s["false_obstacles_beside_obstacle"]
+    assert fb["out_of_view_total"] == 1 + 1 + 3 and fb["out_of_view"] == 1
+    assert fb["in_view"] == 0 and fb["in_view_total"] == 0 and fb["sectors"] == 2
+    wide = score(truth, S.RangeMessages.build(od=rows), S.ScoreConfig(warmup_s=0.0, beside_sectors=4))
+    assert wide["false_obstacles_beside_obstacle"]["out_of_view"] == 1 + 3
+    off = score(truth, S.RangeMessages.build(od=rows), S.ScoreConfig(warmup_s=0.0, beside_sectors=0))
+    assert off["false_obstacles_beside_obstacle"]["out_of_view"] == 0
+    assert s["cells"]["false_obstacles_clear_cells"] == 5  # the diagnostic never changes the score
+    with pytest.raises(Exception, match="beside_sectors"):
+        S.ScoreConfig(beside_sectors=-1)
+
+
 def test_remembered_only_within_the_window_and_the_travel():
     # an obstacle 10 m ahead; turned round and moved south: 19 m → remembered, 21 m → not (still within 40 m)
     near = turn_truth(dist=10.0, p_after=np.array([-19.0, 0.0, 0.0]))

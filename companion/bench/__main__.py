@@ -5,6 +5,7 @@ Subcommands:
   seed000   seed-000 scenario, relative range error against L = V·T/D0
   timing    per-stage timings on one core
   looming   head-on approaches at the focus of expansion: range with and without looming (DESIGN §7)
+  map_memory, map_tradeoff   the local obstacle map: memory over a long hover; its publishing trade-offs in SITL
   all       all of these plus the simulator's speed; with --write FILE, rewrite docs/BENCHMARKS.md
 """
 
@@ -106,6 +107,14 @@ def cmd_map_memory(minutes: float, fps: float, quiet: bool) -> dict:
         return map_memory.run(minutes, fps, progress=lambda _s: tick(1))
 
 
+def cmd_map_tradeoff(quiet: bool) -> dict:
+    from companion.bench import map_tradeoff
+
+    n = len(map_tradeoff.SCENARIOS) * len(map_tradeoff.VARIANTS) * 2
+    with _progress(n, "map trade-off flights", quiet) as tick:
+        return map_tradeoff.run(progress=tick)
+
+
 def cmd_timing(args) -> dict:
     from companion.bench import timing
 
@@ -155,6 +164,11 @@ def main(argv=None) -> int:
     p.add_argument("--minutes", type=float, default=30.0, help="simulated hover, minutes (default 30)")
     p.add_argument("--fps", type=float, default=5.0, help="frames per simulated second (default 5)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
+    p = sub.add_parser("map_tradeoff", help="the map's two publishing trade-offs (support_radius_rel, remembered_drop_spread_deg) in SITL",
+                       description="quad_wall_hover and quad_slalom in lockstep SITL (2 seeds each) with configs/companion.toml "
+                                   "as shipped and with one of [map] support_radius_rel = 0.15 or [sectors] "
+                                   "remembered_drop_spread_deg = 5: remembered share, false obstacles, detection (DESIGN §7)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
     p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")
     p.add_argument("--repeats", type=int, default=50, help="repeats per measurement; the median is reported")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
@@ -188,6 +202,11 @@ def main(argv=None) -> int:
 
         res = cmd_map_memory(args.minutes, args.fps, args.json)
         print(json.dumps(res) if args.json else map_memory.markdown(res))
+    elif args.cmd == "map_tradeoff":
+        from companion.bench import map_tradeoff
+
+        res = cmd_map_tradeoff(args.json)
+        print(json.dumps(res) if args.json else map_tradeoff.markdown(res))
     elif args.cmd == "timing":
         res = cmd_timing(args)
         print(json.dumps(report.timing_json(res)) if args.json else report.timing_markdown(res))
@@ -198,14 +217,15 @@ def main(argv=None) -> int:
                "latency": latency.run_all(), "pipeline004": cmd_pipeline004(args, max(5, args.runs // 10)),
                "flightsim": flightsim_bench.run_all(), "sitl": cmd_sitl(args),
                "looming": cmd_looming(args, max(5, args.runs // 10), 3),
-               "map_memory": cmd_map_memory(30.0, 5.0, args.json)}
+               "map_memory": cmd_map_memory(30.0, 5.0, args.json), "map_tradeoff": cmd_map_tradeoff(args.json)}
         if args.json:
             print(json.dumps(res))
         else:
-            from companion.bench import looming, map_memory
+            from companion.bench import looming, map_memory, map_tradeoff
 
             text = (report.full_markdown(res, args.runs, args.repeats).rstrip("\n") + "\n\n" + looming.markdown(res["looming"])
-                    + "\n\n## Local obstacle map: memory over a long hover (issue 11)\n\n" + map_memory.markdown(res["map_memory"]) + "\n")
+                    + "\n\n## Local obstacle map: memory over a long hover (issue 11)\n\n" + map_memory.markdown(res["map_memory"])
+                    + "\n\n## Local obstacle map: publishing trade-offs (issue 11)\n\n" + map_tradeoff.markdown(res["map_tradeoff"]) + "\n")
             if args.write:
                 with open(args.write, "w", encoding="utf-8") as fh:
                     fh.write(text)

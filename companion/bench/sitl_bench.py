@@ -151,6 +151,16 @@ def _issue11_tables(res: dict) -> list[str]:
             if m is not None or never:
                 ttfv.append(f"{o['name']} {'–' if m is None else f'{m:.2f}'}" + (f" ({never} runs never)" if never else ""))
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {'; '.join(ttfv) or '–'} |")
+    fb_rows = []
+    for name, c in res["campaigns"].items():
+        fb = c.get("aggregate", {}).get("false_obstacles_beside_obstacle") or {}
+        if fb.get("in_view_total") or fb.get("out_of_view_total"):
+            fb_rows.append(f"| {name} | {fb.get('in_view', 0)} of {fb.get('in_view_total', 0)} | "
+                           f"{fb.get('out_of_view', 0)} of {fb.get('out_of_view_total', 0)} |")
+    if fb_rows:
+        lines += ["", "False obstacles beside an obstacle (the range of a true obstacle cell at most 2 sectors away, within "
+                  "tolerance: a real obstacle claimed on a neighbouring bearing, not a phantom range), pooled:", "",
+                  "| scenario | in view | out of view |", "|---|---|---|"] + fb_rows
     bins = None
     rows = []
     for name, c in res["campaigns"].items():
