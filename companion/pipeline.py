@@ -57,7 +57,7 @@ from companion.config import require, require_finite
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.estimator import RangeEstimator, RangeOutput
 from companion.core.frames import R_to_euler_zyx
-from companion.core.obstacle_map import ObstacleMap, landmark_covariance, points_on_current_rays, world_to_body
+from companion.core.obstacle_map import ObstacleMap, consistent_for_entry, landmark_covariance, points_on_current_rays, world_to_body
 from companion.core.prediction import make_track_predictor
 from companion.core.priority import detection_priority, live_points_per_sector
 from companion.core.sectors import SECTOR_COUNT, Sectors, compute_sectors
@@ -338,6 +338,11 @@ class Pipeline:
             return None
         keys = out.ids.astype(np.int64) + self._key_base
         good = out.converged & out.valid & (out.range_sigma <= omap.config.max_rel_sigma * out.range)
+        if omap.config.max_entry_nis_ratio > 0 and out.mean_nis is not None:
+            inconsistent = good & ~consistent_for_entry(out.mean_nis, out.converged & out.valid, omap.config.max_entry_nis_ratio)
+            if np.any(inconsistent):  # not a point the map should keep: forget what it left there
+                omap.forget(keys[inconsistent])
+            good &= ~inconsistent
         P = landmark_covariance(p_world[good], p_wc, out.range_sigma[good], self._bearing_sigma)
         rej = omap.observe(t, keys[good], p_world[good], P, live_keys=keys)
         for why, n in rej.items():

@@ -156,3 +156,23 @@ def test_tracks_inconsistent_with_a_static_point_are_retired(which):
     # with the test off, the same junctions run as filters (so the test above is what removed them)
     est0, out0, retired0 = results[0.0]
     assert len(set(out0.ids.tolist()) & junctions) >= 6
+
+
+@pytest.mark.parametrize("which", ["anchored", "landmark"])
+def test_mean_nis_is_reported_and_tells_occlusion_edges_from_points(which):
+    from companion.core.obstacle_map import consistent_for_entry
+
+    pts, frames = flight(sigma_px=0.1, K=60)
+    frames = _with_t_junctions(frames)
+    est = RangeEstimator(CAM, EstimatorConfig(filter=which), ekf_anchored=AnchoredEKFConfig(sigma_px=0.5),
+                         ekf_landmark=LandmarkEKFConfig(sigma_px=0.5, sigma_v=0.01, sigma_w=1e-4))
+    for f in frames:
+        out = est.process(*f)
+    assert out.mean_nis is not None and out.mean_nis.shape == out.ids.shape
+    junction = out.ids >= 1000
+    real = ~junction & out.valid
+    assert junction.sum() >= 6 and real.sum() > 20
+    assert np.nanmedian(out.mean_nis[junction]) > 10 * np.nanmedian(out.mean_nis[real])
+    ok = consistent_for_entry(out.mean_nis, out.converged & out.valid, 10.0)
+    assert ok[real].mean() > 0.9  # the map keeps the points ...
+    assert ok[junction].mean() < 0.3  # ... and refuses most junctions

@@ -373,3 +373,20 @@ def test_remembered_point_with_too_uncertain_a_bearing_is_dropped_not_spread():
     assert np.flatnonzero(keep.state == SectorState.OBSTACLE).tolist() == [0, 1, 2, 36, 70, 71]
     with pytest.raises(ConfigError, match="remembered_drop_spread_deg"):
         SectorConfig(remembered_drop_spread_deg=0.0)
+
+
+def test_map_entry_needs_a_nis_near_the_frames_median():
+    from companion.core.obstacle_map import consistent_for_entry
+
+    rng = np.random.default_rng(3)
+    nis = np.r_[rng.uniform(0.05, 0.2, 30), 2.9, 3.9, np.nan]  # 30 well-explained points, two occlusion-edge tracks, one without updates
+    conv = np.ones(nis.size, bool)
+    ok = consistent_for_entry(nis, conv, 10.0)
+    assert ok[:30].all() and not ok[30] and not ok[31] and not ok[32]
+    # relative: the same scene with a 3× larger real pixel noise (NIS 9× larger) gives the same verdicts
+    np.testing.assert_array_equal(consistent_for_entry(9.0 * nis, conv, 10.0), ok)
+    # off, or too few converged landmarks to form a median: no gate
+    assert consistent_for_entry(nis, conv, 0.0).all()
+    assert consistent_for_entry(nis[:5], conv[:5], 10.0).all()
+    with pytest.raises(ConfigError, match="max_entry_nis_ratio"):
+        MapConfig(max_entry_nis_ratio=-1.0)

@@ -164,10 +164,10 @@ def main(argv=None) -> int:
     p.add_argument("--minutes", type=float, default=30.0, help="simulated hover, minutes (default 30)")
     p.add_argument("--fps", type=float, default=5.0, help="frames per simulated second (default 5)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
-    p = sub.add_parser("map_tradeoff", help="the map's two publishing trade-offs (support_radius_rel, remembered_drop_spread_deg) in SITL",
-                       description="quad_wall_hover and quad_slalom in lockstep SITL (2 seeds each) with configs/companion.toml "
-                                   "as shipped and with one of [map] support_radius_rel = 0.15 or [sectors] "
-                                   "remembered_drop_spread_deg = 5: remembered share, false obstacles, detection (DESIGN §7)")
+    p = sub.add_parser("map_tradeoff", help="the map's publishing settings (support_radius_rel, max_entry_nis_ratio, remembered_spread_k, remembered_drop_spread_deg) in SITL",
+                       description="quad_wall_hover, quad_slalom and quad_corner in lockstep SITL (2 seeds each) with "
+                                   "configs/companion.toml as shipped and with one map setting changed at a time: remembered "
+                                   "share, false obstacles, detection (DESIGN §7)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
     p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")
     p.add_argument("--repeats", type=int, default=50, help="repeats per measurement; the median is reported")

@@ -90,6 +90,7 @@ class RangeOutput:
     retired_ids: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))  # diverged this frame: end their tracks
     n_looming: int = 0  # looming (scale) updates accepted in this frame (running + pending filters)
     looming_reasons: dict = dataclasses.field(default_factory=dict)  # reason name -> count of looming measurements not applied
+    mean_nis: np.ndarray | None = None  # (N,) each filter's running mean NIS (consistency with a static point), None = not computed
 
 
 class _Pending:
@@ -419,8 +420,11 @@ class RangeEstimator:
             ids = e.ids
             p_world = e.p_cam @ R.T + p
             rng, rsig, conv, valid = e.range, e.range_sigma, e.converged, e.valid
+        mean_nis = None
+        if len(self.ekf.ids) == len(ids) and np.array_equal(self.ekf.ids, ids):
+            mean_nis = np.where(self.ekf.nis_count > 0, self.ekf.nis_avg, np.nan)
         return RangeOutput(
-            t=t, ids=ids, p_world=p_world, range=rng, range_sigma=rsig, converged=conv, valid=valid,
+            t=t, ids=ids, p_world=p_world, range=rng, range_sigma=rsig, converged=conv, valid=valid, mean_nis=mean_nis,
             n_pending=len(self.pending), n_initialized_tri=n_tri, n_initialized_prior=n_prior,
             n_rejected=n_rej, tri_reasons=reasons, retired_ids=self._retired_now,
         )

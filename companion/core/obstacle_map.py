@@ -27,7 +27,10 @@ line of sight).  With u the unit vector from the vehicle to the point,
 
 P the point's world covariance when it was last observed.  A landmark's covariance at entry is that
 of its filter: σ_range² along the line of sight and (r · σ_bearing)² across it
-(:func:`landmark_covariance`).
+(:func:`landmark_covariance`).  Only landmarks their filter explains as static points enter
+(:func:`consistent_for_entry`: mean NIS within ``max_entry_nis_ratio`` × the frame's median); a
+remembered point is published only with ``min_support`` map points within max(``support_radius_m``,
+``support_radius_rel`` × its distance).
 
 Retention (seed 003 §3.6, DESIGN §7)
 ------------------------------------
@@ -69,6 +72,7 @@ class MapConfig:
     max_age_s: float = 20.0  # points not observed for this long are dropped, s
     min_score: float = -0.75  # usage score s = (o − 0.5u)/(1 + o) below this drops a point
     max_rel_sigma: float = 0.15  # a converged landmark enters the map only when its σ/range is at most this
+    max_entry_nis_ratio: float = 0.0  # ... and its filter's mean NIS is at most this many times the median over the converged landmarks of the frame (occlusion-edge mismatches sit far above the points their filters explain; relative, so it follows the camera's real pixel noise); 0 = off
     position_drift_mps: float = 0.02  # growth of the vehicle's position error relative to a remembered point, m per s
     position_drift_max_m: float = 1.5  # ... bounded by this (the correlated GPS error does not grow without bound), m
     heading_drift_deg_s: float = 0.05  # heading drift since a point was last observed, degrees per s
@@ -87,10 +91,25 @@ class MapConfig:
                 f"min_support must be an integer >= 1, got {self.min_support!r}")
         for name in ("radius_m", "max_age_s", "max_rel_sigma", "reobserve_radius_px", "gate_k", "support_radius_m"):
             require_finite(name, getattr(self, name), positive=True)
-        for name in ("position_drift_mps", "position_drift_max_m", "heading_drift_deg_s", "image_margin_px", "support_radius_rel"):
+        for name in ("position_drift_mps", "position_drift_max_m", "heading_drift_deg_s", "image_margin_px", "support_radius_rel",
+                     "max_entry_nis_ratio"):
             require_finite(name, getattr(self, name), nonnegative=True)
         require_finite("min_score", self.min_score)
         require(-2.0 < self.min_score < 1.0, f"min_score must be in (-2, 1) (s lies in (-inf, 1)), got {self.min_score}")
+
+
+def consistent_for_entry(mean_nis: np.ndarray, converged: np.ndarray, ratio: float, min_count: int = 10) -> np.ndarray:
+    """(N,) bool: landmarks whose filter's mean NIS is at most ``ratio`` × the median mean NIS of the
+    ``converged`` ones (DESIGN §7: a static point is well explained by its filter; a track at an
+    occlusion edge mixes two depths and is not).  All True when ``ratio`` is 0 or fewer than
+    ``min_count`` converged landmarks have a NIS (no reference); NaN (no update yet) is False."""
+    nis = np.asarray(mean_nis, float).reshape(-1)
+    ok = np.ones(nis.shape, bool)
+    ref = nis[np.asarray(converged, bool).reshape(-1) & np.isfinite(nis)]
+    if ratio <= 0 or ref.size < min_count:
+        return ok
+    with np.errstate(invalid="ignore"):
+        return nis <= ratio * float(np.median(ref))
 
 
 def usage_score(o: np.ndarray, u: np.ndarray) -> np.ndarray:

@@ -87,7 +87,8 @@ class SectorConfig:
     nearest_count: int = 5  # nearest obstacles (one per sector) kept for OBSTACLE_DISTANCE_3D
     flight_path_min_speed_mps: float = 1.0  # below this speed the band is centred on the horizontal
     flight_path_max_angle_deg: float = 30.0  # the band centre climbs or descends at most this steeply
-    remembered_max_spread_deg: float = 15.0  # a remembered point is spread over bearings ± k·σ_tangential/range, at most this far, degrees
+    remembered_spread_k: float = 2.0  # a remembered point is spread over bearings ± remembered_spread_k·σ_tangential/range ...
+    remembered_max_spread_deg: float = 15.0  # ... at most this far, degrees
     remembered_drop_spread_deg: float = 90.0  # a remembered point whose k·σ_tangential/range exceeds this is not published (its bearing is too uncertain to place it), degrees
     infer_max_gap_sectors: int = 1  # unknown gaps up to this many sectors between two consistent obstacle sectors are inferred obstacles (0 = off)
     infer_rel_tol: float = 0.15  # the two sides are consistent when their ranges differ by at most this fraction of the nearer
@@ -118,6 +119,7 @@ class SectorConfig:
         require(self.flight_path_max_angle_deg < 90, "flight_path_max_angle_deg must be < 90")
         require_finite("remembered_max_spread_deg", self.remembered_max_spread_deg, nonnegative=True)
         require(self.remembered_max_spread_deg <= 90, "remembered_max_spread_deg must be <= 90")
+        require_finite("remembered_spread_k", self.remembered_spread_k, nonnegative=True)
         require_finite("remembered_drop_spread_deg", self.remembered_drop_spread_deg, positive=True)
         require(self.remembered_drop_spread_deg <= 90, "remembered_drop_spread_deg must be <= 90")
         require(isinstance(self.infer_max_gap_sectors, int) and not isinstance(self.infer_max_gap_sectors, bool)
@@ -515,12 +517,12 @@ def compute_sectors(
 
 
 def _spread_remembered(p, p_level, sig, conv, usable, mem, r, mem_tan, n_live, config: SectorConfig, R_lb):
-    """Copies of each remembered point at bearings covering β ± k·σ_t/d (at most the configured
-    spread), turned about the levelled vertical through the vehicle (range and height unchanged).
+    """Copies of each remembered point at bearings covering β ± k·σ_t/d (k = ``remembered_spread_k``,
+    at most ``remembered_max_spread_deg``), turned about the levelled vertical through the vehicle (range and height unchanged).
     A point with k·σ_t/d beyond ``remembered_drop_spread_deg`` is marked unusable: spread over that
     many sectors it would claim obstacles in the clear sectors beside a thin one (DESIGN §7)."""
     d_h = np.hypot(p_level[n_live:, 0], p_level[n_live:, 1])
-    w_raw = config.sigma_k * mem_tan / np.maximum(d_h, 1e-6)
+    w_raw = config.remembered_spread_k * mem_tan / np.maximum(d_h, 1e-6)
     usable = usable.copy()
     usable[n_live:] &= w_raw <= math.radians(config.remembered_drop_spread_deg)  # bearing too uncertain: not published
     w = np.minimum(w_raw, math.radians(config.remembered_max_spread_deg))
