@@ -232,6 +232,99 @@ def test_inference_never_produces_clear_and_only_adds_obstacles():
     assert changed > 0  # the property was exercised
 
 
+def _wall_points(bearings_deg, lateral_m=5.0):
+    """Points of a straight wall parallel to the track, ``lateral_m`` to the right, at these bearings."""
+    b = np.radians(np.asarray(bearings_deg, float))
+    r = lateral_m / np.sin(b)
+    return np.column_stack([r * np.cos(b), r * np.sin(b), np.zeros(len(b))])
+
+
+def test_narrow_gap_inference_follows_a_wall_beside_the_vehicle_conservatively():
+    """A wall 5 m to the right seen (remembered) only at 50° and 70°: the unknown sectors between
+    (55°, 60°, 65°) are filled along the straight line between the two points, each no farther than
+    the wall really is anywhere in its sector (exact geometry) and within 15 % of it; the ranges on
+    the two sides differ by 22 %, so the same-range rule alone leaves the gap unknown."""
+    p = _wall_points([50.0, 70.0])
+    kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=p, remembered_sigma=[0.0, 0.0], remembered_tangential_sigma=[0.0, 0.0])
+    base = SectorConfig(infer_max_gap_sectors=1, sigma_k=0.0)
+    off = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, base, **kw)
+    assert np.all(off.distances_cm[11:14] == UNKNOWN_CM)
+    on = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi,
+                         SectorConfig(infer_max_gap_sectors=1, sigma_k=0.0, infer_narrow_gap_m=3.0, infer_narrow_max_sectors=4), **kw)
+    assert on.inferred.tolist() == [i in (11, 12, 13) for i in range(SECTOR_COUNT)]
+    assert np.all(on.state[11:14] == SectorState.OBSTACLE)
+    for i in (11, 12, 13):
+        edges = np.radians([i * 5.0 - 2.5, i * 5.0 + 2.5])
+        nearest_true = float(np.min(5.0 / np.sin(edges)))  # the wall's nearest point within the sector
+        assert on.range_m[i] <= nearest_true + 1e-6
+        assert on.range_m[i] >= 0.85 * nearest_true
+    # the measured sides are untouched, and the result survives the re-binning at sending time
+    assert np.array_equal(on.distances_cm[[10, 14]], off.distances_cm[[10, 14]])
+    assert np.array_equal(on.rotated(0.0)[11:14], on.distances_cm[11:14])
+    # two points farther apart than infer_narrow_gap_m: no fill
+    far = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi,
+                          SectorConfig(sigma_k=0.0, infer_narrow_gap_m=2.0, infer_narrow_max_sectors=4), **kw)
+    assert np.hypot(*(p[1, :2] - p[0, :2])) > 2.0 and np.all(far.distances_cm[11:14] == UNKNOWN_CM)
+    # a gap wider than infer_narrow_max_sectors: no fill
+    narrow = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi,
+                             SectorConfig(sigma_k=0.0, infer_narrow_gap_m=3.0, infer_narrow_max_sectors=2), **kw)
+    assert np.all(narrow.distances_cm[11:14] == UNKNOWN_CM)
+
+
+def test_narrow_gap_inference_does_not_chain_on_inferred_sectors():
+    # points at 0°, 10° (same range: sector 1 inferred by the same-range rule) and 30°: the 15–25° gap is
+    # bounded by the inferred sector 1 on no side, by the measured 10° and 30° sides: fills only if
+    # those two are close enough, never from sector 1
+    p = np.array([[10.0, 0.0, 0.0], [10.0 * math.cos(math.radians(10)), 10.0 * math.sin(math.radians(10)), 0.0],
+                  [10.0 * math.cos(math.radians(30)), 10.0 * math.sin(math.radians(30)), 0.0]])
+    kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=p, remembered_sigma=[0.0] * 3, remembered_tangential_sigma=[0.0] * 3)
+    s = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi,
+                        SectorConfig(sigma_k=0.0, infer_narrow_gap_m=3.0, infer_narrow_max_sectors=4), **kw)
+    assert s.inferred[1] and not s.inferred[3:6].any()  # 10°→30° chord is 3.47 m > 3 m
+    s2 = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi,
+                         SectorConfig(sigma_k=0.0, infer_narrow_gap_m=3.6, infer_narrow_max_sectors=4), **kw)
+    assert s2.inferred[3:6].all() and np.all(s2.range_m[3:6] <= 10.0 + 1e-9)
+
+
+def test_narrow_gap_inference_never_produces_clear_and_only_adds_obstacles():
+    """Seeded Monte Carlo as for the same-range rule: with the narrow-gap rule on, only unknown →
+    obstacle changes, all marked inferred, clear sectors unchanged."""
+    rng = np.random.default_rng(12)
+    cfg_on = SectorConfig(infer_max_gap_sectors=0, infer_narrow_gap_m=3.0, infer_narrow_max_sectors=6)
+    cfg_off = SectorConfig(infer_max_gap_sectors=0)
+    changed = 0
+    for _ in range(300):
+        n = int(rng.integers(0, 40))
+        b = rng.uniform(-math.pi, math.pi, n)
+        r = rng.uniform(2.0, 80.0, n)
+        p = np.column_stack([r * np.cos(b), r * np.sin(b), rng.normal(0, 1.0, n)])
+        sig = rng.uniform(0.05, 2.0, n)
+        conv = rng.random(n) < 0.8
+        m = int(rng.integers(0, 12))
+        bm = rng.uniform(-math.pi, math.pi, m)
+        rm = rng.uniform(2.0, 12.0, m)
+        pm = np.column_stack([rm * np.cos(bm), rm * np.sin(bm), np.zeros(m)])
+        kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=pm, remembered_sigma=np.full(m, 0.3),
+                  remembered_tangential_sigma=rng.uniform(0, 1, m))
+        a = compute_sectors(p, sig, conv, np.ones(n, bool), HFOV, 0.0, cfg_on, **kw)
+        o = compute_sectors(p, sig, conv, np.ones(n, bool), HFOV, 0.0, cfg_off, **kw)
+        diff = a.distances_cm != o.distances_cm
+        assert np.all(o.state[diff] == SectorState.UNKNOWN) and np.all(a.state[diff] == SectorState.OBSTACLE)
+        assert np.array_equal(diff, a.inferred)
+        assert np.array_equal(a.state == SectorState.CLEAR, o.state == SectorState.CLEAR)
+        changed += int(diff.sum())
+    assert changed > 0
+
+
+def test_narrow_gap_config_is_validated():
+    with pytest.raises(ConfigError):
+        SectorConfig(infer_narrow_gap_m=-1.0)
+    with pytest.raises(ConfigError):
+        SectorConfig(infer_narrow_max_sectors=13)
+    with pytest.raises(ConfigError):
+        SectorConfig(infer_narrow_max_sectors=2.0)
+
+
 def test_landmark_covariance_is_range_along_the_ray_and_bearing_across():
     P = landmark_covariance(np.array([[10.0, 0.0, 0.0]]), np.zeros(3), np.array([0.5]), 0.01)
     np.testing.assert_allclose(P[0], np.diag([0.25, 0.01, 0.01]), atol=1e-12)

@@ -12,7 +12,10 @@ What each setting of ``configs/companion.toml`` buys and costs, on the flights w
   bearing: 2 covers more of its bearing uncertainty and claims more clear sectors beside thin
   obstacles and building edges;
 * ``[sectors] remembered_drop_spread_deg`` (shipped 90 = off) — withhold remembered points whose
-  bearing became too uncertain instead of spreading them.
+  bearing became too uncertain instead of spreading them;
+* ``[sectors] infer_narrow_gap_m`` (shipped 4) — an unknown gap between two obstacle sectors whose
+  points lie at most this far apart is filled along the line between them (a wall beside the vehicle
+  whose sparse corners left sectors empty); 0 leaves only the same-range rule.
 
 Each variant is the shipped configuration with one key changed; figures are the scorer's
 (:mod:`flightsim.score`), pooled over the seeds.
@@ -38,6 +41,7 @@ VARIANTS: dict[str, tuple[str, str, str] | None] = {
     "max_entry_nis_ratio = 0": ("map", "max_entry_nis_ratio", "0.0"),
     "remembered_spread_k = 2": ("sectors", "remembered_spread_k", "2.0"),
     "remembered_drop_spread_deg = 5": ("sectors", "remembered_drop_spread_deg", "5.0"),
+    "infer_narrow_gap_m = 0": ("sectors", "infer_narrow_gap_m", "0.0"),
 }
 
 

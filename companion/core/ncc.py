@@ -436,85 +436,33 @@ def match_templates(
     if nr == 0:
         return NCCResult(out_pts, score, np.zeros(n, bool), reason)
 
-    smax = int(s[run].max())
-    m = 2 * smax + 1
-    # Score stack: cell (k, i, j) is the score of template centre origin_k + (j, i); cells not
-    # searched hold the sentinel, and the extra row m of every block is all sentinel.
-    stack = np.full((nr, m + 1, m), _EMPTY, np.float32)
-    origin = c[run] - smax
-    x0, y0 = lo[run, 0], lo[run, 1]
-    x1, y1 = hi[run, 0], hi[run, 1]
-    ox, oy = x0 - origin[:, 0], y0 - origin[:, 1]
-    sr = s[run]
-    unclipped = (x1 - x0 == 2 * sr) & (y1 - y0 == 2 * sr)
     # Small windows are scored for all points at once in numpy (cheaper than one OpenCV call
     # per point below ~4 px); a batch needs its common window (its largest radius) inside the image.
+    sr = s[run]
+    cr = c[run]
     batch = np.zeros(nr, bool)
-    sb = int(min(config.batch_search_half, smax))
+    sb = int(min(config.batch_search_half, sr.max()))
     if sb >= 1:
-        cr = c[run]
+        unclipped = (hi[run, 0] - lo[run, 0] == 2 * sr) & (hi[run, 1] - lo[run, 1] == 2 * sr)
         fits = (cr[:, 0] - sb >= h) & (cr[:, 0] + sb <= W - 1 - h) & (cr[:, 1] - sb >= h) & (cr[:, 1] + sb <= H - 1 - h)
         batch = unclipped & (sr <= sb) & fits
-        if np.count_nonzero(batch) >= _MIN_BATCH:
-            kb = np.flatnonzero(batch)
-            sb = int(sr[kb].max())
-            res = _ncc_batch(img_cur, templates[run[kb], 1:-1, 1:-1], cr[kb], sb, h)
-            rb = 2 * sb + 1
-            if np.any(sr[kb] < sb):  # searched beyond a point's own radius: hide those cells
-                ii = np.abs(np.arange(rb) - sb)
-                outside = (ii[None, :, None] > sr[kb, None, None]) | (ii[None, None, :] > sr[kb, None, None])
-                res[outside] = _EMPTY
-            o = smax - sb
-            stack[kb, o : o + rb, o : o + rb] = res
-        else:
+        if np.count_nonzero(batch) < _MIN_BATCH:
             batch[:] = False
-    whole = unclipped & (sr == smax)  # result fills the stack block: written in place
-    tm = cv2.matchTemplate
-    method = cv2.TM_CCOEFF_NORMED
-    tpl = templates[:, 1:-1, 1:-1]
-    loop = np.flatnonzero(~batch)
-    for k, i, ya, yb, xa, xb, inplace in zip(
-        loop.tolist(), run[loop].tolist(), (y0[loop] - h).tolist(), (y1[loop] + h + 1).tolist(),
-        (x0[loop] - h).tolist(), (x1[loop] + h + 1).tolist(), whole[loop].tolist(),
-    ):
-        if inplace:
-            tm(img_cur[ya:yb, xa:xb], tpl[i], method, stack[k, :m])
-        else:
-            stack[k, oy[k] : oy[k] + yb - ya - 2 * h, ox[k] : ox[k] + xb - xa - 2 * h] = tm(img_cur[ya:yb, xa:xb], tpl[i], method)
-
-    flat_stack = stack.reshape(nr, -1)  # cells m·m … of each row are the sentinel row
-    idx = np.argmax(flat_stack, axis=1)
-    bi, bj = np.divmod(idx, m)
-    kk = np.arange(nr)
-    best = flat_stack[kk, idx].astype(np.float64)
-    best = np.where(np.isfinite(best), best, -1.0)
-
-    # Neighbours of the peak; the sentinel marks cells outside the searched area.
-    sent = m * m
-    left = flat_stack[kk, np.where(bj > 0, idx - 1, sent)].astype(np.float64)
-    right = flat_stack[kk, np.where(bj < m - 1, idx + 1, sent)].astype(np.float64)
-    up = flat_stack[kk, np.where(bi > 0, idx - m, sent)].astype(np.float64)
-    down = flat_stack[kk, np.where(bi < m - 1, idx + m, sent)].astype(np.float64)
-    edge_l, edge_r, edge_u, edge_d = (v <= _EMPTY + 0.5 for v in (left, right, up, down))
-    leaving = (
-        (edge_l & (x0 > c[run, 0] - s[run]))
-        | (edge_r & (x1 < c[run, 0] + s[run]))
-        | (edge_u & (y0 > c[run, 1] - s[run]))
-        | (edge_d & (y1 < c[run, 1] + s[run]))
-    )
-    at_edge = edge_l | edge_r | edge_u | edge_d
-    ambiguous = _ambiguous(flat_stack, m, bi, bj, best, config)
-
+    # Each group gets a score stack sized by its own largest window (a few wide windows must not
+    # make the many small ones pay for a large stack).
+    found = np.zeros((nr, 2))
     r = np.zeros(nr, np.int8)
-    r[leaving] = OUT_OF_IMAGE
-    r[(r == OK) & (best < config.k_min)] = LOW_SCORE
-    r[(r == OK) & ambiguous] = AMBIGUOUS
-    r[(r == OK) & at_edge] = PEAK_AT_EDGE
+    best = np.zeros(nr)
+    nbrs = np.zeros((4, nr))
+    for grp in (np.flatnonzero(batch), np.flatnonzero(~batch)):
+        if len(grp):
+            _score_group(grp, batch[grp[0]], run, templates, img_cur, c, s, lo, hi, h, config, found, r, best, nbrs)
     reason[run] = r
     score[run] = best
-
+    left, right, up, down = nbrs
     good = r == OK
-    found = np.stack([origin[:, 0] + bj, origin[:, 1] + bi], 1) + frac[run]
+    peak = found  # integer template centres of the best scores
+    found = peak + frac[run]
     if config.subpixel and np.any(good):
         # Parabola through the peak and its neighbours: the answer for subpixel_method
         # "parabola" and the fallback where Lucas–Kanade fails.
@@ -530,11 +478,83 @@ def match_templates(
                 lk, lk_ok = _lk_refine_frames(img_prev, img_cur, pts_prev[run[g]], found[g], h, config.lk_iterations)
                 refined[lk_ok] = lk[lk_ok]
             else:
-                peak = np.stack([origin[g, 0] + bj[g], origin[g, 1] + bi[g]], 1)
-                refined = found[g] + _lk_refine(templates[run[g]], img_cur, peak, h, config.lk_iterations)
+                refined = found[g] + _lk_refine(templates[run[g]], img_cur, peak[g].astype(np.int64), h, config.lk_iterations)
         found[g] = refined
     out_pts[run[good]] = found[good]
     return NCCResult(out_pts, score, reason == OK, reason)
+
+
+def _score_group(grp, as_batch, run, templates, img_cur, c, s, lo, hi, h, config, found, r, best, nbrs) -> None:
+    """Score the search windows of points ``run[grp]`` (one stack sized by the group's largest
+    window), find each best cell and judge it; writes the group's rows of ``found`` (integer
+    template centre of the best score), ``r`` (verdict), ``best`` (score) and ``nbrs`` (the four
+    neighbours' scores: left, right, up, down; the sentinel where not searched)."""
+    k_run = run[grp]
+    ng = len(grp)
+    sr = s[k_run]
+    smax = int(sr.max())
+    m = 2 * smax + 1
+    # Score stack: cell (k, i, j) is the score of template centre origin_k + (j, i); cells not
+    # searched hold the sentinel, and the extra row m of every block is all sentinel.
+    stack = np.full((ng, m + 1, m), _EMPTY, np.float32)
+    origin = c[k_run] - smax
+    x0, y0 = lo[k_run, 0], lo[k_run, 1]
+    x1, y1 = hi[k_run, 0], hi[k_run, 1]
+    if as_batch:  # every window inside the image and unclipped
+        res = _ncc_batch(img_cur, templates[k_run, 1:-1, 1:-1], c[k_run], smax, h)
+        if np.any(sr < smax):  # searched beyond a point's own radius: hide those cells
+            ii = np.abs(np.arange(m) - smax)
+            outside = (ii[None, :, None] > sr[:, None, None]) | (ii[None, None, :] > sr[:, None, None])
+            res[outside] = _EMPTY
+        stack[:, :m, :] = res
+    else:
+        ox, oy = x0 - origin[:, 0], y0 - origin[:, 1]
+        whole = (x1 - x0 == 2 * sr) & (y1 - y0 == 2 * sr) & (sr == smax)  # fills the block: written in place
+        tm = cv2.matchTemplate
+        method = cv2.TM_CCOEFF_NORMED
+        tpl = templates[:, 1:-1, 1:-1]
+        for k, i, ya, yb, xa, xb, inplace in zip(
+            range(ng), k_run.tolist(), (y0 - h).tolist(), (y1 + h + 1).tolist(),
+            (x0 - h).tolist(), (x1 + h + 1).tolist(), whole.tolist(),
+        ):
+            if inplace:
+                tm(img_cur[ya:yb, xa:xb], tpl[i], method, stack[k, :m])
+            else:
+                stack[k, oy[k] : oy[k] + yb - ya - 2 * h, ox[k] : ox[k] + xb - xa - 2 * h] = tm(img_cur[ya:yb, xa:xb], tpl[i], method)
+
+    flat_stack = stack.reshape(ng, -1)  # cells m·m … of each row are the sentinel row
+    idx = np.argmax(flat_stack, axis=1)
+    bi, bj = np.divmod(idx, m)
+    kk = np.arange(ng)
+    b = flat_stack[kk, idx].astype(np.float64)
+    b = np.where(np.isfinite(b), b, -1.0)
+
+    # Neighbours of the peak; the sentinel marks cells outside the searched area.
+    sent = m * m
+    left = flat_stack[kk, np.where(bj > 0, idx - 1, sent)].astype(np.float64)
+    right = flat_stack[kk, np.where(bj < m - 1, idx + 1, sent)].astype(np.float64)
+    up = flat_stack[kk, np.where(bi > 0, idx - m, sent)].astype(np.float64)
+    down = flat_stack[kk, np.where(bi < m - 1, idx + m, sent)].astype(np.float64)
+    edge_l, edge_r, edge_u, edge_d = (v <= _EMPTY + 0.5 for v in (left, right, up, down))
+    cx, cy = c[k_run, 0], c[k_run, 1]
+    leaving = (
+        (edge_l & (x0 > cx - sr))
+        | (edge_r & (x1 < cx + sr))
+        | (edge_u & (y0 > cy - sr))
+        | (edge_d & (y1 < cy + sr))
+    )
+    at_edge = edge_l | edge_r | edge_u | edge_d
+    ambiguous = _ambiguous(flat_stack, m, bi, bj, b, config)
+
+    v = np.zeros(ng, np.int8)
+    v[leaving] = OUT_OF_IMAGE
+    v[(v == OK) & (b < config.k_min)] = LOW_SCORE
+    v[(v == OK) & ambiguous] = AMBIGUOUS
+    v[(v == OK) & at_edge] = PEAK_AT_EDGE
+    r[grp] = v
+    best[grp] = b
+    nbrs[:, grp] = (left, right, up, down)
+    found[grp] = np.stack([origin[:, 0] + bj, origin[:, 1] + bi], 1)
 
 
 def template_eigen_ratio(templates: np.ndarray) -> np.ndarray:

@@ -92,6 +92,8 @@ class SectorConfig:
     remembered_drop_spread_deg: float = 90.0  # a remembered point whose k·σ_tangential/range exceeds this is not published (its bearing is too uncertain to place it), degrees
     infer_max_gap_sectors: int = 1  # unknown gaps up to this many sectors between two consistent obstacle sectors are inferred obstacles (0 = off)
     infer_rel_tol: float = 0.15  # the two sides are consistent when their ranges differ by at most this fraction of the nearer
+    infer_narrow_gap_m: float = 0.0  # an unknown gap (up to infer_narrow_max_sectors) between two obstacle sectors whose points lie at most this far apart is filled with the straight line between them (too narrow to fly through); 0 = off
+    infer_narrow_max_sectors: int = 4  # widest such gap, sectors
 
     def __post_init__(self) -> None:
         require_finite("min_distance_m", self.min_distance_m, positive=True)
@@ -125,6 +127,10 @@ class SectorConfig:
         require(isinstance(self.infer_max_gap_sectors, int) and not isinstance(self.infer_max_gap_sectors, bool)
                 and 0 <= self.infer_max_gap_sectors <= 6, f"infer_max_gap_sectors must be an integer in 0..6, got {self.infer_max_gap_sectors!r}")
         require_finite("infer_rel_tol", self.infer_rel_tol, nonnegative=True)
+        require_finite("infer_narrow_gap_m", self.infer_narrow_gap_m, nonnegative=True)
+        require(isinstance(self.infer_narrow_max_sectors, int) and not isinstance(self.infer_narrow_max_sectors, bool)
+                and 0 <= self.infer_narrow_max_sectors <= 12,
+                f"infer_narrow_max_sectors must be an integer in 0..12, got {self.infer_narrow_max_sectors!r}")
 
     @property
     def min_distance_cm(self) -> int:
@@ -350,7 +356,11 @@ def compute_sectors(
     After the rules above, an unknown gap of at most ``infer_max_gap_sectors`` between two obstacle
     sectors whose ranges agree within ``infer_rel_tol`` is filled with the nearer of the two and
     flagged in :attr:`Sectors.inferred` (DESIGN §7: inference only ever adds an obstacle, never
-    "clear").
+    "clear").  Then an unknown gap of at most ``infer_narrow_max_sectors`` whose two sides' points lie
+    at most ``infer_narrow_gap_m`` apart (levelled horizontal plane) is filled with the straight line
+    between the two points, each sector at the line's nearest distance over its bearings: a surface
+    that continues between them (a wall whose texture left no point there), or a gap too narrow to fly
+    through; either way an obstacle, never    "clear").
 
     Bad points (NaN/inf, negative σ, zero range) are ignored and counted, never raised on.
     """
@@ -452,12 +462,14 @@ def compute_sectors(
     if config.touching_distance_m > 0:
         pt_cm = np.where(d_h <= config.touching_distance_m, 0, pt_cm)
     obs_sec = np.flatnonzero(has_obs)
+    xy_m = np.full((SECTOR_COUNT, 2), np.nan)  # levelled horizontal position of each obstacle sector's point
     if obs_sec.size:
         pts = pick[obs_sec]
         dist[obs_sec] = pt_cm[pts]
         state[obs_sec] = SectorState.OBSTACLE
         range_m[obs_sec] = d_pub[pts]
         sigma_m[obs_sec] = sig[pts]
+        xy_m[obs_sec] = d_pub[pts, None] * np.stack([np.cos(bearing[pts]), np.sin(bearing[pts])], 1)
 
     clear_sec = fully & (n_obs == 0) & (n_veto == 0) & (n_clr >= config.min_points_clear)
     dist[clear_sec] = max_cm + 1
@@ -465,6 +477,7 @@ def compute_sectors(
     n_mem = np.bincount(idx[obs_pts & mem], minlength=SECTOR_COUNT)
 
     inferred = _infer_between(state, dist, range_m, sigma_m, config)
+    inferred |= _infer_narrow(state, dist, range_m, sigma_m, xy_m, config, ~inferred)
 
     # ---- forward window (DISTANCE_SENSOR) ------------------------------------------------------
     centres = np.arange(SECTOR_COUNT) * SECTOR_DEG
@@ -575,6 +588,66 @@ def _infer_between(state, dist, range_m, sigma_m, config: SectorConfig) -> np.nd
             dist[fill] = min(dist[i], dist[jr])
             range_m[fill] = range_m[near]
             sigma_m[fill] = max(sigma_m[i], sigma_m[jr])
+            inferred[fill] = True
+    return inferred
+
+
+def _line_distance(a: np.ndarray, b: np.ndarray, bearing: np.ndarray) -> np.ndarray:
+    """Distance along rays at ``bearing`` (K,) rad from the origin to the line through points ``a``
+    and ``b`` (2,) (horizontal plane, x forward, y right): t = (a × u)/(e × u), u = b − a; inf where the
+    ray is parallel to the line or meets it behind the origin."""
+    u = b - a
+    e = np.stack([np.cos(bearing), np.sin(bearing)], 1)
+    den = e[:, 0] * u[1] - e[:, 1] * u[0]
+    num = a[0] * u[1] - a[1] * u[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = num / den
+    return np.where(np.isfinite(t) & (t > 0), t, np.inf)
+
+
+def _infer_narrow(state, dist, range_m, sigma_m, xy_m, config: SectorConfig, measured: np.ndarray) -> np.ndarray:
+    """Fill unknown gaps of up to ``infer_narrow_max_sectors`` between two obstacle sectors whose
+    points (``xy_m`` (72, 2), levelled horizontal plane) lie at most ``infer_narrow_gap_m`` apart with
+    the segment between them (in place); returns the mask of sectors filled.  Each gap sector takes
+    the segment's nearest distance over its ±half-sector bearings (the ends of its span or the foot
+    of the perpendicular): conservative.  Both sides must be ``measured`` (72,) obstacle sectors (not
+    inferred ones: no chains).  Only unknown sectors change: inference only adds obstacles."""
+    inferred = np.zeros(SECTOR_COUNT, bool)
+    G, gap_m = config.infer_narrow_max_sectors, config.infer_narrow_gap_m
+    if G == 0 or gap_m <= 0:
+        return inferred
+    half = math.radians(SECTOR_DEG) / 2
+    obs = (state == SectorState.OBSTACLE) & measured
+    for gap in range(1, G + 1):
+        unk = state == SectorState.UNKNOWN
+        between = np.ones(SECTOR_COUNT, bool)
+        for a in range(1, gap + 1):
+            between &= np.roll(unk, -a)
+        cand = np.flatnonzero(obs & np.roll(obs, -(gap + 1)) & between)
+        for i in cand:
+            j = (i + gap + 1) % SECTOR_COUNT
+            a, b = xy_m[i], xy_m[j]
+            if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))) or np.hypot(*(b - a)) > gap_m:
+                continue
+            fill = (i + np.arange(1, gap + 1)) % SECTOR_COUNT
+            centre = np.radians(fill * SECTOR_DEG)
+            t = np.minimum(_line_distance(a, b, centre - half), _line_distance(a, b, centre + half))
+            # the perpendicular foot, where it falls inside a sector's span, is the nearest point
+            u = (b - a) / max(float(np.hypot(*(b - a))), 1e-12)
+            foot = a - np.dot(a, u) * u
+            foot_b = math.atan2(foot[1], foot[0])
+            d_foot = float(np.hypot(*foot))
+            inside = np.abs((foot_b - centre + math.pi) % (2 * math.pi) - math.pi) <= half
+            t = np.where(inside, np.minimum(t, d_foot), t)
+            t = np.minimum(t, max(range_m[i], range_m[j]))  # never farther than the farther side
+            if not np.all(np.isfinite(t)):
+                continue
+            t = np.clip(t, config.min_distance_m, config.max_distance_m)
+            state[fill] = SectorState.OBSTACLE
+            dist[fill] = np.clip(np.rint(t * 100).astype(np.int64), config.min_distance_cm, config.max_distance_cm)
+            range_m[fill] = t
+            sigma_m[fill] = max(sigma_m[i], sigma_m[j])
+            xy_m[fill] = t[:, None] * np.stack([np.cos(centre), np.sin(centre)], 1)
             inferred[fill] = True
     return inferred
 
