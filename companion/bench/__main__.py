@@ -164,7 +164,7 @@ def main(argv=None) -> int:
     p.add_argument("--minutes", type=float, default=30.0, help="simulated hover, minutes (default 30)")
     p.add_argument("--fps", type=float, default=5.0, help="frames per simulated second (default 5)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
-    p = sub.add_parser("map_tradeoff", help="the map's publishing settings (support_radius_rel, max_entry_nis_ratio, remembered_spread_k, remembered_drop_spread_deg) in SITL",
+    p = sub.add_parser("map_tradeoff", help="the map's publishing settings (support_radius_rel, max_entry_nis_ratio, remembered_spread_k, remembered_drop_spread_deg, infer_narrow_gap_m) in SITL",
                        description="quad_wall_hover, quad_slalom and quad_corner in lockstep SITL (2 seeds each) with "
                                    "configs/companion.toml as shipped and with one map setting changed at a time: remembered "
                                    "share, false obstacles, detection (DESIGN §7)")
