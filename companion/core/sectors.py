@@ -618,37 +618,39 @@ def _infer_narrow(state, dist, range_m, sigma_m, xy_m, config: SectorConfig, mea
         return inferred
     half = math.radians(SECTOR_DEG) / 2
     obs = (state == SectorState.OBSTACLE) & measured
-    for gap in range(1, G + 1):
-        unk = state == SectorState.UNKNOWN
-        between = np.ones(SECTOR_COUNT, bool)
-        for a in range(1, gap + 1):
-            between &= np.roll(unk, -a)
-        cand = np.flatnonzero(obs & np.roll(obs, -(gap + 1)) & between)
-        for i in cand:
-            j = (i + gap + 1) % SECTOR_COUNT
-            a, b = xy_m[i], xy_m[j]
-            if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))) or np.hypot(*(b - a)) > gap_m:
-                continue
-            fill = (i + np.arange(1, gap + 1)) % SECTOR_COUNT
-            centre = np.radians(fill * SECTOR_DEG)
-            t = np.minimum(_line_distance(a, b, centre - half), _line_distance(a, b, centre + half))
-            # the perpendicular foot, where it falls inside a sector's span, is the nearest point
-            u = (b - a) / max(float(np.hypot(*(b - a))), 1e-12)
-            foot = a - np.dot(a, u) * u
-            foot_b = math.atan2(foot[1], foot[0])
-            d_foot = float(np.hypot(*foot))
-            inside = np.abs((foot_b - centre + math.pi) % (2 * math.pi) - math.pi) <= half
-            t = np.where(inside, np.minimum(t, d_foot), t)
-            t = np.minimum(t, max(range_m[i], range_m[j]))  # never farther than the farther side
-            if not np.all(np.isfinite(t)):
-                continue
-            t = np.clip(t, config.min_distance_m, config.max_distance_m)
-            state[fill] = SectorState.OBSTACLE
-            dist[fill] = np.clip(np.rint(t * 100).astype(np.int64), config.min_distance_cm, config.max_distance_cm)
-            range_m[fill] = t
-            sigma_m[fill] = max(sigma_m[i], sigma_m[j])
-            xy_m[fill] = t[:, None] * np.stack([np.cos(centre), np.sin(centre)], 1)
-            inferred[fill] = True
+    known = np.flatnonzero(state != SectorState.UNKNOWN)
+    if known.size < 2 or not np.any(obs):
+        return inferred
+    # maximal unknown runs on the ring, each between two known sectors (disjoint: one pass suffices)
+    nxt = np.roll(known, -1)
+    gaps = (nxt - known - 1) % SECTOR_COUNT
+    sel = (gaps >= 1) & (gaps <= G) & obs[known] & obs[nxt]
+    if not np.any(sel):
+        return inferred
+    chord = np.hypot(*(xy_m[nxt[sel]] - xy_m[known[sel]]).T)
+    near = chord <= gap_m  # NaN (no point) compares False
+    for i, j, gap in zip(known[sel][near], nxt[sel][near], gaps[sel][near]):
+        a, b = xy_m[i], xy_m[j]
+        fill = (i + np.arange(1, gap + 1)) % SECTOR_COUNT
+        centre = np.radians(fill * SECTOR_DEG)
+        t = np.minimum(_line_distance(a, b, centre - half), _line_distance(a, b, centre + half))
+        # the perpendicular foot, where it falls inside a sector's span, is the nearest point
+        u = (b - a) / max(float(np.hypot(*(b - a))), 1e-12)
+        foot = a - np.dot(a, u) * u
+        foot_b = math.atan2(foot[1], foot[0])
+        d_foot = float(np.hypot(*foot))
+        inside = np.abs((foot_b - centre + math.pi) % (2 * math.pi) - math.pi) <= half
+        t = np.where(inside, np.minimum(t, d_foot), t)
+        t = np.minimum(t, max(range_m[i], range_m[j]))  # never farther than the farther side
+        if not np.all(np.isfinite(t)):
+            continue
+        t = np.clip(t, config.min_distance_m, config.max_distance_m)
+        state[fill] = SectorState.OBSTACLE
+        dist[fill] = np.clip(np.rint(t * 100).astype(np.int64), config.min_distance_cm, config.max_distance_cm)
+        range_m[fill] = t
+        sigma_m[fill] = max(sigma_m[i], sigma_m[j])
+        xy_m[fill] = t[:, None] * np.stack([np.cos(centre), np.sin(centre)], 1)
+        inferred[fill] = True
     return inferred
 
 
