@@ -167,7 +167,16 @@ def test_companion_run_process_ranges_over_the_sim_transport_and_stops_on_sigint
         assert valid[-1].distances[0] / 100 == pytest.approx(truth, rel=0.25)
         hb = vehicle.received("HEARTBEAT")
         assert hb and hb[-1].get_srcComponent() == 196 and hb[-1].get_srcSystem() == vehicle.sysid
-        assert server.wait_ack(server.frames_sent - 5, 2.0) is not None  # the receiver acknowledges frames
+        # the receiver acknowledges frames: one of the last ten sent is acknowledged within 5 s (polled:
+        # one stalled frame or a reconnect, which restarts the acknowledgements, is not a failure)
+        def recent_ack() -> bool:
+            n = server.frames_sent
+            return any(server.wait_ack(i, 0.02) is not None for i in range(max(n - 10, 0), n))
+
+        ack_deadline = time.monotonic() + 5.0
+        while not recent_ack() and time.monotonic() < ack_deadline:
+            time.sleep(0.1)
+        assert recent_ack(), "the companion acknowledged none of the last ten frames within 5 s"
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=10)
         assert proc.returncode == 0, err
