@@ -203,11 +203,11 @@ def test_inference_fills_a_consistent_gap_and_is_marked():
     assert s2.distances_cm[1] == UNKNOWN_CM
 
 
-def test_inference_never_produces_clear_and_only_adds_obstacles():
-    """Seeded Monte Carlo over random scenes: with inference on, every sector that was clear or an
-    obstacle stays exactly so, the only changes are unknown → obstacle, and they are all marked."""
-    rng = np.random.default_rng(11)
-    cfg_on, cfg_off = SectorConfig(infer_max_gap_sectors=3, infer_rel_tol=0.5), SectorConfig(infer_max_gap_sectors=0)
+def _check_inference_only_adds_obstacles(cfg_on, cfg_off, seed, max_remembered, max_remembered_range_m) -> int:
+    """Seeded Monte Carlo over random scenes (live points, remembered points up to the given count and
+    range): with ``cfg_on`` every sector that was clear or an obstacle under ``cfg_off`` stays exactly
+    so, the only changes are unknown → obstacle, and they are all marked.  Returns how many changed."""
+    rng = np.random.default_rng(seed)
     changed = 0
     for _ in range(300):
         n = int(rng.integers(0, 40))
@@ -216,9 +216,9 @@ def test_inference_never_produces_clear_and_only_adds_obstacles():
         p = np.column_stack([r * np.cos(b), r * np.sin(b), rng.normal(0, 1.0, n)])
         sig = rng.uniform(0.05, 2.0, n)
         conv = rng.random(n) < 0.8
-        m = int(rng.integers(0, 10))
+        m = int(rng.integers(0, max_remembered))
         bm = rng.uniform(-math.pi, math.pi, m)
-        rm = rng.uniform(2.0, 40.0, m)
+        rm = rng.uniform(2.0, max_remembered_range_m, m)
         pm = np.column_stack([rm * np.cos(bm), rm * np.sin(bm), np.zeros(m)])
         kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=pm, remembered_sigma=np.full(m, 0.3),
                   remembered_tangential_sigma=rng.uniform(0, 1, m))
@@ -229,6 +229,13 @@ def test_inference_never_produces_clear_and_only_adds_obstacles():
         assert np.array_equal(diff, a.inferred)
         assert np.array_equal(a.state == SectorState.CLEAR, o.state == SectorState.CLEAR)
         changed += int(diff.sum())
+    return changed
+
+
+def test_inference_never_produces_clear_and_only_adds_obstacles():
+    """The same-range rule only ever turns unknown into obstacle (seeded Monte Carlo)."""
+    changed = _check_inference_only_adds_obstacles(
+        SectorConfig(infer_max_gap_sectors=3, infer_rel_tol=0.5), SectorConfig(infer_max_gap_sectors=0), 11, 10, 40.0)
     assert changed > 0  # the property was exercised
 
 
@@ -287,32 +294,10 @@ def test_narrow_gap_inference_does_not_chain_on_inferred_sectors():
 
 
 def test_narrow_gap_inference_never_produces_clear_and_only_adds_obstacles():
-    """Seeded Monte Carlo as for the same-range rule: with the narrow-gap rule on, only unknown →
-    obstacle changes, all marked inferred, clear sectors unchanged."""
-    rng = np.random.default_rng(12)
-    cfg_on = SectorConfig(infer_max_gap_sectors=0, infer_narrow_gap_m=3.0, infer_narrow_max_sectors=6)
-    cfg_off = SectorConfig(infer_max_gap_sectors=0)
-    changed = 0
-    for _ in range(300):
-        n = int(rng.integers(0, 40))
-        b = rng.uniform(-math.pi, math.pi, n)
-        r = rng.uniform(2.0, 80.0, n)
-        p = np.column_stack([r * np.cos(b), r * np.sin(b), rng.normal(0, 1.0, n)])
-        sig = rng.uniform(0.05, 2.0, n)
-        conv = rng.random(n) < 0.8
-        m = int(rng.integers(0, 12))
-        bm = rng.uniform(-math.pi, math.pi, m)
-        rm = rng.uniform(2.0, 12.0, m)
-        pm = np.column_stack([rm * np.cos(bm), rm * np.sin(bm), np.zeros(m)])
-        kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=pm, remembered_sigma=np.full(m, 0.3),
-                  remembered_tangential_sigma=rng.uniform(0, 1, m))
-        a = compute_sectors(p, sig, conv, np.ones(n, bool), HFOV, 0.0, cfg_on, **kw)
-        o = compute_sectors(p, sig, conv, np.ones(n, bool), HFOV, 0.0, cfg_off, **kw)
-        diff = a.distances_cm != o.distances_cm
-        assert np.all(o.state[diff] == SectorState.UNKNOWN) and np.all(a.state[diff] == SectorState.OBSTACLE)
-        assert np.array_equal(diff, a.inferred)
-        assert np.array_equal(a.state == SectorState.CLEAR, o.state == SectorState.CLEAR)
-        changed += int(diff.sum())
+    """The narrow-gap rule likewise (remembered points within 12 m, where gaps are narrow)."""
+    changed = _check_inference_only_adds_obstacles(
+        SectorConfig(infer_max_gap_sectors=0, infer_narrow_gap_m=3.0, infer_narrow_max_sectors=6),
+        SectorConfig(infer_max_gap_sectors=0), 12, 12, 12.0)
     assert changed > 0
 
 

@@ -110,7 +110,7 @@ def cmd_map_memory(minutes: float, fps: float, quiet: bool) -> dict:
 def cmd_map_tradeoff(quiet: bool) -> dict:
     from companion.bench import map_tradeoff
 
-    n = len(map_tradeoff.SCENARIOS) * len(map_tradeoff.VARIANTS) * 2
+    n = len(map_tradeoff.SCENARIOS) * len(map_tradeoff.VARIANTS) * len(map_tradeoff.SEEDS)
     with _progress(n, "map trade-off flights", quiet) as tick:
         return map_tradeoff.run(progress=tick)
 

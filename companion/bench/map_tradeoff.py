@@ -34,6 +34,7 @@ SCEN = ROOT / "configs" / "scenarios"
 BASE_CONFIG = ROOT / "configs" / "companion.toml"
 
 SCENARIOS = ("quad_wall_hover", "quad_slalom", "quad_corner")
+SEEDS = (1, 2)
 #: variant name → (TOML table, key, value); None = the configuration as shipped.
 VARIANTS: dict[str, tuple[str, str, str] | None] = {
     "as shipped": None,
@@ -76,7 +77,7 @@ def _one(args) -> dict:
             "detection_in_view": (t["detection_in_view"]["num"], t["detection_in_view"]["n"])}
 
 
-def run(seeds=(1, 2), workers: int = 2, progress=None) -> dict:
+def run(seeds=SEEDS, workers: int = 2, progress=None) -> dict:
     base = BASE_CONFIG.read_text(encoding="utf-8")
     jobs = [(sc, seed, name, variant_text(base, ch)) for sc in SCENARIOS for name, ch in VARIANTS.items() for seed in seeds]
     rows = []

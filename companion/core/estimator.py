@@ -420,9 +420,7 @@ class RangeEstimator:
             ids = e.ids
             p_world = e.p_cam @ R.T + p
             rng, rsig, conv, valid = e.range, e.range_sigma, e.converged, e.valid
-        mean_nis = None
-        if len(self.ekf.ids) == len(ids) and np.array_equal(self.ekf.ids, ids):
-            mean_nis = np.where(self.ekf.nis_count > 0, self.ekf.nis_avg, np.nan)
+        mean_nis = np.where(self.ekf.nis_count > 0, self.ekf.nis_avg, np.nan)  # both banks' estimates are in bank order
         return RangeOutput(
             t=t, ids=ids, p_world=p_world, range=rng, range_sigma=rsig, converged=conv, valid=valid, mean_nis=mean_nis,
             n_pending=len(self.pending), n_initialized_tri=n_tri, n_initialized_prior=n_prior,

@@ -360,7 +360,7 @@ def compute_sectors(
     at most ``infer_narrow_gap_m`` apart (levelled horizontal plane) is filled with the straight line
     between the two points, each sector at the line's nearest distance over its bearings: a surface
     that continues between them (a wall whose texture left no point there), or a gap too narrow to fly
-    through; either way an obstacle, never    "clear").
+    through; either way an obstacle, never "clear".
 
     Bad points (NaN/inf, negative σ, zero range) are ignored and counted, never raised on.
     """
@@ -629,22 +629,20 @@ def _infer_narrow(state, dist, range_m, sigma_m, xy_m, config: SectorConfig, mea
         return inferred
     chord = np.hypot(*(xy_m[nxt[sel]] - xy_m[known[sel]]).T)
     near = chord <= gap_m  # NaN (no point) compares False
-    for i, j, gap in zip(known[sel][near], nxt[sel][near], gaps[sel][near]):
+    for i, j, gap, c_ab in zip(known[sel][near], nxt[sel][near], gaps[sel][near], chord[near]):
         a, b = xy_m[i], xy_m[j]
         fill = (i + np.arange(1, gap + 1)) % SECTOR_COUNT
         centre = np.radians(fill * SECTOR_DEG)
         t = np.minimum(_line_distance(a, b, centre - half), _line_distance(a, b, centre + half))
         # the perpendicular foot, where it falls inside a sector's span, is the nearest point
-        u = (b - a) / max(float(np.hypot(*(b - a))), 1e-12)
+        u = (b - a) / max(float(c_ab), 1e-12)
         foot = a - np.dot(a, u) * u
         foot_b = math.atan2(foot[1], foot[0])
         d_foot = float(np.hypot(*foot))
         inside = np.abs((foot_b - centre + math.pi) % (2 * math.pi) - math.pi) <= half
         t = np.where(inside, np.minimum(t, d_foot), t)
-        t = np.minimum(t, max(range_m[i], range_m[j]))  # never farther than the farther side
-        if not np.all(np.isfinite(t)):
-            continue
-        t = np.clip(t, config.min_distance_m, config.max_distance_m)
+        # never farther than the farther side (also bounds a ray that runs parallel to the line)
+        t = np.clip(np.minimum(t, max(range_m[i], range_m[j])), config.min_distance_m, config.max_distance_m)
         state[fill] = SectorState.OBSTACLE
         dist[fill] = np.clip(np.rint(t * 100).astype(np.int64), config.min_distance_cm, config.max_distance_cm)
         range_m[fill] = t
