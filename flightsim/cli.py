@@ -41,7 +41,7 @@ def cmd_fly(args) -> int:
     from flightsim.fly import fly
     from flightsim.scenario import load_scenario
 
-    sc = load_scenario(args.scenario, seed=args.seed)
+    sc = load_scenario(args.scenario, seed=args.seed, avoidance=args.avoidance)
     log.info("flying %s (%s, %.1f s, seed %d) into %s", sc.meta.name, sc.vehicle.aircraft, sc.meta.duration_s, sc.meta.seed, args.out)
     bar, tick = _progress_bar(f"fly {sc.meta.name}")
     if bar:
@@ -53,6 +53,14 @@ def cmd_fly(args) -> int:
             bar.stop()
     print(f"{sc.meta.name}: {res.frames} frames, {res.messages} MAVLink messages, {res.duration_s:g} s flown "
           f"in {res.wall_s:.1f} s ({res.realtime_factor:.1f}× real time) → {res.out_dir}")
+    if sc.avoidance.model != "none":
+        from flightsim.outcome import evaluate_outcome, read_trajectory
+
+        o = evaluate_outcome(read_trajectory(Path(args.out) / "trajectory.npz"), sc.world)
+        print(f"avoidance {o['model']} (no companion, so no obstacle data): "
+              + (f"COLLISION with {o['collision_with']} at {o['collision_t_s']:.2f} s" if o["collision"]
+                 else f"no collision, min clearance {o['min_clearance_m']:.2f} m")
+              + f"; progress {100 * o['progress']:.0f} % of the route")
     return 0
 
 
@@ -73,7 +81,7 @@ def cmd_sitl(args) -> int:
     try:
         s = run_sitl(args.scenario, args.out, seed=args.seed, clock=args.clock, companion_config=companion_config,
                      attach=args.attach, video=args.video, progress=tick, mavlink_port=args.mavlink_port,
-                     camera_port=args.camera_port, config=cfg, score=not args.no_score)
+                     camera_port=args.camera_port, config=cfg, score=not args.no_score, avoidance=args.avoidance)
     finally:
         if bar:
             bar.stop()
@@ -252,6 +260,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="output directory (created if missing)")
     p.add_argument("--seed", type=int, default=None, help="override the scenario's [scenario] seed")
     p.add_argument("--no-plot", action="store_true", help="skip summary.png")
+    p.add_argument("--avoidance", choices=("ardupilot", "px4", "none"), default=None,
+                   help="override the scenario's [avoidance] model (no companion here: the autopilot holds no obstacle "
+                        "data, so ardupilot flies the route as commanded and px4 refuses to move)")
     q = sub.add_parser(
         "sitl", help="software in the loop: play the autopilot and camera to a live companion and score its ranges",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -288,6 +299,10 @@ def main(argv=None) -> int:
     q.add_argument("--connect-timeout", type=float, default=60.0, metavar="S",
                    help="seconds the companion has to connect (×5 with --attach; default 60)")
     q.add_argument("--no-score", action="store_true", help="do not score the received ranges")
+    q.add_argument("--avoidance", choices=("ardupilot", "px4", "none"), default=None,
+                   help="the simulated autopilot's obstacle avoidance fed by the companion's ranges, overriding the "
+                        "scenario's [avoidance] model (quad only; DESIGN.md §6): ardupilot = Copter simple avoidance, "
+                        "px4 = collision prevention, none = fly the route as commanded")
     p = sub.add_parser("score", help="score a recorded run against its truth (score.json, score.md)",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        description="Compare the companion's OBSTACLE_DISTANCE / DISTANCE_SENSOR (a ranges tlog: companion "

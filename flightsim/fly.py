@@ -42,6 +42,7 @@ import numpy as np
 
 from companion.core.camera import CameraModel
 from companion.mavlink.dialect import mavlink
+from flightsim.avoidance import F450_RADIUS_M, ArduPilotAvoidance, make_avoidance
 from flightsim.dynamics import LocalNED, make_vehicle
 from flightsim.render import Renderer
 from flightsim.scenario import Scenario
@@ -49,6 +50,17 @@ from flightsim.telemetry import TelemetryModel
 from flightsim.tlog import TlogWriter
 from flightsim.world import target_truth
 from flightsim.world.truth import sector_truth_360
+
+#: trajectory.npz: every physics step (120 Hz), for the outcome of avoidance (collision, clearance, stops)
+TRAJECTORY_FIELDS = {
+    "t_sim_s": "simulation time of the step, s",
+    "p_ned": "vehicle position, world NED, m",
+    "v_ned": "vehicle velocity, world NED, m/s",
+    "v_des_ned": "the pilot's velocity demand (avoidance on; NaN otherwise), m/s",
+    "v_cmd_ned": "the demand the avoidance let through, m/s",
+    "clearance_m": "distance from the vehicle's body (sphere) to the nearest obstacle surface, m",
+    "avoidance_data": "the autopilot held fresh obstacle data at that step",
+}
 
 TRUTH_FIELDS = {
     "t_s": "capture time of each frame, recording clock (Unix s)",
@@ -197,10 +209,18 @@ class Flight:
         self.state = None
         self.step_index = -1
         self.timing = {"dynamics": 0.0, "telemetry": 0.0, "render": 0.0, "truth": 0.0}  # wall seconds per part
+        # the simulated autopilot's obstacle avoidance (DESIGN §6), fed by whoever hears the companion
+        self.avoidance = make_avoidance(sc.avoidance)
+        if sc.avoidance.model != "none":
+            self.vehicle.avoidance = self.avoidance
+        self.body_radius_m = F450_RADIUS_M if sc.vehicle.kind == "quad" else 0.0
+        self.collision_t: float | None = None  # simulation time the body first touched an obstacle (the flight ends)
+        self.collision_with: str | None = None
+        self.traj: dict[str, list] = {k: [] for k in TRAJECTORY_FIELDS}
 
     @property
     def finished(self) -> bool:
-        return self.step_index >= self.n_steps
+        return self.step_index >= self.n_steps or self.collision_t is not None
 
     def step(self):
         """Advance one physics step (the first call gives the start state) and the telemetry model's
@@ -212,11 +232,25 @@ class Flight:
 
     def physics_step(self):
         """Advance the dynamics only (see the class docstring); None after the last step."""
-        if self.step_index >= self.n_steps:
+        if self.finished:
             return None
         w0 = time.perf_counter()
         self.step_index += 1
-        self.state = self.vehicle.state() if self.step_index == 0 else self.vehicle.step(self.vehicle.dt)
+        self.state = st = self.vehicle.state() if self.step_index == 0 else self.vehicle.step(self.vehicle.dt)
+        clear, obstacle = self.sc.world.clearance(st.p_ned)
+        clear -= self.body_radius_m
+        tr = self.traj
+        tr["t_sim_s"].append(st.time_s)
+        tr["p_ned"].append(st.p_ned)
+        tr["v_ned"].append(st.v_ned)
+        avoiding = self.sc.avoidance.model != "none"
+        tr["v_des_ned"].append(self.vehicle.v_des if avoiding else (np.nan,) * 3)
+        tr["v_cmd_ned"].append(self.vehicle.v_cmd if avoiding else (np.nan,) * 3)
+        tr["clearance_m"].append(clear)
+        tr["avoidance_data"].append(self.avoidance.has_data(st.time_s))
+        if clear <= 0.0 and self.body_radius_m > 0 and self.collision_t is None:
+            self.collision_t = st.time_s
+            self.collision_with = obstacle.label if obstacle is not None else None
         self.timing["dynamics"] += time.perf_counter() - w0
         return self.state
 
@@ -291,13 +325,33 @@ class Flight:
         arrays["target_p_world"] = np.asarray(tt0.p_world, float).reshape(-1, 3)
         return arrays
 
+    def trajectory_arrays(self) -> dict[str, np.ndarray]:
+        """The physics-rate trajectory and what the avoidance did (:data:`TRAJECTORY_FIELDS`)."""
+        arrays = {k: np.asarray(v, float if k != "avoidance_data" else bool) for k, v in self.traj.items()}
+        sc = self.sc
+        route = [tuple(sc.vehicle.start_ned_m)] + [tuple(w) for w in sc.vehicle.route.waypoints]
+        arrays["route_ned"] = np.asarray(route, float).reshape(-1, 3)
+        arrays["body_radius_m"] = np.array(self.body_radius_m)
+        arrays["avoid_margin_m"] = np.array(sc.avoidance.avoid_margin_m if sc.avoidance.model == "ardupilot" else sc.avoidance.cp_dist_m)
+        arrays["avoidance_model"] = np.array(sc.avoidance.model, dtype="U16")
+        arrays["collision_t_s"] = np.array(np.nan if self.collision_t is None else self.collision_t)
+        arrays["collision_with"] = np.array(self.collision_with or "", dtype="U64")
+        arrays["route_speed_mps"] = np.array(sc.vehicle.route.speed_mps or np.nan)
+        av = sc.avoidance  # the model's braking curve, for the outcome's false-stop rule
+        ap = av.model == "ardupilot"
+        arrays["braking_kp"] = np.array(av.pos_kp if ap else av.mpc_xy_p)
+        arrays["braking_accel_mss"] = np.array(ArduPilotAvoidance.ACCEL_CLAMP if ap else av.mpc_acc_hor_mss)
+        arrays["braking_delay_s"] = np.array(0.0 if ap else av.cp_delay_s)
+        return arrays
+
     def write_common(self, out: Path) -> dict[str, np.ndarray]:
-        """Write frames.csv, truth.npz and camera.toml (the files fly and sitl share); returns the truth."""
+        """Write frames.csv, truth.npz, trajectory.npz and camera.toml (the files fly and sitl share); returns the truth."""
         epoch = self.sc.meta.epoch_s
         rows = ["index,t_s"] + [f"{i},{epoch + t:.6f}" for i, t in enumerate(self.frame_times)]
         (out / "frames.csv").write_text("\n".join(rows) + "\n")
         arrays = self.truth_arrays()
         save_npz_deterministic(out / "truth.npz", arrays)
+        save_npz_deterministic(out / "trajectory.npz", self.trajectory_arrays())
         (out / "camera.toml").write_text(camera_toml(self.sc.camera))
         return arrays
 

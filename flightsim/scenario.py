@@ -8,7 +8,10 @@ dataclass of its module (unknown or misspelt keys stop with an error naming them
 * ``[vehicle]`` — :class:`flightsim.dynamics.DynamicsConfig` (aircraft, start, route, atmosphere);
 * ``[camera]`` — :class:`companion.core.camera.CameraConfig`, the companion's own camera table;
 * ``[render]`` — :class:`flightsim.render.RenderOptions` (pixel noise, blur, exposure);
-* ``[telemetry]`` — :class:`flightsim.telemetry.TelemetryConfig` (rates, noise, latency).
+* ``[telemetry]`` — :class:`flightsim.telemetry.TelemetryConfig` (rates, noise, latency);
+* ``[avoidance]`` — :class:`flightsim.avoidance.AvoidanceConfig` (the simulated autopilot's
+  obstacle avoidance, DESIGN.md §6: ``model`` "ardupilot", "px4" or "none").  With a model the quad's
+  route is the pilot's intent and may cross obstacles; without one the route must be clear.
 
 The ``[scenario] seed`` seeds everything (turbulence, gyro bias, GPS noise, pixel noise); the
 tables may not carry seeds of their own, so one number reproduces a flight.  Every check that
@@ -41,6 +44,7 @@ from companion.core.camera import CameraConfig, CameraModel
 from companion.core.frames import euler_zyx_to_R
 from companion.errors import ConfigError
 from companion.io.config_files import read_toml
+from flightsim.avoidance import AvoidanceConfig
 from flightsim.dynamics import DynamicsConfig
 from flightsim.render import RenderOptions
 from flightsim.telemetry import TelemetryConfig
@@ -90,6 +94,7 @@ class Scenario:
     render: RenderOptions
     telemetry: TelemetryConfig
     world: World
+    avoidance: AvoidanceConfig = AvoidanceConfig()
 
     @property
     def telemetry_seed(self) -> int:
@@ -102,7 +107,7 @@ class Scenario:
 
 
 _TABLES = {"scenario": ScenarioMeta, "vehicle": DynamicsConfig, "camera": CameraConfig,
-           "render": RenderOptions, "telemetry": TelemetryConfig}
+           "render": RenderOptions, "telemetry": TelemetryConfig, "avoidance": AvoidanceConfig}
 
 
 def start_pose(vehicle: DynamicsConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -184,8 +189,9 @@ def resolve_companion_config(sc: Scenario, given: str | os.PathLike | None = Non
     return found
 
 
-def load_scenario(path: str | os.PathLike, seed: int | None = None) -> Scenario:
-    """Read, validate and pre-flight-check a scenario; ``seed`` overrides ``[scenario] seed``."""
+def load_scenario(path: str | os.PathLike, seed: int | None = None, avoidance: str | None = None) -> Scenario:
+    """Read, validate and pre-flight-check a scenario; ``seed`` overrides ``[scenario] seed``,
+    ``avoidance`` the ``[avoidance] model``."""
     path = Path(path)
     data = read_toml(path, "scenario")
     unknown = sorted(set(data) - set(_TABLES))
@@ -204,8 +210,14 @@ def load_scenario(path: str | os.PathLike, seed: int | None = None) -> Scenario:
         render = from_mapping(RenderOptions, data.get("render"), "render")
         render = dataclasses.replace(render, seed=meta.seed * 3 + 1)
         telemetry = from_mapping(TelemetryConfig, data.get("telemetry"), "telemetry")
+        avoid = from_mapping(AvoidanceConfig, data.get("avoidance"), "avoidance")
+        if avoidance is not None:
+            avoid = dataclasses.replace(avoid, model=avoidance)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+    if avoid.model != "none" and vehicle.kind != "quad":
+        raise ConfigError(f"{path}: [avoidance] model = {avoid.model!r} needs a multicopter: neither autopilot has "
+                          "obstacle avoidance for a fixed-wing (use \"none\"; its ranges are scored on the messages)")
     world_path = (path.parent / meta.world).resolve()
     if not world_path.is_file():
         raise ConfigError(f"{path}: [scenario] world = {meta.world!r}: no such file ({world_path})")
@@ -214,7 +226,8 @@ def load_scenario(path: str | os.PathLike, seed: int | None = None) -> Scenario:
     # pre-flight checks: the start must be clear and the camera must see something
     R_wb, p0 = start_pose(vehicle)
     world.check_start_clear(p0, what=f"{path.name}: start position")
-    check_route_clear(world, vehicle, what=f"{path.name}: [vehicle.route]")
+    if avoid.model == "none":  # with avoidance the route is the pilot's intent and may cross obstacles
+        check_route_clear(world, vehicle, what=f"{path.name}: [vehicle.route]")
     R_wc, p_wc = CameraModel(camera).camera_pose(R_wb, p0)
     check_camera_sees_something(world, camera, R_wc, p_wc, what=f"{path.name}: camera at the start")
-    return Scenario(path, meta, vehicle, camera, render, telemetry, world)
+    return Scenario(path, meta, vehicle, camera, render, telemetry, world, avoid)

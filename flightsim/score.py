@@ -1189,6 +1189,10 @@ def markdown(score: dict, title: str = "Score") -> str:
     if s.get("inputs"):
         L += [f"Ranges: `{s['inputs'].get('ranges')}`  ", f"Truth: `{s['inputs'].get('truth')}`", ""]
     wu = s.get("warmup") or {"s": cfg.get("warmup_s", 0.0), "messages_excluded": 0}
+    if s.get("avoidance"):
+        from flightsim.outcome import outcome_markdown
+
+        L += outcome_markdown(s["avoidance"])
     L += ["## Targets (issues 5 and 11)", "",
           f"Warm-up: cells of the first {wu['s']:g} s of the run are not scored ({wu['messages_excluded']} messages).  "
           + ("Truth over 360°: out-of-view claims are scored, unknown out of view is neutral." if s.get("truth_360")

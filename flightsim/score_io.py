@@ -207,6 +207,14 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
     ev = evaluate(msgs, truth, cfg, namer=world_namer(world) if world is not None else None)
     score = summarize(ev)
     score["inputs"] = {"ranges": str(ranges_tlog), "truth": str(truth_npz)}
+    traj = Path(truth_npz).with_name("trajectory.npz")
+    if traj.is_file():  # a closed-loop flight (flightsim.avoidance): its outcome
+        from flightsim.outcome import evaluate_outcome, read_trajectory
+
+        tr = read_trajectory(traj)
+        if str(tr.get("avoidance_model", "none")) != "none":
+            score["avoidance"] = evaluate_outcome(tr, world)
+            score["inputs"]["trajectory"] = str(traj)
     if series_out is not None:
         save_series(series_out, series_arrays(ev))
     return score

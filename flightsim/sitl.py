@@ -299,6 +299,10 @@ class _Run:
             self._last_rx_t = t
             self.rx_log.write_raw(t, raw)
             self._inspect(t, msg)
+            if msg.get_type() in ("OBSTACLE_DISTANCE", "DISTANCE_SENSOR"):  # to the autopilot's avoidance, dated on arrival
+                if self.flight.state is not None and t <= self.flight.state.time_s - self.flight.dt + EPS_T:
+                    self.checks["avoidance_late"] += 1  # the physics already ran past its arrival (see _run_ahead)
+                self.flight.avoidance.receive(t, msg)
             if not self.lockstep and msg.get_type() == "TIMESYNC":  # real time: answered on arrival, like an
                 for reply in self.logic.handle(msg, t):          # autopilot's fast loop (a short round trip)
                     self._send(t, reply)
@@ -465,9 +469,15 @@ class _Run:
         period = self.streams.period("ATTITUDE")
         margin = cfg.frame_latency_s if period is None else self.tel.latency_s + period + dt
         margin = min(max(margin, cfg.frame_latency_s), cfg.frame_wait_max_s)
+        # With avoidance the physics depends on the companion's answer to this frame, which arrives
+        # at comp_free (the companion's busy-until time after it; see _deliver): run ahead only to there.
+        horizon = max(self.t_now, self.comp_free) + self.P if self.sc.avoidance.model != "none" else math.inf
         while True:
             nxt = next((e[1] for e in self.ahead if e[1] is not None), None)
             if nxt is not None and self.ahead[-1][0].time_s + EPS_T >= nxt.t_s + margin:
+                break
+            last = self.ahead[-1][0].time_s if self.ahead else (self.flight.state.time_s if self.flight.state is not None else -math.inf)
+            if last + dt > horizon + EPS_T:
                 break
             if not self._physics_one():
                 break
@@ -627,7 +637,7 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
              companion_config: str | Path | None = None, attach: bool = False, video: bool = False,
              progress: Callable[[int, int], None] | None = None, port_base: int | None = None,
              mavlink_port: int | None = None, camera_port: int | None = None, processing_ms: float | None = None,
-             config: SitlConfig | None = None, score: bool = True) -> dict:
+             config: SitlConfig | None = None, score: bool = True, avoidance: str | None = None) -> dict:
     """Fly ``scenario_path`` against a live companion and write ``out_dir``; returns the summary dict.
 
     Ports: ``mavlink_port`` / ``camera_port`` when given, else ``port_base`` and ``port_base + 1``,
@@ -635,7 +645,8 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
     the companion's TOML (default: the scenario's ``[scenario] companion_config``, else the
     repository's ``configs/companion.toml``; :func:`flightsim.scenario.resolve_companion_config`).  ``processing_ms``
     overrides ``config.processing_ms``.  Raises :class:`ConfigError` for a bad scenario, argument
-    or busy port and :class:`SitlError` when the companion fails.
+    or busy port and :class:`SitlError` when the companion fails.  ``avoidance`` overrides the
+    scenario's ``[avoidance] model`` (:mod:`flightsim.avoidance`).
     """
     if clock not in CLOCKS:
         raise ConfigError(f"clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
@@ -650,7 +661,7 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
     for name, p in (("mavlink_port", mavlink_port), ("camera_port", camera_port)):
         if p is not None and not (isinstance(p, int) and 0 <= p <= 65535):
             raise ConfigError(f"{name} must be in 0..65535, got {p!r}")
-    sc = load_scenario(scenario_path, seed=seed)
+    sc = load_scenario(scenario_path, seed=seed, avoidance=avoidance)
     companion_config = resolve_companion_config(sc, companion_config)
     if companion_config is not None:
         companion_config = Path(companion_config).resolve()
@@ -718,7 +729,8 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
             "killed": run.companion.killed, "log": str(run.companion.log_path)},
         "companion_command": run.cmd, "companion_exit_code": None if run.companion is None else run.companion.exit_code,
         "ports": {"mavlink_udp": run.endpoint.port, "camera_tcp": run.server.port},
-        "paths": {name: str(out / name) for name in ("truth.npz", "frames.csv", "camera.toml", "telemetry.tlog",
+        "avoidance": {"model": sc.avoidance.model, **run.flight.avoidance.counters},
+        "paths": {name: str(out / name) for name in ("truth.npz", "trajectory.npz", "frames.csv", "camera.toml", "telemetry.tlog",
                                                      "received.tlog", "companion.log", "sitl.json", "video.avi",
                                                      "score.json", "score.md") if (out / name).exists() or name == "sitl.json"},
         "score": sc_result, "score_note": note, "score_failed": score_failed,

@@ -90,6 +90,11 @@ class QuadSim(JSBSimVehicle):
         self._ref = ((pn, pe, pd), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
         self._face_travel = c.route.face_travel
         self._turn_rate = math.radians(c.route.yaw_rate_dps or q.yaw_rate_dps)  # rad/s of turns in place
+        #: the autopilot's obstacle avoidance (``limit(t, p_ned, v_ned, yaw, v_des_ned) -> v_cmd_ned``), or
+        #: None: with it, straight legs are flown as a pilot's velocity demand it may limit (:meth:`_fly_line_avoiding`)
+        self.avoidance = None
+        self.v_des = (0.0, 0.0, 0.0)  # the pilot's velocity demand of the last control tick (avoidance on), NED m/s
+        self.v_cmd = (0.0, 0.0, 0.0)  # ... and what the avoidance let through
         if c.route.waypoints:
             self.set_route(c.route)
 
@@ -209,12 +214,14 @@ class QuadSim(JSBSimVehicle):
             if prof.length < 1e-3:
                 self._hold_p = target
                 continue
-            self._active = ("line", target, prof)
+            self._active = ("line", target, prof, speed or q.max_speed_mps)
             self._active_t0 = t
             return
         self._active = None
 
-    def _update_reference(self, t: float, psi: float, dt: float) -> None:
+    def _update_reference(self, t: float, psi: float, dt: float, p_ned=None, v_ned=None) -> None:
+        v_des_prev = self.v_des
+        self.v_des = self.v_cmd = (0.0, 0.0, 0.0)  # no demand outside a leg flown with avoidance
         if self._active is None and self._legs:
             self._start_next_leg(t, psi)
         act = self._active
@@ -247,6 +254,9 @@ class QuadSim(JSBSimVehicle):
                 self._active = None
                 self._start_next_leg(t, psi)
             return
+        if self.avoidance is not None and p_ned is not None:
+            self._fly_line_avoiding(act, t, psi, dt, p_ned, v_ned, v_des_prev)
+            return
         prof: LineProfile = act[2]
         tl = t - self._active_t0
         self._ref = prof.sample(tl)
@@ -255,13 +265,58 @@ class QuadSim(JSBSimVehicle):
             self._active = None
             self._start_next_leg(t, psi)
 
+    def _fly_line_avoiding(self, act, t: float, psi: float, dt: float, p_ned, v_ned, v_des_prev) -> None:
+        """A straight leg flown as a pilot's velocity demand that the avoidance may limit (DESIGN §6).
+
+        With avoidance on, the leg is the pilot's intent (as a pilot pushing the stick towards the
+        waypoint in Loiter, or a companion sending Guided velocity targets): the demand points from
+        the reference position to the waypoint at the leg's speed, ramped at ``max_accel_mps2`` and
+        slowed to stop at the waypoint (v ≤ √(2·a·d)).  The avoidance limits it from the ranges the
+        autopilot holds now (:class:`flightsim.avoidance.Avoidance`); the reference position moves
+        with the limited velocity, so a vehicle held in front of an obstacle stays there and the leg
+        ends only when the waypoint is reached (at rest within 5 cm).  The reference velocity follows
+        the limited demand at up to the tilt-limited acceleration (a braking demand is not softened).
+        """
+        q = self.config.quad
+        target, speed = act[1], act[3]
+        (rn, re, rd), (rvn, rve, rvd), _ = self._ref
+        dn, de, dd = target[0] - rn, target[1] - re, target[2] - rd
+        dist = math.sqrt(dn * dn + de * de + dd * dd)
+        v_ref = math.sqrt(rvn * rvn + rve * rve + rvd * rvd)
+        if dist < 0.05 and v_ref < 0.05:
+            self._hold_p = target
+            self._ref = (target, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+            self.v_des = self.v_cmd = (0.0, 0.0, 0.0)
+            self._active = None
+            self._start_next_leg(t, psi)
+            return
+        u = (dn / dist, de / dist, dd / dist) if dist > 1e-9 else (0.0, 0.0, 0.0)
+        h, vz = math.hypot(u[0], u[1]), abs(u[2])
+        vmax = speed / h if h > 1e-9 else speed  # the leg's horizontal and vertical speed limits along u
+        if vz > 1e-9:
+            vmax = min(vmax, (q.climb_speed_mps if u[2] < 0 else q.descent_speed_mps) / vz)
+        v_prev = math.sqrt(sum(x * x for x in v_des_prev))
+        sp = min(vmax, math.sqrt(2.0 * q.max_accel_mps2 * dist), v_prev + q.max_accel_mps2 * dt)
+        v_des = (u[0] * sp, u[1] * sp, u[2] * sp)
+        self.v_des = v_des
+        v_cmd = tuple(float(x) for x in self.avoidance.limit(t, p_ned, v_ned, psi, v_des))
+        self.v_cmd = v_cmd
+        # the reference velocity follows the limited demand within the vehicle's acceleration
+        a_lim = G * math.tan(math.radians(q.max_tilt_deg))
+        dv = (v_cmd[0] - rvn, v_cmd[1] - rve, v_cmd[2] - rvd)
+        ndv = math.sqrt(sum(x * x for x in dv))
+        k = min(1.0, a_lim * dt / ndv) if ndv > 0 else 1.0
+        nv = (rvn + dv[0] * k, rve + dv[1] * k, rvd + dv[2] * k)
+        acc = ((nv[0] - rvn) / dt, (nv[1] - rve) / dt, (nv[2] - rvd) / dt)
+        self._ref = ((rn + nv[0] * dt, re + nv[1] * dt, rd + nv[2] * dt), nv, acc)
+
     # ------------------------------------------------------------------ autopilot tick
     def _control(self) -> None:
         q = self.config.quad
         dt = self._cdt
         t = self.time_s
         pn, pe, pd, vn, ve, vd, phi, theta, psi, p, qr, r, _ = self._read()
-        self._update_reference(t, psi, dt)
+        self._update_reference(t, psi, dt, (pn, pe, pd), (vn, ve, vd))
         if not self.armed:
             self._s_scas(0.0)
             self._s_thr(0.0)

@@ -1,0 +1,336 @@
+"""The simulated autopilot's obstacle avoidance (flightsim.avoidance) and the closed-loop outcome
+(flightsim.outcome): exact braking curves, the rules each autopilot applies to unknown / clear /
+stale sectors, and whole flights that stop short with true ranges and crash without any."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.errors import ConfigError
+from companion.mavlink.dialect import mavlink
+from flightsim.avoidance import (
+    F450_RADIUS_M,
+    ArduPilotAvoidance,
+    AvoidanceConfig,
+    NoAvoidance,
+    PX4Avoidance,
+    jerk_limited_speed,
+    make_avoidance,
+    sqrt_controller,
+    stopping_distance,
+)
+from flightsim.outcome import OutcomeConfig, evaluate_outcome, read_trajectory, route_progress
+
+ROOT = Path(__file__).resolve().parents[1]
+WALL6 = ROOT / "configs" / "scenarios" / "quad_avoid_wall_6.toml"
+MAX_CM = 4000
+
+
+def od(distances_m, min_cm=20, max_cm=MAX_CM):
+    """OBSTACLE_DISTANCE with 72 sectors of 5° from a (72,) array in metres (NaN = unknown, inf = clear)."""
+    d = np.asarray(distances_m, float)
+    cm = np.where(np.isnan(d), 65535, np.where(np.isinf(d), max_cm + 1, np.rint(np.nan_to_num(d, posinf=0) * 100)))
+    return mavlink.MAVLink_obstacle_distance_message(0, 4, [int(x) for x in cm], 5, min_cm, max_cm, 5.0, 0.0,
+                                                     mavlink.MAV_FRAME_BODY_FRD)
+
+
+def wall_ahead(dist_m, half_width_deg=30.0):
+    """Sectors of a wall dist_m ahead spanning ±half_width_deg (the rest unknown)."""
+    d = np.full(72, np.nan)
+    for i in range(72):
+        b = math.radians(i * 5.0 if i * 5.0 <= 180 else i * 5.0 - 360)
+        if abs(math.degrees(b)) <= half_width_deg:
+            d[i] = dist_m / math.cos(b)
+    return d
+
+
+EXACT = AvoidanceConfig(model="ardupilot", prx_filt_hz=0.0, avoid_accel_max_mss=0.0)
+
+
+# ------------------------------------------------------------------------------------ shaping ---
+def test_sqrt_controller_is_continuous_monotonic_and_inverts_stopping_distance():
+    kp, a = 1.0, 1.0
+    d = np.linspace(0.0, 40.0, 4001)
+    v = np.array([sqrt_controller(x, kp, a, 0.0) for x in d])
+    assert np.all(np.diff(v) >= 0)
+    assert abs(sqrt_controller(1.0 - 1e-9, kp, a, 0) - sqrt_controller(1.0 + 1e-9, kp, a, 0)) < 1e-6  # a/kp² = 1 m
+    assert sqrt_controller(3.0, kp, a, 0.0) == pytest.approx(math.sqrt(5.0))  # √(2·1·(3 − ½))
+    for x in (0.3, 2.0, 7.5, 30.0):
+        assert stopping_distance(sqrt_controller(x, kp, a, 0.0), kp, a) == pytest.approx(x, rel=1e-9)
+    assert sqrt_controller(5.0, kp, a, 0.01) == pytest.approx(min(math.sqrt(2 * 4.5), 5.0 / 0.01))
+    assert sqrt_controller(-1.0, kp, a, 0.0) == 0.0
+
+
+def test_jerk_limited_speed_stops_within_the_distance():
+    j, a = 8.0, 3.0
+    for d in (0.5, 2.0, 10.0, 40.0):
+        v = jerk_limited_speed(j, a, d)
+        # the formula inverts d = v²/(2a) + 2·v·a/j (braking at a after the jerk-limited ramp-up)
+        assert v * v / (2 * a) + 2 * v * a / j == pytest.approx(d, rel=1e-9)
+        assert v < math.sqrt(2 * a * d)
+    assert jerk_limited_speed(j, a, 0.0) == 0.0
+
+
+# ------------------------------------------------------------------------------------ ArduPilot --
+def test_ardupilot_limits_the_speed_towards_a_wall_to_its_braking_curve():
+    av = ArduPilotAvoidance(EXACT)
+    av.receive(1.0, od(wall_ahead(10.0)))
+    v = av.limit(1.0, (0, 0, -5), (6, 0, 0), 0.0, (6.0, 0.0, 0.0))
+    # face 0 holds the wall's minimum, 10 m (the sector at 0°); its obstacle is the segment between the
+    # boundary points on its edges (bearings ±22.5°, each at the nearer neighbouring face: 10 m), so its
+    # closest point lies 10·cos 22.5° ahead: allowed speed = sqrt_controller(10·cos 22.5° − margin)
+    assert v[0] == pytest.approx(sqrt_controller(10.0 * math.cos(math.radians(22.5)) - 2.0, 1.0, 1.0, 0.0), rel=1e-6)
+    assert v[1] == pytest.approx(0.0, abs=1e-9) and v[2] == 0.0
+
+
+def test_ardupilot_unknown_and_clear_sectors_apply_no_constraint():
+    for d in (np.full(72, np.nan), np.full(72, np.inf)):
+        av = ArduPilotAvoidance(EXACT)
+        av.receive(1.0, od(d))
+        assert av.limit(1.0, (0, 0, -5), (0, 0, 0), 0.0, (6.0, 1.0, -0.5)) == (6.0, 1.0, -0.5)
+        assert not av.has_data(1.0)
+
+
+def _towards(v_body, obstacles):
+    """Velocity component towards each obstacle's closest point and the speed it allows (margin 2 m)."""
+    out = []
+    for _, _, o in obstacles:
+        no = math.hypot(*o)
+        out.append((float(np.dot(v_body, o / no)), sqrt_controller(no - 2.0, 1.0, 1.0, 0.0)))
+    return out
+
+
+def test_ardupilot_slide_and_stop_never_exceed_the_stopping_speed_towards_any_obstacle():
+    narrow = np.full(72, np.nan)
+    narrow[[0, 1, 2, 3, 4, 68, 69, 70, 71]] = 6.0  # a wall ahead within ±20°: face 0 only
+    for behave in ("slide", "stop"):
+        av = ArduPilotAvoidance(dataclasses.replace(EXACT, avoid_behave=behave))
+        av.receive(0.0, od(narrow))
+        obstacles = av.obstacles_body(0.0)
+        assert len(obstacles) == 3  # face 0 and, through the boundary's "cup", faces 7 and 1
+        for demand in ((5.0, 0.0), (3.0, 3.0), (0.0, 4.0), (-2.0, 1.0)):
+            v = av.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (*demand, 0.0))
+            for comp, allowed in _towards(np.array(v[:2]), obstacles):
+                assert comp <= allowed + 1e-9
+        # moving away is never limited
+        assert av.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (-3.0, 0.0, 0.0))[:2] == (-3.0, 0.0)
+    slide = ArduPilotAvoidance(EXACT)
+    slide.receive(0.0, od(narrow))
+    v = slide.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (1.0, 2.0, 0.0))  # oblique: the tangential part is kept
+    assert v[1] > 1.0
+    stop = ArduPilotAvoidance(dataclasses.replace(EXACT, avoid_behave="stop", avoid_backup_spd_mps=0.0))
+    stop.receive(0.0, od(wall_ahead(1.9, 60.0)))  # inside the 2 m margin, demand towards the wall: zero
+    assert stop.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (3.0, 1.0, 0.0))[:2] == (0.0, 0.0)
+
+
+def test_ardupilot_backs_away_inside_the_margin_at_most_backup_speed():
+    av = ArduPilotAvoidance(EXACT)
+    av.receive(0.0, od(wall_ahead(1.0, 60.0)))
+    av.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (0.0, 0.0, 0.0))
+    v = av.limit(0.01, (0, 0, -5), (0, 0, 0), 0.0, (0.0, 0.0, 0.0))  # hovering 1 m from the wall
+    assert -0.75 - 1e-9 <= v[0] < -0.05
+
+
+def test_ardupilot_works_in_the_body_frame_at_the_current_yaw():
+    av = ArduPilotAvoidance(EXACT)
+    av.receive(0.0, od(wall_ahead(6.0)))  # ahead of the nose
+    east = math.pi / 2
+    v = av.limit(0.0, (0, 0, -5), (0, 0, 0), east, (0.0, 5.0, 0.0))  # facing east, flying east: at the wall
+    assert v[1] == pytest.approx(sqrt_controller(6.0 * math.cos(math.radians(22.5)) - 2.0, 1.0, 1.0, 0.0), rel=1e-6)
+    assert abs(v[0]) < 1e-9
+    assert av.limit(0.01, (0, 0, -5), (0, 0, 0), east, (0.0, -5.0, 0.0))[:2] == (0.0, -5.0)  # flying west: away
+    assert av.limit(0.02, (0, 0, -5), (0, 0, 0), 0.0, (-5.0, 0.0, 0.0))[:2] == (-5.0, 0.0)  # facing north it lies north
+
+
+def test_ardupilot_takes_messages_at_arrival_and_drops_stale_data():
+    av = ArduPilotAvoidance(EXACT)
+    av.receive(5.0, od(wall_ahead(5.0)))
+    assert av.limit(4.99, (0, 0, -5), (0, 0, 0), 0.0, (5.0, 0, 0))[0] == 5.0  # not arrived yet
+    assert av.limit(5.0, (0, 0, -5), (0, 0, 0), 0.0, (5.0, 0, 0))[0] < 3.0
+    assert av.has_data(5.49) and not av.has_data(5.51)  # stale_s = 0.5 after the last message
+    assert av.limit(5.6, (0, 0, -5), (0, 0, 0), 0.0, (5.0, 0, 0))[0] == 5.0
+
+
+def test_ardupilot_filter_makes_an_approaching_wall_look_farther():
+    av = ArduPilotAvoidance(dataclasses.replace(EXACT, prx_filt_hz=0.25))
+    for k, d in enumerate((20.0, 15.0)):
+        av.receive(0.1 * k, od(wall_ahead(d)))
+    av.has_data(0.1)  # messages take effect when the autopilot next looks at its data
+    f = av.face_filt[0]
+    alpha = 0.1 / (0.1 + 1 / (2 * math.pi * 0.25))
+    assert f == pytest.approx(20.0 + alpha * (15.0 - 20.0))
+
+
+def test_ardupilot_output_changes_at_most_avoid_accel_max():
+    av = ArduPilotAvoidance(dataclasses.replace(EXACT, avoid_accel_max_mss=3.0))
+    av.receive(0.0, od(wall_ahead(4.0)))
+    v0 = av.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (8.0, 0, 0))
+    v1 = av.limit(0.01, (0, 0, -5), (0, 0, 0), 0.0, (8.0, 0, 0))
+    assert abs(v1[0] - v0[0]) <= 3.0 * 0.01 + 1e-9
+    assert v0[0] == pytest.approx(8.0)  # the first modified output starts from the unmodified demand
+
+
+# ------------------------------------------------------------------------------------ PX4 ----------
+PX4 = AvoidanceConfig(model="px4", cp_dist_m=2.0)
+
+
+def test_px4_refuses_to_move_without_data_and_into_unknown():
+    av = PX4Avoidance(PX4)
+    assert av.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (3.0, 0.0, 0.0)) == (0.0, 0.0, 0.0)
+    d = np.full(72, np.nan)
+    d[36] = 20.0  # only behind has data
+    av.receive(0.0, od(d))
+    assert av.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (3.0, 0.0, 0.0))[:2] == (0.0, 0.0)
+    go = PX4Avoidance(dataclasses.replace(PX4, cp_go_no_data=True))  # allowed where the sensor never saw
+    go.receive(0.0, od(d))
+    assert go.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (3.0, 0.0, 0.0))[0] == pytest.approx(3.0)
+
+
+def test_px4_speed_towards_a_wall_is_the_stopping_room_curve():
+    av = PX4Avoidance(dataclasses.replace(PX4, cp_guide_ang_deg=0.0))
+    d = np.full(72, np.inf)
+    d[0] = 12.0
+    av.receive(0.0, od(d))
+    v = av.limit(0.0, (0, 0, -5), (2.0, 0, 0), 0.0, (8.0, 0.0, 0.0))
+    room = 12.0 - 2.0 - 2.0 * 0.4  # d − CP_DIST − v∥·CP_DELAY (data age 0)
+    want = min(0.95 * room, jerk_limited_speed(8.0, 3.0, room))
+    assert v[0] == pytest.approx(want, rel=1e-9) and abs(v[1]) < 1e-12
+    # clear sectors count as obstacles at max_distance + 1 (PX4 stores them), still far beyond a stop
+    assert av.bins(0.0)[9] == MAX_CM + 1
+
+
+def test_px4_ignores_what_lies_behind_and_goes_stale_per_bin():
+    d = np.full(72, np.inf)
+    d[36] = 1.0  # 1 m behind
+    av = PX4Avoidance(PX4)
+    av.receive(0.0, od(d))
+    assert av.limit(0.1, (0, 0, -5), (0, 0, 0), 0.0, (3.0, 0.0, 0.0))[0] == pytest.approx(3.0)
+    assert av.limit(0.6, (0, 0, -5), (0, 0, 0), 0.0, (3.0, 0.0, 0.0))[0] == 0.0  # every bin stale after 0.5 s
+
+
+def test_px4_guidance_turns_the_setpoint_towards_free_space():
+    d = np.full(72, np.inf)
+    d[70:72] = 3.0
+    d[0:3] = 3.0  # blocked from −10° to +10°
+    av = PX4Avoidance(PX4)
+    av.receive(0.0, od(d))
+    v = av.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (3.0, 0.0, 0.0))
+    assert math.hypot(v[0], v[1]) > 1.0 and abs(math.degrees(math.atan2(v[1], v[0]))) >= 10.0 - 1e-9
+
+
+# ------------------------------------------------------------------------------------ config ------
+def test_avoidance_config_is_validated_and_models_are_built():
+    for bad in ({"model": "inav"}, {"avoid_behave": "swerve"}, {"cp_dist_m": 0.0}, {"cp_delay_s": 2.0},
+                {"avoid_margin_m": float("nan")}, {"cp_go_no_data": 1}):
+        with pytest.raises(ConfigError):
+            AvoidanceConfig(**bad)
+    assert isinstance(make_avoidance(AvoidanceConfig(model="px4")), PX4Avoidance)
+    assert type(make_avoidance(AvoidanceConfig())) is NoAvoidance
+
+
+def test_scenario_avoidance_table_route_check_and_fixed_wing(tmp_path):
+    from flightsim.scenario import load_scenario
+
+    sc = load_scenario(WALL6)
+    assert sc.avoidance.model == "ardupilot"
+    assert load_scenario(WALL6, avoidance="px4").avoidance.model == "px4"
+    with pytest.raises(ConfigError, match="only .* from obstacle 'warehouse'"):  # through the wall without avoidance
+        load_scenario(WALL6, avoidance="none")
+    fw = (ROOT / "configs" / "scenarios" / "fixedwing_pass.toml").read_text()
+    p = tmp_path / "fw.toml"
+    p.write_text(fw.replace('world = "../worlds/', f'world = "{ROOT}/configs/worlds/') + '\n[avoidance]\nmodel = "ardupilot"\n')
+    with pytest.raises(ConfigError, match="fixed-wing"):
+        load_scenario(p)
+
+
+# ------------------------------------------------------------------------------------ outcome -----
+def test_route_progress_is_exact_along_a_polyline():
+    route = np.array([[0, 0, -5], [10, 0, -5], [10, 10, -5]], float)
+    p = np.array([[5, 1, -5], [10, 4, -5], [12, 10, -5], [-3, 0, -5]], float)
+    assert route_progress(p, route) == pytest.approx([5.0, 14.0, 20.0, 0.0])
+
+
+def _synthetic(v_profile, clear, t_end=10.0, dt=0.01, demand=3.0):
+    t = np.arange(0.0, t_end, dt)
+    vx = np.array([v_profile(x) for x in t])
+    px = np.concatenate([[0.0], np.cumsum(vx[:-1] * dt)])
+    n = len(t)
+    return {"t_sim_s": t, "p_ned": np.stack([px, np.zeros(n), np.full(n, -5.0)], 1),
+            "v_ned": np.stack([vx, np.zeros(n), np.zeros(n)], 1),
+            "v_des_ned": np.stack([np.full(n, demand), np.zeros(n), np.zeros(n)], 1),
+            "clearance_m": np.array([clear(x) for x in px]), "route_ned": np.array([[0, 0, -5], [100, 0, -5.0]]),
+            "body_radius_m": np.array(F450_RADIUS_M), "avoid_margin_m": np.array(2.0),
+            "avoidance_model": np.array("ardupilot"), "collision_t_s": np.array(np.nan),
+            "braking_kp": np.array(1.0), "braking_accel_mss": np.array(1.0), "braking_delay_s": np.array(0.0),
+            "avoidance_data": np.ones(n, bool)}
+
+
+def test_outcome_stop_false_stop_progress_and_collision():
+    # flies at 3 m/s, stops at 5 s in front of a wall 2 m away: a stop, not a false stop
+    tr = _synthetic(lambda t: 3.0 if t < 5 else 0.0, lambda x: 17.0 - x)
+    o = evaluate_outcome(tr)
+    assert not o["collision"] and o["stop_t_s"] == pytest.approx(5.0, abs=0.02)
+    assert o["stop_clearance_m"] == pytest.approx(2.0, abs=0.05) and not o["false_stop"]
+    assert o["progress"] == pytest.approx(0.15, abs=0.002) and o["time_to_goal_s"] is None
+    # the same stop with the wall 30 m away: a false stop (nothing within the margins + stopping distance)
+    o = evaluate_outcome(_synthetic(lambda t: 3.0 if t < 5 else 0.0, lambda x: 45.0 - x))
+    assert o["false_stop"] and o["false_stop_t_s"] == pytest.approx(5.0, abs=0.02) and o["false_stop_s"] > 4.5
+    # flying on into the wall: a collision where the clearance reaches zero
+    o = evaluate_outcome(_synthetic(lambda t: 3.0, lambda x: 12.0 - x))
+    assert o["collision"] and o["collision_t_s"] == pytest.approx(4.0, abs=0.02) and o["min_clearance_m"] < 0
+    with pytest.raises(ConfigError):
+        OutcomeConfig(min_stop_s=0.0)
+
+
+# ------------------------------------------------------------------------------------ closed loop -
+def _fly_with_true_ranges(model: str, feed: bool, seconds: float = 16.0):
+    """Fly quad_avoid_wall_6 step by step; with ``feed`` the autopilot gets OBSTACLE_DISTANCE built
+    from the true sectors at 10 Hz (arriving 50 ms after the state they describe)."""
+    from flightsim.fly import Flight
+    from flightsim.scenario import load_scenario
+    from flightsim.world.truth import sector_truth_360
+
+    sc = load_scenario(WALL6, avoidance=model)
+    sc = dataclasses.replace(sc, meta=dataclasses.replace(sc.meta, duration_s=seconds))
+    fl = Flight(sc)
+    next_msg = 0.0
+    while (st := fl.physics_step()) is not None:
+        if feed and st.time_s >= next_msg - 1e-9:
+            d, _ = sector_truth_360(sc.world, st.R_world_body, st.p_ned, None, 40.0)
+            fl.avoidance.receive(st.time_s + 0.05, od(np.where(np.isfinite(d), d, np.inf)))
+            next_msg += 0.1
+    return fl, evaluate_outcome(fl.trajectory_arrays(), sc.world)
+
+
+@pytest.mark.parametrize("model", ["ardupilot", "px4"])
+def test_closed_loop_with_true_ranges_stops_short_of_the_wall(model):
+    fl, o = _fly_with_true_ranges(model, feed=True)
+    assert not o["collision"], o
+    assert o["stop_t_s"] is not None and o["stop_obstacle"] and "warehouse" in o["stop_obstacle"]
+    margin = 2.0
+    # the autopilot keeps its margin from the vehicle's centre: the body stops margin − radius away, give or take
+    assert margin - F450_RADIUS_M - 0.4 <= o["stop_clearance_m"] <= margin - F450_RADIUS_M + 1.0, o
+    assert o["max_speed_mps"] > 5.0 and not o["false_stop"]
+
+
+def test_closed_loop_without_data_crashes_with_ardupilot_and_stalls_with_px4():
+    _, o = _fly_with_true_ranges("ardupilot", feed=False, seconds=12.0)
+    assert o["collision"] and "warehouse" in (o["collision_with"] or "")  # no data = no constraint: the harness can fail
+    _, o = _fly_with_true_ranges("px4", feed=False, seconds=3.0)
+    assert not o["collision"] and o["progress"] < 0.01 and o["false_stop"]  # no data = refuses to move
+
+
+def test_fly_writes_the_trajectory_and_reports_the_outcome(tmp_path, capsys):
+    from flightsim.cli import main
+
+    rc = main(["fly", str(WALL6), "--out", str(tmp_path / "f"), "--no-plot", "--avoidance", "ardupilot"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "COLLISION with 'warehouse'" in out
+    tr = read_trajectory(tmp_path / "f" / "trajectory.npz")
+    assert np.isfinite(tr["collision_t_s"]) and tr["p_ned"][-1][0] == pytest.approx(50.0 - F450_RADIUS_M, abs=0.15)
