@@ -197,6 +197,11 @@ class NoAvoidance:
     def _limit(self, t, p_ned, v_ned, yaw, v_des) -> tuple[float, float, float]:
         return tuple(float(x) for x in v_des)
 
+    def boundary_points(self, t: float) -> np.ndarray:
+        """(K, 2) points (forward, right; body frame, m) of what the autopilot holds as obstacles at
+        ``t`` (for plots); empty without data."""
+        return np.zeros((0, 2))
+
 
 class ArduPilotAvoidance(NoAvoidance):
     """ArduPilot Copter simple avoidance fed by OBSTACLE_DISTANCE / DISTANCE_SENSOR (DESIGN §6).
@@ -312,6 +317,9 @@ class ArduPilotAvoidance(NoAvoidance):
             b = math.radians(k * self.FACE_DEG + 0.5 * self.FACE_DEG)
             pts[k] = dk * math.cos(b), dk * math.sin(b)
         return pts
+
+    def boundary_points(self, t: float) -> np.ndarray:
+        return self.boundary_body(t) if self.has_data(t) else np.zeros((0, 2))
 
     def obstacles_body(self, t: float) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(segment start, end, closest point to the vehicle) of each face's obstacle in use."""
@@ -490,6 +498,12 @@ class PX4Avoidance(NoAvoidance):
 
     def _has_data(self, t: float) -> bool:
         return bool(np.any(self.bins(t) < UINT16_MAX)) and (t - self.map_t) <= self.config.stale_s
+
+    def boundary_points(self, t: float) -> np.ndarray:
+        d = self.bins(t)
+        i = np.flatnonzero(d < UINT16_MAX)
+        b = np.radians(i * self.BIN_DEG)
+        return np.stack([d[i] / 100.0 * np.cos(b), d[i] / 100.0 * np.sin(b)], 1)
 
     def _limit(self, t, p_ned, v_ned, yaw, v_des) -> tuple[float, float, float]:
         cfg = self.config

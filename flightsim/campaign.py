@@ -61,6 +61,7 @@ class RunJob:
     score_config: ScoreConfig
     fixed_processing_ms: float
     keep_video: bool = False
+    avoidance: str | None = None  # overrides the scenario's [avoidance] model (closed loop: SITL only)
 
 
 # ---------------------------------------------------------------------- one run (worker) --------
@@ -92,7 +93,7 @@ def _sitl_run(job: RunJob, run_dir: Path) -> Path:
     from flightsim.sitl import run_sitl
 
     run_sitl(job.scenario, run_dir, seed=job.seed, clock="lockstep", port_base=None, companion_config=job.companion_config,
-             processing_ms=job.fixed_processing_ms, score=False)
+             processing_ms=job.fixed_processing_ms, score=False, avoidance=job.avoidance)
     return run_dir / "received.tlog"
 
 
@@ -110,11 +111,20 @@ def run_one(job: RunJob) -> dict:
     res = {"seed": job.seed, "dir": str(run_dir), "status": "failed", "error": None, "wall_s": None, "score": None}
     try:
         logging.getLogger(__name__).info("run seed %d, mode %s", job.seed, job.mode)
-        sc = load_scenario(job.scenario, seed=job.seed)
+        sc = load_scenario(job.scenario, seed=job.seed, avoidance=job.avoidance)
         ranges = _replay_run(job, sc, run_dir) if job.mode == "replay" else _sitl_run(job, run_dir)
         score = score_run(ranges, run_dir / "truth.npz", config=job.score_config, companion_config=job.companion_config,
                           world=sc.world, series_out=run_dir / "score_series.npz")
         write_score(run_dir, score)
+        if score.get("avoidance"):
+            try:
+                from flightsim.outcome import read_trajectory
+                from flightsim.plots import avoidance_plot
+
+                avoidance_plot(sc.world, read_trajectory(run_dir / "trajectory.npz"), score["avoidance"],
+                               run_dir / "avoidance.png", title=f"{sc.meta.name} seed {job.seed}")
+            except Exception:  # a plot is not the verdict
+                logging.getLogger(__name__).exception("avoidance plot failed")
         res.update(status="ok", score=score)
     except Exception as exc:  # recorded, the campaign goes on
         res["error"] = f"{type(exc).__name__}: {exc}"
@@ -131,6 +141,44 @@ def run_one(job: RunJob) -> dict:
 
 
 # ---------------------------------------------------------------------- aggregation -------------
+def wilson_interval(k: int, n: int, confidence: float = 0.95) -> tuple[float | None, float | None]:
+    """Wilson score interval of a binomial proportion k/n (sound at k = 0 and at k = n, where the
+    normal approximation collapses to a point)."""
+    if n <= 0:
+        return None, None
+    from statistics import NormalDist
+
+    z = NormalDist().inv_cdf(0.5 + confidence / 2.0)
+    p = k / n
+    den = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def pool_outcomes(outcomes: list[dict]) -> dict:
+    """Closed-loop outcomes of several runs pooled (:mod:`flightsim.outcome`): collision and false-stop
+    rates with 95 % Wilson intervals, stop clearance, minimum clearance, progress, time to goal."""
+    n = len(outcomes)
+    coll = sum(1 for o in outcomes if o["collision"])
+    fstop = sum(1 for o in outcomes if o["false_stop"])
+    stopped = [o["stop_clearance_m"] for o in outcomes if o["stop_clearance_m"] is not None and not o["collision"]]
+    goal = [o["time_to_goal_s"] for o in outcomes if o["time_to_goal_s"] is not None]
+    lo, hi = wilson_interval(coll, n)
+    flo, fhi = wilson_interval(fstop, n)
+    return {
+        "runs": n, "model": sorted({o["model"] for o in outcomes}),
+        "collisions": coll, "collision_rate": coll / n if n else None, "collision_ci95": [lo, hi],
+        "false_stops": fstop, "false_stop_rate": fstop / n if n else None, "false_stop_ci95": [flo, fhi],
+        "stopped_short": len(stopped), "stop_clearance_m": _mean_std(stopped),
+        "min_clearance_m": _mean_std(o["min_clearance_m"] for o in outcomes),
+        "progress": _mean_std(o["progress"] for o in outcomes),
+        "reached_goal": len(goal), "time_to_goal_s": _mean_std(goal),
+        "max_speed_mps": _mean_std(o["max_speed_mps"] for o in outcomes),
+        "data_while_pushing": _mean_std(o.get("data_while_pushing") for o in outcomes),
+    }
+
+
 def _mean_std(values) -> dict:
     v = np.array([x for x in values if x is not None], float)
     return {"n": int(v.size), "mean": float(v.mean()) if v.size else None,
@@ -248,7 +296,9 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
     rem["rate"] = rem["within_tolerance"] / rem["cells"] if rem["cells"] else None
     beside = {k: sum(int((s.get("false_obstacles_beside_obstacle") or {}).get(k) or 0) for s in scores)
               for k in ("in_view", "in_view_total", "out_of_view", "out_of_view_total")}
+    outcomes = [s["avoidance"] for s in scores if s.get("avoidance")]
     return _jsonable({
+        "avoidance": pool_outcomes(outcomes) if outcomes else None,
         "runs": len(results), "runs_ok": len(ok), "runs_failed": len(results) - len(ok),
         "cells": cells, "pooled_rates": pooled, "per_run_rates": per_run, "targets": targets,
         "cells_in_view": cells_iv, "cells_out_of_view": cells_oov, "pooled_rates_in_view": pooled_of(cells_iv),
@@ -273,6 +323,9 @@ def run_key_figures(score: dict) -> dict:
         "latency_p99_ms": score["latency"]["p99_ms"], "nees_mean": score["nees"]["mean"], "nees_n": score["nees"]["n"],
         "first_claim_at_s": score["first_claim_at_s"],
         "time_to_first_valid_s": {o["name"]: o["time_to_first_valid_s"] for o in score["obstacles"]},
+        "avoidance": None if not score.get("avoidance") else {
+            k: score["avoidance"][k] for k in ("collision", "min_clearance_m", "stop_clearance_m", "false_stop", "progress",
+                                               "time_to_goal_s")},
     })
 
 
@@ -312,7 +365,7 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
                  score_config: ScoreConfig | None = None, fixed_processing_ms: float = 30.0, keep_video: bool = False,
                  obstacle: str = "forward", times: list[float] | None = None,
                  progress: Callable[[int, int, int], None] | None = None,
-                 run_fn: Callable[[RunJob], dict] = run_one) -> dict:
+                 run_fn: Callable[[RunJob], dict] = run_one, avoidance: str | None = None) -> dict:
     """Run, score and report a campaign (module docstring); returns the campaign.json contents.
 
     ``progress(done, total, failed)`` is called as runs finish.  ``run_fn`` runs one job in the
@@ -330,9 +383,14 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
         raise ConfigError(f"--workers must be an integer >= 1, got {workers!r}")
     if not (math.isfinite(fixed_processing_ms) and fixed_processing_ms >= 0):
         raise ConfigError(f"--fixed-processing-ms must be >= 0, got {fixed_processing_ms}")
-    mode = resolve_mode(mode)
     scenario = Path(scenario).resolve()
-    sc = load_scenario(scenario)  # a bad scenario stops here, before any worker starts
+    sc = load_scenario(scenario, avoidance=avoidance)  # a bad scenario stops here, before any worker starts
+    if sc.avoidance.model != "none":  # the closed loop needs the live companion: SITL
+        if mode == "replay":
+            raise ConfigError(f"{scenario.name}: avoidance {sc.avoidance.model!r} closes the loop through the live companion; "
+                              "use --mode sitl (or auto), not replay")
+        mode = "sitl"
+    mode = resolve_mode(mode)
     base = sc.meta.seed if seed0 is None else int(seed0)
     if base < 0:
         raise ConfigError(f"--seed0 must be >= 0, got {base}")
@@ -348,7 +406,8 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     out = Path(out)
     (out / "runs").mkdir(parents=True, exist_ok=True)
     jobs = [RunJob(str(scenario), base + i, str(out / "runs" / f"seed_{base + i:04d}"), mode,
-                   None if companion_config is None else str(companion_config), cfg, float(fixed_processing_ms), keep_video)
+                   None if companion_config is None else str(companion_config), cfg, float(fixed_processing_ms), keep_video,
+                   avoidance)
             for i in range(runs)]
     log.info("campaign %s: %d runs (seeds %d…%d), mode %s, %d workers, companion config %s → %s", sc.meta.name, runs, base,
              base + runs - 1, mode, workers, companion_config or "built-in defaults", out)
@@ -389,6 +448,7 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     agg = aggregate(ordered, series, cfg)
     campaign = {
         "scenario": str(scenario), "scenario_name": sc.meta.name, "mode": mode, "seeds": [j.seed for j in jobs],
+        "avoidance": sc.avoidance.model,
         "workers": workers, "fixed_processing_ms": fixed_processing_ms,
         "companion_config": None if companion_config is None else str(companion_config),
         "score_config": dataclasses.asdict(cfg), "wall_s": round(time.perf_counter() - wall0, 2), "interrupted": interrupted,
@@ -436,12 +496,20 @@ def campaign_from_args(args) -> int:
         c = run_campaign(args.scenario, args.out, runs=args.runs, workers=args.workers, mode=args.mode, seed0=args.seed0,
                          companion_config=args.companion_config, score_config=cfg,
                          fixed_processing_ms=args.fixed_processing_ms, keep_video=args.keep_video, obstacle=args.obstacle,
-                         times=times, progress=tick)
+                         times=times, progress=tick, avoidance=args.avoidance)
     finally:
         if bar:
             bar.stop()
     a = c["aggregate"]
     print(f"{c['scenario_name']}: {a['runs_ok']} of {a['runs']} runs scored ({c['mode']} mode) in {c['wall_s']:.0f} s")
+    av = a.get("avoidance")
+    if av:
+        ci = av["collision_ci95"]
+        sc_ = av["stop_clearance_m"]
+        print(f"avoidance {c['avoidance']}: {av['collisions']} collisions in {av['runs']} runs (rate {100 * av['collision_rate']:.1f} %, "
+              f"95 % CI {100 * ci[0]:.1f}–{100 * ci[1]:.1f} %); stopped short in {av['stopped_short']} "
+              + (f"(clearance {sc_['mean']:.2f} ± {sc_['std']:.2f} m, min {sc_['min']:.2f})" if sc_["n"] else "")
+              + f"; false stops {av['false_stops']}; progress {100 * av['progress']['mean']:.0f} %")
     pr = a["pooled_rates"]
     pc = lambda v: "–" if v is None else f"{100 * v:.2f} %"  # noqa: E731
     print(f"pooled: detection {pc(pr['detection'])}, false obstacle (clear cells) {pc(pr['false_obstacle_clear_cells'])}, "

@@ -56,7 +56,12 @@ def cmd_fly(args) -> int:
     if sc.avoidance.model != "none":
         from flightsim.outcome import evaluate_outcome, read_trajectory
 
-        o = evaluate_outcome(read_trajectory(Path(args.out) / "trajectory.npz"), sc.world)
+        tr = read_trajectory(Path(args.out) / "trajectory.npz")
+        o = evaluate_outcome(tr, sc.world)
+        if not args.no_plot:
+            from flightsim.plots import avoidance_plot
+
+            avoidance_plot(sc.world, tr, o, Path(args.out) / "avoidance.png", title=sc.meta.name)
         print(f"avoidance {o['model']} (no companion, so no obstacle data): "
               + (f"COLLISION with {o['collision_with']} at {o['collision_t_s']:.2f} s" if o["collision"]
                  else f"no collision, min clearance {o['min_clearance_m']:.2f} m")
@@ -353,6 +358,10 @@ def main(argv=None) -> int:
                         "the forward DISTANCE_SENSOR)")
     p.add_argument("--times", default=None, help="comma-separated times (s after the first frame) of the sector radar "
                                                   "plots (default: 4 times spread over the flight)")
+    p.add_argument("--avoidance", choices=("ardupilot", "px4", "none"), default=None,
+                   help="override the scenario's [avoidance] model: the simulated autopilot avoids obstacles with the "
+                        "companion's ranges (closed loop; runs in SITL) and every run gets an outcome (collision, stop "
+                        "clearance, false stop, progress), pooled with 95 %% confidence intervals")
     p.add_argument("--keep-video", action="store_true", help="keep each run's video.avi (default: deleted after scoring; "
                                                              "the seed reproduces it)")
     args = ap.parse_args(argv)

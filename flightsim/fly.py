@@ -217,6 +217,7 @@ class Flight:
         self.collision_t: float | None = None  # simulation time the body first touched an obstacle (the flight ends)
         self.collision_with: str | None = None
         self.traj: dict[str, list] = {k: [] for k in TRAJECTORY_FIELDS}
+        self.boundary: list[tuple[float, np.ndarray]] = []  # (t, (K, 2) world NE points) at 5 Hz, for plots
 
     @property
     def finished(self) -> bool:
@@ -248,6 +249,12 @@ class Flight:
         tr["v_cmd_ned"].append(self.vehicle.v_cmd if avoiding else (np.nan,) * 3)
         tr["clearance_m"].append(clear)
         tr["avoidance_data"].append(self.avoidance.has_data(st.time_s))
+        if self.sc.avoidance.model != "none" and self.step_index % max(1, int(round(0.2 / self.dt))) == 0:
+            yaw = float(st.rpy[2])
+            c, s_ = math.cos(yaw), math.sin(yaw)
+            b = self.avoidance.boundary_points(st.time_s)
+            ne = np.stack([st.p_ned[0] + c * b[:, 0] - s_ * b[:, 1], st.p_ned[1] + s_ * b[:, 0] + c * b[:, 1]], 1)
+            self.boundary.append((st.time_s, ne))
         if clear <= 0.0 and self.body_radius_m > 0 and self.collision_t is None:
             self.collision_t = st.time_s
             self.collision_with = obstacle.label if obstacle is not None else None
@@ -337,6 +344,12 @@ class Flight:
         arrays["collision_t_s"] = np.array(np.nan if self.collision_t is None else self.collision_t)
         arrays["collision_with"] = np.array(self.collision_with or "", dtype="U64")
         arrays["route_speed_mps"] = np.array(sc.vehicle.route.speed_mps or np.nan)
+        k = max((len(b) for _, b in self.boundary), default=0)
+        arrays["boundary_t_s"] = np.array([t for t, _ in self.boundary], float)
+        bw = np.full((len(self.boundary), k, 2), np.nan)
+        for i, (_, b) in enumerate(self.boundary):
+            bw[i, : len(b)] = b
+        arrays["boundary_ne_m"] = bw  # what the autopilot held as obstacles, world north/east, NaN-padded
         av = sc.avoidance  # the model's braking curve, for the outcome's false-stop rule
         ap = av.model == "ardupilot"
         arrays["braking_kp"] = np.array(av.pos_kp if ap else av.mpc_xy_p)

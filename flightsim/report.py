@@ -277,6 +277,31 @@ def _ms(d: dict, fmt: str = "{:.2f}", pct: bool = False) -> str:
     return f"{fmt.format(d['mean'])} ± {fmt.format(d['std'] or 0)}"
 
 
+def _avoidance_lines(c: dict) -> list[str]:
+    """The closed-loop outcome pooled over the runs (flightsim.outcome; campaign.pool_outcomes)."""
+    av = (c.get("aggregate") or {}).get("avoidance")
+    if not av:
+        return []
+    ci, fci = av["collision_ci95"], av["false_stop_ci95"]
+
+    def ms(d, fmt="{:.2f}"):
+        return "–" if not d or d.get("n", 0) == 0 else f"{fmt.format(d['mean'])} ± {fmt.format(d['std'])} (min {fmt.format(d['min'])}, max {fmt.format(d['max'])})"
+
+    return ["## Avoidance outcome (closed loop), pooled over runs", "",
+            f"The simulated autopilot's `{c.get('avoidance')}` avoidance flew on the companion's ranges (each run's "
+            "`avoidance.png`: track, the autopilot's obstacle data where it stopped, clearance and speeds).", "",
+            "| outcome | value |", "|---|---|",
+            f"| collisions | {av['collisions']} of {av['runs']} ({_pc(av['collision_rate'], 1)}; 95 % CI {_pc(ci[0], 1)}–{_pc(ci[1], 1)}) |",
+            f"| stopped short of the obstacle | {av['stopped_short']} of {av['runs']} |",
+            f"| stop clearance, m (body to obstacle, along the demand) | {ms(av['stop_clearance_m'])} |",
+            f"| min clearance, m | {ms(av['min_clearance_m'])} |",
+            f"| false stops | {av['false_stops']} of {av['runs']} (95 % CI {_pc(fci[0], 1)}–{_pc(fci[1], 1)}) |",
+            f"| progress along the route | {ms(av['progress'], '{:.1%}')} |",
+            f"| reached the goal | {av['reached_goal']} of {av['runs']} |",
+            f"| max speed, m/s | {ms(av['max_speed_mps'])} |",
+            f"| obstacle data held while the pilot pushed | {ms(av['data_while_pushing'], '{:.1%}')} |", ""]
+
+
 def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
     a = c["aggregate"]
     L = [f"# Campaign: {c['scenario_name']}", "",
@@ -284,9 +309,11 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
          f"{a['runs_ok']} scored, {a['runs_failed']} failed), {c['workers']} workers, {c['wall_s']:.0f} s wall; processing "
          f"time {c['fixed_processing_ms']:g} ms per frame; companion config `{c['companion_config']}`.", "",
          "Reproduce: `flightsim campaign " + f"{c['scenario']} --runs {len(c['seeds'])} --seed0 {c['seeds'][0]} "
-         f"--mode {c['mode']} --fixed-processing-ms {c['fixed_processing_ms']:g} --out DIR`.", "",
+         f"--mode {c['mode']} --fixed-processing-ms {c['fixed_processing_ms']:g}"
+         + (f" --avoidance {c['avoidance']}" if c.get("avoidance") not in (None, "none") else "") + " --out DIR`.", "",
          "Definitions (cells, tolerance, false obstacle, dangerous clear, NEES, latency): the module docstring of "
          "`flightsim/score.py`, repeated at the end of every run's score.md.", "",
+         *_avoidance_lines(c),
          f"## Targets (issues 5 and 11), pooled over runs (after a {c.get('score_config', {}).get('warmup_s', 0):g} s warm-up; "
          f"{a.get('warmup_messages_excluded', 0)} messages excluded)", "",
          "| target | pooled | threshold | n | met | runs meeting it |", "|---|---|---|---|---|---|"]

@@ -698,6 +698,15 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
         except Exception as exc:  # the run itself is recorded; say loudly that its verdict is missing
             log.exception("scoring %s failed", out)
             sc_result, note, score_failed = None, f"scoring failed: {exc!r}", True
+    if sc_result is not None and sc_result.get("avoidance") and not score_failed:
+        try:
+            from flightsim.outcome import read_trajectory
+            from flightsim.plots import avoidance_plot
+
+            avoidance_plot(sc.world, read_trajectory(out / "trajectory.npz"), sc_result["avoidance"], out / "avoidance.png",
+                           title=sc.meta.name)
+        except Exception:  # a plot is not the verdict: say so and go on
+            log.exception("avoidance plot of %s failed", out)
     fl = run.flight
     sim_s = fl.state.time_s
     timing = {k: round(v, 3) for k, v in sorted({**fl.timing, **run.timing, "write_files": write_s}.items())}
@@ -730,7 +739,7 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
         "companion_command": run.cmd, "companion_exit_code": None if run.companion is None else run.companion.exit_code,
         "ports": {"mavlink_udp": run.endpoint.port, "camera_tcp": run.server.port},
         "avoidance": {"model": sc.avoidance.model, **run.flight.avoidance.counters},
-        "paths": {name: str(out / name) for name in ("truth.npz", "trajectory.npz", "frames.csv", "camera.toml", "telemetry.tlog",
+        "paths": {name: str(out / name) for name in ("truth.npz", "trajectory.npz", "avoidance.png", "frames.csv", "camera.toml", "telemetry.tlog",
                                                      "received.tlog", "companion.log", "sitl.json", "video.avi",
                                                      "score.json", "score.md") if (out / name).exists() or name == "sitl.json"},
         "score": sc_result, "score_note": note, "score_failed": score_failed,

@@ -169,6 +169,13 @@ def main(argv=None) -> int:
                                    "configs/companion.toml as shipped and with one map setting changed at a time: remembered "
                                    "share, false obstacles, detection (DESIGN §7)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
+    p = sub.add_parser("avoidance", help="closed-loop avoidance campaigns: the simulated autopilot flies on the companion's ranges",
+                       description="the quad commanded through a wall (3, 6, 10 m/s), a pole, a building corner and a slalom "
+                                   "line in lockstep SITL with the simulated autopilot's avoidance (ArduPilot, PX4, PX4 with "
+                                   "CP_GO_NO_DATA = 1) on the companion's ranges: collisions with 95 % intervals, stop "
+                                   "clearance, false stops, progress (DESIGN §6)")
+    p.add_argument("--runs", type=int, default=20, help="seeds per scenario × model (default 20)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
     p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")
     p.add_argument("--repeats", type=int, default=50, help="repeats per measurement; the median is reported")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
@@ -207,17 +214,23 @@ def main(argv=None) -> int:
 
         res = cmd_map_tradeoff(args.json)
         print(json.dumps(res) if args.json else map_tradeoff.markdown(res))
+    elif args.cmd == "avoidance":
+        from companion.bench import avoidance
+
+        res = avoidance.run_all(args.runs)
+        print(json.dumps(res, default=str) if args.json else avoidance.markdown(res))
     elif args.cmd == "timing":
         res = cmd_timing(args)
         print(json.dumps(report.timing_json(res)) if args.json else report.timing_markdown(res))
     else:
-        from companion.bench import flightsim_bench, latency
+        from companion.bench import avoidance, flightsim_bench, latency
 
         res = {"seed004": cmd_seed004(args), "seed000": cmd_seed000(args), "timing": cmd_timing(args),
                "latency": latency.run_all(), "pipeline004": cmd_pipeline004(args, max(5, args.runs // 10)),
                "flightsim": flightsim_bench.run_all(), "sitl": cmd_sitl(args),
                "looming": cmd_looming(args, max(5, args.runs // 10), 3),
-               "map_memory": cmd_map_memory(30.0, 5.0, args.json), "map_tradeoff": cmd_map_tradeoff(args.json)}
+               "map_memory": cmd_map_memory(30.0, 5.0, args.json), "map_tradeoff": cmd_map_tradeoff(args.json),
+               "avoidance": avoidance.run_all(20)}
         if args.json:
             print(json.dumps(res))
         else:
@@ -225,7 +238,8 @@ def main(argv=None) -> int:
 
             text = (report.full_markdown(res, args.runs, args.repeats).rstrip("\n") + "\n\n" + looming.markdown(res["looming"])
                     + "\n\n## Local obstacle map: memory over a long hover (issue 11)\n\n" + map_memory.markdown(res["map_memory"])
-                    + "\n\n## Local obstacle map: publishing trade-offs (issue 11)\n\n" + map_tradeoff.markdown(res["map_tradeoff"]) + "\n")
+                    + "\n\n## Local obstacle map: publishing trade-offs (issue 11)\n\n" + map_tradeoff.markdown(res["map_tradeoff"])
+                    + "\n\n## Closed-loop avoidance (issue 12)\n\n" + avoidance.markdown(res["avoidance"]) + "\n")
             if args.write:
                 with open(args.write, "w", encoding="utf-8") as fh:
                     fh.write(text)

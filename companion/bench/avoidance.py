@@ -1,0 +1,142 @@
+"""Closed-loop avoidance campaigns (issue 12): does a vehicle flying on the companion's ranges stop short?
+
+Each campaign is ``flightsim campaign configs/scenarios/<scenario>.toml --avoidance MODEL --runs N``
+(lockstep SITL, the companion live): the simulated autopilot's avoidance (:mod:`flightsim.avoidance`)
+limits the pilot's velocity with the OBSTACLE_DISTANCE / DISTANCE_SENSOR it receives, and every run
+is scored on its outcome (:mod:`flightsim.outcome`: collision, clearance where it stopped, false
+stops, progress) as well as on the messages.  Scenarios (:data:`SCENARIOS`): the quad commanded
+through a textured wall at 3, 6 and 10 m/s, through a 0.3 m pole, past a building corner, and
+along a slalom line that crosses four poles.  Models: ``ardupilot`` (Copter simple avoidance,
+defaults as shipped), ``px4`` (collision prevention, CP_DIST = 2 m, CP_GO_NO_DATA = 0 as shipped)
+and ``px4_go_no_data`` (the same with CP_GO_NO_DATA = 1, written as a scenario variant in the
+campaign's directory: what a PX4 user of a forward camera sets so that directions the sensor never
+covered do not stall the vehicle).
+
+``python -m companion.bench avoidance --runs 20`` (in ``make bench``): the pooled table of
+docs/BENCHMARKS.md — collision rate with a 95 % Wilson interval per scenario × model.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+SCEN = ROOT / "configs" / "scenarios"
+OUT = ROOT / "out" / "bench" / "avoidance"
+
+#: scenario → what the pilot commands
+SCENARIOS: dict[str, str] = {
+    "quad_avoid_wall_3": "through a textured wall 50 m ahead at 3 m/s",
+    "quad_avoid_wall_6": "through the wall at 6 m/s",
+    "quad_avoid_wall_10": "through the wall at 10 m/s",
+    "quad_avoid_pole": "through a 0.3 m pole 30 m ahead at 5 m/s",
+    "quad_avoid_corner": "a straight line at 5 m/s that clips a building's corner",
+    "quad_avoid_slalom": "straight along a slalom line through four poles (0.2–0.6 m) at 4 m/s",
+}
+MODELS = ("ardupilot", "px4", "px4_go_no_data")
+
+
+def scenario_file(scenario: str, model: str, out: Path) -> tuple[Path, str]:
+    """The scenario TOML and the ``--avoidance`` model of a campaign; ``px4_go_no_data`` is a variant
+    of the scenario with ``cp_go_no_data = true`` written to ``out`` (world path made absolute)."""
+    src = SCEN / f"{scenario}.toml"
+    if model != "px4_go_no_data":
+        return src, model
+    text = src.read_text(encoding="utf-8")
+    world = (SCEN / re.search(r'^world = "([^"]+)"', text, re.M).group(1)).resolve()
+    text = re.sub(r'^world = "[^"]+"', f'world = "{world.as_posix()}"', text, count=1, flags=re.M)
+    text = re.sub(r"^(cp_dist_m = .*)$", r"\1\ncp_go_no_data = true                # CP_GO_NO_DATA = 1: directions never covered do not stall",
+                  text, count=1, flags=re.M)
+    out.mkdir(parents=True, exist_ok=True)
+    dst = out / f"{scenario}_px4_go_no_data.toml"
+    dst.write_text(text, encoding="utf-8")
+    return dst, "px4"
+
+
+def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=MODELS, progress=None) -> dict:
+    """The campaigns of ``scenarios`` × ``models`` with ``runs`` seeds each; returns their results."""
+    from flightsim.campaign import run_campaign
+
+    names = list(SCENARIOS) if scenarios is None else list(scenarios)
+    bad = [n for n in names if n not in SCENARIOS] + [m for m in models if m not in MODELS]
+    if bad:
+        raise ValueError(f"unknown scenario(s) or model(s): {', '.join(bad)}")
+    res: dict = {"runs": runs, "campaigns": {}}
+    for name in names:
+        for model in models:
+            out = OUT / f"{name}_{model}"
+            path, av = scenario_file(name, model, OUT / "scenarios")
+            t0 = time.perf_counter()
+            c = run_campaign(path, out, runs=runs, workers=workers, mode="sitl", avoidance=av)
+            res["campaigns"][f"{name}/{model}"] = {
+                "scenario": name, "model": model, "wall_s": round(time.perf_counter() - t0, 1), "dir": str(out),
+                "avoidance": c["aggregate"]["avoidance"], "runs_ok": c["aggregate"]["runs_ok"], "runs": c["aggregate"]["runs"],
+                "detection_in_view": next((t["pooled"] for t in c["aggregate"]["targets"]
+                                           if t["name"].startswith("detection (a range")), None),
+            }
+            if progress:
+                progress(name, model, res["campaigns"][f"{name}/{model}"])
+    return res
+
+
+def _pc(v, d=1) -> str:
+    return "–" if v is None else f"{100 * v:.{d}f} %"
+
+
+def _m(d, fmt="{:.2f}") -> str:
+    return "–" if not d or not d.get("n") else f"{fmt.format(d['mean'])} ± {fmt.format(d['std'])} (min {fmt.format(d['min'])})"
+
+
+def markdown(res: dict) -> str:
+    """The closed-loop section of docs/BENCHMARKS.md."""
+    L = ["Command: `python -m companion.bench avoidance --runs " + str(res["runs"]) + "` (in `make bench`); each cell is "
+         "`flightsim campaign configs/scenarios/<scenario>.toml --avoidance <model> --runs N --mode sitl` (lockstep SITL, "
+         "the companion live with configs/companion.toml, seeds from the scenario's own).  The simulated autopilot limits "
+         "the pilot's velocity with the messages as they arrive (flightsim/avoidance.py: ArduPilot Copter simple "
+         "avoidance with its shipped defaults — AVOID_MARGIN 2 m, slide, PRX_FILT 0.25 Hz, braking at 1 m/s²; PX4 "
+         "collision prevention with CP_DIST 2 m, CP_DELAY 0.4 s, CP_GUIDE_ANG 30°, CP_GO_NO_DATA 0 as shipped, and a "
+         "variant with CP_GO_NO_DATA 1).  Outcome per run (flightsim/outcome.py): collision = the body (0.35 m sphere) "
+         "touched an obstacle; stop clearance = body to the obstacle along the demanded direction where it first came to "
+         "rest; false stop = slowed below half the demand for ≥ 0.5 s with nothing within 2 × margin + the model's "
+         "stopping distance; progress = share of the route flown.  Collision rate with a 95 % Wilson interval.", "",
+         "| scenario | model | runs | collisions (95 % CI) | stopped short | stop clearance m | min clearance m | false stops | "
+         "progress | data while pushing | detection in view |",
+         "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for key, c in res["campaigns"].items():
+        a = c["avoidance"]
+        if not a:
+            L.append(f"| {c['scenario']} | {c['model']} | {c['runs_ok']} of {c['runs']} | – | – | – | – | – | – | – | – |")
+            continue
+        ci = a["collision_ci95"]
+        L.append(f"| {c['scenario']} | {c['model']} | {a['runs']} | {a['collisions']} ({_pc(a['collision_rate'])}; "
+                 f"{_pc(ci[0])}–{_pc(ci[1])}) | {a['stopped_short']} | {_m(a['stop_clearance_m'])} | "
+                 f"{_m(a['min_clearance_m'])} | {a['false_stops']} | {_m(a['progress'], '{:.0%}')} | "
+                 f"{_m(a['data_while_pushing'], '{:.0%}')} | {_pc(c['detection_in_view'])} |")
+    L += ["", "Reports per campaign (each run's avoidance.png, pooled index.md): `out/bench/avoidance/<scenario>_<model>/`."]
+    return "\n".join(L) + "\n"
+
+
+def main(argv=None) -> int:
+    import argparse
+    import json
+
+    ap = argparse.ArgumentParser(prog="python -m companion.bench.avoidance", description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", type=int, default=20, help="seeds per scenario × model (default 20)")
+    ap.add_argument("--workers", type=int, default=2, help="worker processes per campaign (default 2)")
+    ap.add_argument("--scenarios", default=None, help=f"comma-separated subset of: {', '.join(SCENARIOS)}")
+    ap.add_argument("--models", default=",".join(MODELS), help=f"comma-separated subset of: {', '.join(MODELS)}")
+    ap.add_argument("--json", action="store_true", help="print JSON instead of the table")
+    args = ap.parse_args(argv)
+    names = [n.strip() for n in args.scenarios.split(",") if n.strip()] if args.scenarios else None
+    models = tuple(m.strip() for m in args.models.split(",") if m.strip())
+    res = run_all(args.runs, args.workers, names, models,
+                  progress=lambda n, m, c: print(f"{n} {m}: {c['avoidance'] and c['avoidance']['collisions']} collisions "
+                                                 f"in {c['runs_ok']} runs ({c['wall_s']:.0f} s)", flush=True))
+    print(json.dumps(res, default=str) if args.json else markdown(res))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
