@@ -13,10 +13,12 @@ $(VENV): pyproject.toml
 	$(BIN)/python -m pip install -e '.[dev]'
 	touch $(VENV)
 
-# Main job: fly quad_approach in JSBSim with the companion in the loop (lockstep SITL over MAVLink on
-# free loopback ports), score its messages against truth and print the score table.
+# Main job, the closed loop: the quad is commanded at 6 m/s through a textured wall in JSBSim; the
+# companion (lockstep SITL over MAVLink on free loopback ports) ranges it and the simulated
+# autopilot's ArduPilot avoidance stops the quad short on those ranges. Prints where it stopped, the
+# clearance and the message scores; the top-down plot is out/demo/avoidance.png.
 demo: $(VENV)
-	$(BIN)/flightsim sitl configs/scenarios/quad_approach.toml --out out/demo --mavlink-port 0 --camera-port 0
+	$(BIN)/flightsim sitl configs/scenarios/quad_avoid_wall_6.toml --avoidance ardupilot --out out/demo --mavlink-port 0 --camera-port 0
 
 test: $(VENV)
 	$(BIN)/python -m pytest -q

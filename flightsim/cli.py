@@ -119,6 +119,13 @@ def cmd_sitl(args) -> int:
     else:
         print(f"not scored: {s['score_note']}")
     print(f"files in {args.out}: " + ", ".join(Path(p).name for p in s["paths"].values()))
+    o = (s["score"] or {}).get("avoidance")
+    if o:
+        where = (f"COLLISION with {o['collision_with']} at {o['collision_t_s']:.2f} s" if o["collision"] else
+                 f"stopped {o['stop_clearance_m']:.2f} m short of {o['stop_obstacle']} at {o['stop_t_s']:.2f} s" if o["stop_t_s"] is not None
+                 else "no stop in front of an obstacle")
+        print(f"closed loop ({o['model']} avoidance on the companion's ranges): {where}; min clearance "
+              f"{o['min_clearance_m']:.2f} m, progress {100 * o['progress']:.0f} % of the route; plot {Path(args.out) / 'avoidance.png'}")
     if s["score_failed"]:
         print(f"flightsim: error: {s['score_note']}", file=sys.stderr)
         return 1

@@ -64,6 +64,11 @@ def avoidance_plot(world, traj: dict, outcome: dict, path: Path, title: str = ""
     a.set_ylabel("north (m)")
     lo = np.minimum(p[:, :2].min(0), r[:, :2].min(0)) - 8
     hi = np.maximum(p[:, :2].max(0), r[:, :2].max(0)) + 8
+    span = 0.6 * max(hi - lo)  # keep the picture from becoming a sliver along a straight route
+    for i in range(2):
+        if hi[i] - lo[i] < span:
+            mid = 0.5 * (hi[i] + lo[i])
+            lo[i], hi[i] = mid - span / 2, mid + span / 2
     a.set_xlim(lo[1], hi[1])
     a.set_ylim(lo[0], hi[0])
     a.set_aspect("equal", adjustable="box")

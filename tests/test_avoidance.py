@@ -334,3 +334,61 @@ def test_fly_writes_the_trajectory_and_reports_the_outcome(tmp_path, capsys):
     assert "COLLISION with 'warehouse'" in out
     tr = read_trajectory(tmp_path / "f" / "trajectory.npz")
     assert np.isfinite(tr["collision_t_s"]) and tr["p_ned"][-1][0] == pytest.approx(50.0 - F450_RADIUS_M, abs=0.15)
+
+
+# ------------------------------------------------------------------------------------ campaigns ---
+def test_wilson_interval_is_exact_at_the_edges_and_contains_the_estimate():
+    from flightsim.campaign import wilson_interval
+
+    z2 = 1.959963984540054 ** 2
+    lo, hi = wilson_interval(0, 20)
+    assert lo == 0.0 and hi == pytest.approx(z2 / (20 + z2), rel=1e-9)
+    lo, hi = wilson_interval(20, 20)
+    assert lo == pytest.approx(20 / (20 + z2), rel=1e-9) and hi == 1.0
+    for k in range(0, 21):
+        lo, hi = wilson_interval(k, 20)
+        assert lo <= k / 20 <= hi
+    assert wilson_interval(0, 0) == (None, None)
+
+
+def test_pool_outcomes_counts_collisions_stops_and_false_stops():
+    from flightsim.campaign import pool_outcomes
+
+    base = {"model": "ardupilot", "collision": False, "false_stop": False, "stop_clearance_m": 2.0, "min_clearance_m": 1.9,
+            "progress": 0.7, "time_to_goal_s": None, "max_speed_mps": 6.0, "data_while_pushing": 0.9}
+    runs = [dict(base), dict(base, stop_clearance_m=1.0), dict(base, collision=True, stop_clearance_m=None, min_clearance_m=-0.1),
+            dict(base, false_stop=True)]
+    p = pool_outcomes(runs)
+    assert p["runs"] == 4 and p["collisions"] == 1 and p["collision_rate"] == 0.25 and p["false_stops"] == 1
+    assert p["stopped_short"] == 3 and p["stop_clearance_m"]["min"] == 1.0 and p["min_clearance_m"]["min"] == -0.1
+    lo, hi = p["collision_ci95"]
+    assert lo < 0.25 < hi
+
+
+def test_campaign_refuses_replay_mode_with_avoidance(tmp_path):
+    from flightsim.campaign import run_campaign
+
+    with pytest.raises(ConfigError, match="replay"):
+        run_campaign(WALL6, tmp_path / "c", runs=1, mode="replay")
+
+
+# ------------------------------------------------------------------------------------ SITL --------
+def test_sitl_closed_loop_stops_short_of_the_wall_on_the_companions_ranges(tmp_path):
+    """The whole loop: the live companion ranges the wall, the simulated ArduPilot limits the pilot's
+    6 m/s demand with the OBSTACLE_DISTANCE it receives, and the quad stops short."""
+    import json
+
+    from flightsim.sitl import run_sitl
+
+    s = run_sitl(WALL6, tmp_path / "s", mavlink_port=0, camera_port=0)
+    o = s["score"]["avoidance"]
+    assert not o["collision"], o
+    assert o["stop_t_s"] is not None and "warehouse" in (o["stop_obstacle"] or "")
+    assert o["stop_clearance_m"] >= 2.0 - 0.5 and o["min_clearance_m"] > 1.0  # AVOID_MARGIN − 0.5 m
+    assert not o["false_stop"] and o["max_speed_mps"] > 5.0
+    assert s["checks"].get("avoidance_late", 0) == 0  # the physics never ran past a message's arrival
+    assert s["avoidance"]["model"] == "ardupilot" and s["avoidance"]["messages"] > 100
+    assert (tmp_path / "s" / "avoidance.png").stat().st_size > 10_000
+    score = json.loads((tmp_path / "s" / "score.json").read_text())
+    assert score["avoidance"]["collision"] is False
+    assert "## Avoidance (closed loop)" in (tmp_path / "s" / "score.md").read_text()
