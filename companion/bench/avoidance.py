@@ -55,6 +55,40 @@ def scenario_file(scenario: str, model: str, out: Path) -> tuple[Path, str]:
     return dst, "px4"
 
 
+def _fly_no_companion(args: tuple[str, int, str]) -> dict:
+    """One ``flightsim fly`` of a scenario with ArduPilot avoidance and no companion (worker process)."""
+    scenario, seed, out = args
+    from flightsim.fly import fly
+    from flightsim.outcome import evaluate_outcome, read_trajectory
+    from flightsim.scenario import load_scenario
+
+    sc = load_scenario(SCEN / f"{scenario}.toml", seed=seed, avoidance="ardupilot")
+    fly(sc, out, plot=False)
+    return evaluate_outcome(read_trajectory(Path(out) / "trajectory.npz"), sc.world)
+
+
+def no_companion(runs: int = 20, workers: int = 2, scenarios=None) -> dict:
+    """The harness can fail: every avoidance scenario flown with ArduPilot avoidance and no companion
+    (no obstacle data, so no constraint) — a collision is expected in every run."""
+    import concurrent.futures as cf
+    import multiprocessing
+    import shutil
+
+    from flightsim.campaign import pool_outcomes
+
+    names = list(SCENARIOS) if scenarios is None else list(scenarios)
+    res = {}
+    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as ex:
+        for name in names:
+            base = OUT / f"{name}_no_companion"
+            jobs = [(name, 1 + i, str(base / f"seed_{1 + i:04d}")) for i in range(runs)]
+            outs = list(ex.map(_fly_no_companion, jobs))
+            for _, _, d in jobs:  # keep only the outcome: the videos of these flights are not needed
+                shutil.rmtree(d, ignore_errors=True)
+            res[name] = pool_outcomes(outs)
+    return res
+
+
 def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=MODELS, progress=None) -> dict:
     """The campaigns of ``scenarios`` × ``models`` with ``runs`` seeds each; returns their results."""
     from flightsim.campaign import run_campaign
@@ -63,7 +97,7 @@ def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=MODELS, pro
     bad = [n for n in names if n not in SCENARIOS] + [m for m in models if m not in MODELS]
     if bad:
         raise ValueError(f"unknown scenario(s) or model(s): {', '.join(bad)}")
-    res: dict = {"runs": runs, "campaigns": {}}
+    res: dict = {"runs": runs, "campaigns": {}, "no_companion": no_companion(runs, workers, names)}
     for name in names:
         for model in models:
             out = OUT / f"{name}_{model}"
@@ -114,6 +148,15 @@ def markdown(res: dict) -> str:
                  f"{_pc(ci[0])}–{_pc(ci[1])}) | {a['stopped_short']} | {_m(a['stop_clearance_m'])} | "
                  f"{_m(a['min_clearance_m'])} | {a['false_stops']} | {_m(a['progress'], '{:.0%}')} | "
                  f"{_m(a['data_while_pushing'], '{:.0%}')} | {_pc(c['detection_in_view'])} |")
+    nc = res.get("no_companion") or {}
+    if nc:
+        L += ["", "The harness can fail: the same scenarios flown by `flightsim fly … --avoidance ardupilot` without the companion "
+              "(no obstacle data, so ArduPilot applies no constraint), same seeds:", "",
+              "| scenario | runs | collisions (95 % CI) | min clearance m |", "|---|---|---|---|"]
+        for name, a in nc.items():
+            ci = a["collision_ci95"]
+            L.append(f"| {name} | {a['runs']} | {a['collisions']} ({_pc(a['collision_rate'])}; {_pc(ci[0])}–{_pc(ci[1])}) | "
+                     f"{_m(a['min_clearance_m'])} |")
     L += ["", "Reports per campaign (each run's avoidance.png, pooled index.md): `out/bench/avoidance/<scenario>_<model>/`."]
     return "\n".join(L) + "\n"
 
