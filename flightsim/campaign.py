@@ -44,6 +44,7 @@ from flightsim.score import ScoreConfig, _jsonable, mark, nees_stats
 log = logging.getLogger(__name__)
 
 MODES = ("auto", "replay", "sitl")
+BACKENDS = ("process", "ray")
 _BIN_COUNTS = ("obstacle_cells", "ranges", "valid", "unknown", "clear", "claimed")
 RATE_KEYS = ("detection", "valid_range", "dangerous_clear", "false_obstacle_clear_cells", "too_near", "over_range",
              "messages_without_false_obstacle", "messages_with_claims")
@@ -367,11 +368,14 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
                  score_config: ScoreConfig | None = None, fixed_processing_ms: float = 30.0, keep_video: bool = False,
                  obstacle: str = "forward", times: list[float] | None = None,
                  progress: Callable[[int, int, int], None] | None = None,
-                 run_fn: Callable[[RunJob], dict] = run_one, avoidance: str | None = None) -> dict:
+                 run_fn: Callable[[RunJob], dict] = run_one, avoidance: str | None = None,
+                 backend: str = "process", address: str | None = None) -> dict:
     """Run, score and report a campaign (module docstring); returns the campaign.json contents.
 
     ``progress(done, total, failed)`` is called as runs finish.  ``run_fn`` runs one job in the
-    worker (a picklable module-level function; :func:`run_one` by default).
+    worker (a picklable module-level function; :func:`run_one` by default).  ``backend``: "process"
+    (a local process pool, the default) or "ray" (Ray tasks, at ``address`` or a local Ray; inputs
+    and outputs travel as data, no shared file system: :mod:`flightsim.campaign_ray`).
     """
     from flightsim.report import write_report
     from flightsim.scenario import load_scenario, resolve_companion_config
@@ -379,6 +383,12 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
 
     if not (isinstance(runs, int) and runs >= 1):
         raise ConfigError(f"--runs must be an integer >= 1, got {runs!r}")
+    if backend not in BACKENDS:
+        raise ConfigError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if backend == "ray":
+        from flightsim.campaign_ray import require_ray
+
+        require_ray()
     cpu = os.cpu_count() or 1
     workers = min(runs, cpu) if workers is None else workers
     if not (isinstance(workers, int) and workers >= 1):
@@ -417,30 +427,43 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     results: dict[int, dict] = {}
     failed = 0
     interrupted = False
-    ex = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
-    try:
-        futs = {ex.submit(run_fn, job): job for job in jobs}
-        for fut in cf.as_completed(futs):
-            job = futs[fut]
-            try:
-                res = fut.result()
-            except Exception as exc:  # the worker process died (BrokenProcessPool) or run_fn raised
-                res = {"seed": job.seed, "dir": job.run_dir, "status": "failed", "error": f"{type(exc).__name__}: {exc}",
-                       "wall_s": None, "score": None}
-            results[job.seed] = res
-            if res["status"] != "ok":
-                failed += 1
-                log.warning("seed %d failed: %s", job.seed, res["error"])
-            else:
-                log.info("seed %d scored in %.1f s", job.seed, res["wall_s"] or 0.0)
-            if progress:
-                progress(len(results), runs, failed)
-    except KeyboardInterrupt:
-        interrupted = True
-        ex.shutdown(wait=False, cancel_futures=True)
-        log.warning("interrupted: %d of %d runs done; writing what there is", len(results), runs)
-    finally:
-        ex.shutdown(wait=not interrupted, cancel_futures=True)
+    def record(job: RunJob, res: dict) -> None:
+        nonlocal failed
+        results[job.seed] = res
+        if res["status"] != "ok":
+            failed += 1
+            log.warning("seed %d failed: %s", job.seed, res["error"])
+        else:
+            log.info("seed %d scored in %.1f s", job.seed, res["wall_s"] or 0.0)
+        if progress:
+            progress(len(results), runs, failed)
+
+    if backend == "ray":
+        from flightsim.campaign_ray import run_jobs
+
+        try:
+            run_jobs(jobs, scenario, companion_config, address, record, None if run_fn is run_one else run_fn)
+        except KeyboardInterrupt:
+            interrupted = True
+            log.warning("interrupted: %d of %d runs done; writing what there is", len(results), runs)
+    else:
+        ex = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+        try:
+            futs = {ex.submit(run_fn, job): job for job in jobs}
+            for fut in cf.as_completed(futs):
+                job = futs[fut]
+                try:
+                    res = fut.result()
+                except Exception as exc:  # the worker process died (BrokenProcessPool) or run_fn raised
+                    res = {"seed": job.seed, "dir": job.run_dir, "status": "failed", "error": f"{type(exc).__name__}: {exc}",
+                           "wall_s": None, "score": None}
+                record(job, res)
+        except KeyboardInterrupt:
+            interrupted = True
+            ex.shutdown(wait=False, cancel_futures=True)
+            log.warning("interrupted: %d of %d runs done; writing what there is", len(results), runs)
+        finally:
+            ex.shutdown(wait=not interrupted, cancel_futures=True)
     ordered = [results[j.seed] for j in jobs if j.seed in results]
     series = {}
     for r in ordered:
@@ -451,7 +474,7 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     campaign = {
         "scenario": str(scenario), "scenario_name": sc.meta.name, "mode": mode, "seeds": [j.seed for j in jobs],
         "avoidance": sc.avoidance.model,
-        "workers": workers, "fixed_processing_ms": fixed_processing_ms,
+        "workers": workers, "backend": backend, "fixed_processing_ms": fixed_processing_ms,
         "companion_config": None if companion_config is None else str(companion_config),
         "score_config": dataclasses.asdict(cfg), "wall_s": round(time.perf_counter() - wall0, 2), "interrupted": interrupted,
         "runs": [{k: v for k, v in r.items() if k != "score"} | ({"key_figures": run_key_figures(r["score"])} if r["score"] else {})
@@ -498,7 +521,7 @@ def campaign_from_args(args) -> int:
         c = run_campaign(args.scenario, args.out, runs=args.runs, workers=args.workers, mode=args.mode, seed0=args.seed0,
                          companion_config=args.companion_config, score_config=cfg,
                          fixed_processing_ms=args.fixed_processing_ms, keep_video=args.keep_video, obstacle=args.obstacle,
-                         times=times, progress=tick, avoidance=args.avoidance)
+                         times=times, progress=tick, avoidance=args.avoidance, backend=args.backend, address=args.address)
     finally:
         if bar:
             bar.stop()

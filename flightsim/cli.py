@@ -365,6 +365,11 @@ def main(argv=None) -> int:
                         "the forward DISTANCE_SENSOR)")
     p.add_argument("--times", default=None, help="comma-separated times (s after the first frame) of the sector radar "
                                                   "plots (default: 4 times spread over the flight)")
+    p.add_argument("--backend", choices=("process", "ray"), default="process",
+                   help="where runs execute: a local process pool (default) or Ray tasks (pip install '.[ray]'; "
+                        "inputs and results travel as data, no shared file system)")
+    p.add_argument("--address", default=None, metavar="ADDR",
+                   help="--backend ray: the Ray cluster to join (e.g. ray://head:10001 or auto; default: start a local Ray)")
     p.add_argument("--avoidance", choices=("ardupilot", "px4", "none"), default=None,
                    help="override the scenario's [avoidance] model: the simulated autopilot avoids obstacles with the "
                         "companion's ranges (closed loop; runs in SITL) and every run gets an outcome (collision, stop "
