@@ -130,8 +130,9 @@ def markdown(res: dict) -> str:
          "the companion live with configs/companion.toml, seeds from the scenario's own).  The simulated autopilot limits "
          "the pilot's velocity with the messages as they arrive (flightsim/avoidance.py: ArduPilot Copter simple "
          "avoidance with its shipped defaults — AVOID_MARGIN 2 m, slide, PRX_FILT 0.25 Hz, braking at 1 m/s²; PX4 "
-         "collision prevention with CP_DIST 2 m, CP_DELAY 0.4 s, CP_GUIDE_ANG 30°, CP_GO_NO_DATA 0 as shipped, and a "
-         "variant with CP_GO_NO_DATA 1).  Outcome per run (flightsim/outcome.py): collision = the body (0.35 m sphere) "
+         "collision prevention with CP_DIST 2 m, CP_DELAY 0.4 s, CP_GUIDE_ANG 30°, CP_GO_NO_DATA 0 as shipped"
+         + (", and a variant with CP_GO_NO_DATA 1" if any(c["model"] == "px4_go_no_data" for c in res["campaigns"].values()) else "")
+         + ").  Outcome per run (flightsim/outcome.py): collision = the body (0.35 m sphere) "
          "touched an obstacle; stop clearance = body to the obstacle along the demanded direction where it first came to "
          "rest; false stop = slowed below half the demand for ≥ 0.5 s with nothing within 2 × margin + the model's "
          "stopping distance; progress = share of the route flown.  Collision rate with a 95 % Wilson interval.", "",
@@ -171,12 +172,17 @@ def main(argv=None) -> int:
     ap.add_argument("--scenarios", default=None, help=f"comma-separated subset of: {', '.join(SCENARIOS)}")
     ap.add_argument("--models", default=",".join(MODELS), help=f"comma-separated subset of: {', '.join(MODELS)}")
     ap.add_argument("--json", action="store_true", help="print JSON instead of the table")
+    ap.add_argument("--from-json", metavar="FILE", help="print the table of a previous run's results (out/bench/avoidance/avoidance.json)")
     args = ap.parse_args(argv)
+    if args.from_json:
+        print(markdown(json.loads(Path(args.from_json).read_text(encoding="utf-8"))))
+        return 0
     names = [n.strip() for n in args.scenarios.split(",") if n.strip()] if args.scenarios else None
     models = tuple(m.strip() for m in args.models.split(",") if m.strip())
     res = run_all(args.runs, args.workers, names, models,
                   progress=lambda n, m, c: print(f"{n} {m}: {c['avoidance'] and c['avoidance']['collisions']} collisions "
                                                  f"in {c['runs_ok']} runs ({c['wall_s']:.0f} s)", flush=True))
+    (OUT / "avoidance.json").write_text(json.dumps(res, default=str, indent=1), encoding="utf-8")
     print(json.dumps(res, default=str) if args.json else markdown(res))
     return 0
 
