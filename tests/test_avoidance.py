@@ -392,3 +392,35 @@ def test_sitl_closed_loop_stops_short_of_the_wall_on_the_companions_ranges(tmp_p
     score = json.loads((tmp_path / "s" / "score.json").read_text())
     assert score["avoidance"]["collision"] is False
     assert "## Avoidance (closed loop)" in (tmp_path / "s" / "score.md").read_text()
+
+
+def ds(distance_m, orientation=0, min_cm=20, max_cm=MAX_CM):
+    return mavlink.MAVLink_distance_sensor_message(0, min_cm, max_cm, int(round(distance_m * 100)), 4, 0, orientation, 255)
+
+
+def test_distance_sensor_is_one_reading_at_its_orientation_in_both_models():
+    ap = ArduPilotAvoidance(EXACT)
+    ap.receive(0.0, ds(8.0))
+    v = ap.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (6.0, 0.0, 0.0))
+    assert v[0] == pytest.approx(sqrt_controller(8.0 * math.cos(math.radians(22.5)) - 2.0, 1.0, 1.0, 0.0), rel=1e-6)
+    ap2 = ArduPilotAvoidance(EXACT)
+    ap2.receive(0.0, ds(8.0, orientation=2))  # YAW_90: to the right — a demand to the left is free, to the right limited
+    assert ap2.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (0.0, -6.0, 0.0))[:2] == (0.0, -6.0)
+    assert ap2.limit(0.01, (0, 0, -5), (0, 0, 0), 0.0, (0.0, 6.0, 0.0))[1] == pytest.approx(
+        sqrt_controller(8.0 * math.cos(math.radians(22.5)) - 2.0, 1.0, 1.0, 0.0), rel=1e-6)
+    px = PX4Avoidance(dataclasses.replace(PX4, cp_guide_ang_deg=0.0))
+    px.receive(0.0, ds(8.0))
+    assert px.bins(0.0)[0] == 800 and px.limit(0.0, (0, 0, -5), (0, 0, 0), 0.0, (6.0, 0.0, 0.0))[0] < 6.0
+    up = ArduPilotAvoidance(EXACT)
+    up.receive(0.0, ds(3.0, orientation=24))  # upward: not a horizontal reading
+    assert not up.has_data(0.0)
+
+
+def test_malformed_obstacle_distance_is_ignored_not_fatal():
+    for model in (ArduPilotAvoidance(EXACT), PX4Avoidance(PX4)):
+        bad = od(wall_ahead(5.0))
+        bad.increment, bad.increment_f = 0, 0.0
+        model.receive(0.0, bad)
+        assert not model.has_data(0.0)
+        model.receive(0.1, od(np.where(np.isnan(wall_ahead(5.0)), np.nan, 0.0)))  # zeros: "touching" is skipped by ArduPilot
+        model.limit(0.1, (0, 0, -5), (0, 0, 0), 0.0, (1.0, 0.0, 0.0))  # never raises
