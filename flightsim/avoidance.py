@@ -143,7 +143,17 @@ def _closest_on_segment(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarr
 
 
 def _closest_between_segments(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
-    """The point of segment q0–q1 closest to segment p0–p1 (2-D; sampled ends and projections)."""
+    """The point of segment q0–q1 closest to segment p0–p1 (2-D): their intersection when they cross,
+    else the nearest of the end points' projections (for two segments that do not cross the minimum
+    distance is always reached at an end of one of them).  ``AP_Math::segment_to_segment_closest_point``."""
+    r, s_ = p1 - p0, q1 - q0
+    den = r[0] * s_[1] - r[1] * s_[0]
+    if abs(den) > 1e-12:
+        d = q0 - p0
+        t = (d[0] * s_[1] - d[1] * s_[0]) / den
+        u = (d[0] * r[1] - d[1] * r[0]) / den
+        if 0.0 <= t <= 1.0 and 0.0 <= u <= 1.0:
+            return q0 + u * s_
     cands = [_closest_on_segment(q0, q1, p0), _closest_on_segment(q0, q1, p1), q0, q1]
     best, bd = cands[0], math.inf
     for c in cands:

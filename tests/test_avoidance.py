@@ -424,3 +424,24 @@ def test_malformed_obstacle_distance_is_ignored_not_fatal():
         assert not model.has_data(0.0)
         model.receive(0.1, od(np.where(np.isnan(wall_ahead(5.0)), np.nan, 0.0)))  # zeros: "touching" is skipped by ArduPilot
         model.limit(0.1, (0, 0, -5), (0, 0, 0), 0.0, (1.0, 0.0, 0.0))  # never raises
+
+
+def test_closest_point_between_segments_is_exact():
+    from flightsim.avoidance import _closest_between_segments
+
+    o = np.zeros(2)
+    # crossing: the intersection
+    c = _closest_between_segments(o, np.array([10.0, 0.0]), np.array([4.0, -2.0]), np.array([4.0, 2.0]))
+    assert c == pytest.approx([4.0, 0.0])
+    # apart: brute force over both segments agrees
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        p0, p1, q0, q1 = rng.uniform(-5, 5, (4, 2))
+        c = _closest_between_segments(p0, p1, q0, q1)
+        u = np.linspace(0, 1, 401)
+        P = p0 + u[:, None] * (p1 - p0)
+        Q = q0 + u[:, None] * (q1 - q0)
+        D = np.linalg.norm(P[:, None] - Q[None], axis=2)
+        dmin = D.min()
+        dc = np.min(np.linalg.norm(P - c, axis=1))
+        assert dc <= dmin + 0.03 and np.min(np.linalg.norm(Q - c, axis=1)) < 0.02
