@@ -8,12 +8,13 @@ import cv2
 import numpy as np
 
 
-def _obstacles(a, world) -> None:
+def _obstacles(a, world, min_radius_m: float = 0.0) -> None:
+    """Obstacle footprints, top-down (east right, north up); cylinders drawn at least ``min_radius_m``."""
     from matplotlib.patches import Circle, Polygon
 
     for ob in world.obstacles:
         if ob.is_cylinder:
-            a.add_patch(Circle((ob.centre[1], ob.centre[0]), ob.radius, color="tab:gray", alpha=0.8))
+            a.add_patch(Circle((ob.centre[1], ob.centre[0]), max(ob.radius, min_radius_m), color="tab:gray", alpha=0.8))
         else:
             ne = np.ascontiguousarray(np.asarray(ob.corners(), np.float32)[:, :2])
             hull = cv2.convexHull(ne)[:, 0, :]  # footprint of the oriented box
@@ -104,19 +105,12 @@ def flight_summary_plot(sc, truth: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Circle, Polygon
 
     t = truth["t_sim_s"]
     p = truth["p_ned"]
     fig, ax = plt.subplots(2, 2, figsize=(11, 8), constrained_layout=True)
     a = ax[0, 0]
-    for ob in sc.world.obstacles:
-        if ob.is_cylinder:
-            a.add_patch(Circle((ob.centre[1], ob.centre[0]), max(ob.radius, 1.0), color="tab:gray", alpha=0.7))
-        else:
-            ne = np.ascontiguousarray(np.asarray(ob.corners(), np.float32)[:, :2])
-            hull = cv2.convexHull(ne)[:, 0, :]  # footprint of the oriented box
-            a.add_patch(Polygon(hull[:, [1, 0]], closed=True, color="tab:gray", alpha=0.6))
+    _obstacles(a, sc.world, min_radius_m=1.0)  # thin poles drawn wider so they show at flight scale
     a.plot(p[:, 1], p[:, 0], "b-", lw=1.5, label="track")
     a.plot(p[0, 1], p[0, 0], "go", label="start")
     if len(truth.get("target_p_world", [])):
