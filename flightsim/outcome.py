@@ -10,9 +10,10 @@ the body's clearance to the nearest obstacle).  :func:`evaluate_outcome` gives s
   there), with ``collision_t_s`` and the obstacle;
 * ``min_clearance_m`` — the smallest distance from the body to any obstacle surface;
 * ``stop_clearance_m`` — where the vehicle first came to rest (horizontal speed below
-  ``rest_speed_mps`` for ``min_stop_s``) while the pilot still demanded ≥ ``push_speed_mps``: the
-  distance from the body to the obstacle along the demanded direction (the one it was flying at),
-  with ``stop_t_s``, ``stop_p_ned`` and ``stop_obstacle``;
+  ``rest_speed_mps`` for ``min_stop_s``) while the pilot still demanded ≥ ``push_speed_mps``: how
+  far the body could still move along the demanded direction before touching the obstacle it was
+  flying at (its whole width swept, so a thin pole just beside the centre line counts), with
+  ``stop_t_s``, ``stop_p_ned`` and ``stop_obstacle``;
 * ``false_stop`` — it stopped or slowed below half the demanded speed for ``min_stop_s`` or longer
   with nothing within twice the margin *plus the distance the autopilot needs to stop from the
   demanded speed* (``false_stop_s``: total time so, ``false_stop_t_s``: first).  The stopping
@@ -171,16 +172,24 @@ def evaluate_outcome(traj: dict, world=None, config: OutcomeConfig = OutcomeConf
     }
 
 
-def _ahead_clearance(world, p: np.ndarray, v_des: np.ndarray, radius: float) -> tuple[float | None, str | None]:
-    """Distance from the body to the first obstacle along the horizontal demand direction, and its name."""
+def _ahead_clearance(world, p: np.ndarray, v_des: np.ndarray, radius: float, n_offsets: int = 15) -> tuple[float | None, str | None]:
+    """How far the body (a sphere of ``radius``) can move along the horizontal demand direction before it
+    touches an obstacle, and that obstacle's name: parallel rays at lateral offsets o ∈ [−radius, radius];
+    a surface hit at distance d on the ray at offset o is touched after d − √(radius² − o²)."""
     if world is None or not np.all(np.isfinite(v_des[:2])) or np.hypot(v_des[0], v_des[1]) <= 0:
         return None, None
     bearing = math.atan2(v_des[1], v_des[0])
-    d = world.horizontal_distances(p, [bearing], band_half_height_m=0.0)[0]
-    if not np.any(np.isfinite(d)):
-        return None, None
-    k = int(np.argmin(d))
-    return float(d[k]) - radius, world.obstacles[k].label
+    n = np.array([-math.sin(bearing), math.cos(bearing), 0.0])  # to the right of the direction
+    best, name = math.inf, None
+    for o in np.linspace(-radius, radius, n_offsets) if radius > 0 else [0.0]:
+        d = world.horizontal_distances(p + o * n, [bearing], band_half_height_m=0.0)[0]
+        if not np.any(np.isfinite(d)):
+            continue
+        k = int(np.argmin(d))
+        touch = float(d[k]) - math.sqrt(max(radius * radius - o * o, 0.0))
+        if touch < best:
+            best, name = touch, world.obstacles[k].label
+    return (best, name) if math.isfinite(best) else (None, None)
 
 
 def outcome_markdown(o: dict) -> list[str]:

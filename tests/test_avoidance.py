@@ -468,3 +468,19 @@ def test_sitl_closed_loop_is_deterministic_in_lockstep(tmp_path):
     for key in ("p_ned", "v_ned", "v_cmd_ned", "boundary_ne_m"):
         np.testing.assert_array_equal(a[key], b[key])
     assert (tmp_path / "r0" / "received.tlog").read_bytes() == (tmp_path / "r1" / "received.tlog").read_bytes()
+
+
+def test_stop_clearance_sweeps_the_bodys_width():
+    from flightsim.outcome import _ahead_clearance
+    from flightsim.scenario import load_scenario
+
+    world = load_scenario(ROOT / "configs" / "scenarios" / "quad_avoid_pole.toml").world  # pole r = 0.3 at (30, 0)
+    d, name = _ahead_clearance(world, np.array([27.0, 0.0, -5.0]), np.array([1.0, 0.0, 0.0]), F450_RADIUS_M)
+    assert "pole" in name and d == pytest.approx(3.0 - 0.3 - F450_RADIUS_M, abs=0.01)  # head-on
+    # 0.49 m beside the line: the centre ray misses the pole, the body does not
+    d, name = _ahead_clearance(world, np.array([27.0, -0.49, -5.0]), np.array([1.0, 0.0, 0.0]), F450_RADIUS_M)
+    gap = math.sqrt((0.3 + F450_RADIUS_M) ** 2 - 0.49 ** 2)  # exact sphere-past-cylinder contact
+    assert "pole" in name and d == pytest.approx(3.0 - gap, abs=0.03)
+    # 1 m beside it the body passes: the hall behind is what it meets
+    d, name = _ahead_clearance(world, np.array([27.0, -1.0, -5.0]), np.array([1.0, 0.0, 0.0]), F450_RADIUS_M)
+    assert "hall" in name

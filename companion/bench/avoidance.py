@@ -116,6 +116,21 @@ def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=DEFAULT_MOD
     return res
 
 
+def rescore(res: dict) -> dict:
+    """The outcomes of a finished run of :func:`run_all` scored again from each run's trajectory.npz with
+    the current :mod:`flightsim.outcome` (no flight is repeated), pooled again."""
+    from flightsim.campaign import pool_outcomes
+    from flightsim.outcome import evaluate_outcome, read_trajectory
+    from flightsim.scenario import load_scenario
+
+    for c in res["campaigns"].values():
+        world = load_scenario(SCEN / f"{c['scenario']}.toml").world
+        outs = [evaluate_outcome(read_trajectory(t), world) for t in sorted(Path(c["dir"]).glob("runs/*/trajectory.npz"))]
+        if outs:
+            c["avoidance"] = pool_outcomes(outs)
+    return res
+
+
 def _pc(v, d=1) -> str:
     return "–" if v is None else f"{100 * v:.{d}f} %"
 
@@ -175,9 +190,12 @@ def main(argv=None) -> int:
                     help=f"comma-separated subset of: {', '.join(MODELS)} (default {','.join(DEFAULT_MODELS)})")
     ap.add_argument("--json", action="store_true", help="print JSON instead of the table")
     ap.add_argument("--from-json", metavar="FILE", help="print the table of a previous run's results (out/bench/avoidance/avoidance.json)")
+    ap.add_argument("--rescore", action="store_true", help="with --from-json: score the outcomes again from the runs' "
+                                                           "trajectory.npz with the current scorer (no flight repeated)")
     args = ap.parse_args(argv)
     if args.from_json:
-        print(markdown(json.loads(Path(args.from_json).read_text(encoding="utf-8"))))
+        res = json.loads(Path(args.from_json).read_text(encoding="utf-8"))
+        print(markdown(rescore(res) if args.rescore else res))
         return 0
     names = [n.strip() for n in args.scenarios.split(",") if n.strip()] if args.scenarios else None
     models = tuple(m.strip() for m in args.models.split(",") if m.strip())
