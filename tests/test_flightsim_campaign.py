@@ -149,6 +149,8 @@ def test_ray_backend_runs_tasks_without_a_shared_file_system(tmp_path):
         assert d.parent == tmp_path / "ray" / "runs"
         assert {"score.json", "ranges.tlog", "truth.npz", "score_series.npz"} <= {p.name for p in d.iterdir()}
         assert not (d / "video.avi").exists()
+        inputs = json.loads((d / "score.json").read_text())["inputs"]
+        assert all(Path(v).parent == d for v in inputs.values()), inputs  # the driver's paths, not the task's temp dir
     local = C.run_campaign(sp, tmp_path / "local", runs=2, workers=2, mode="replay", fixed_processing_ms=30.0)
     assert local["aggregate"]["cells"] == c["aggregate"]["cells"]  # same runs, same pooled counts
 
