@@ -20,7 +20,7 @@ the vehicle stops short of an obstacle with the ranges the companion really sent
 Messages are taken as the autopilot takes them: stamped with their *arrival* time on the
 simulation clock (both autopilots ignore ``time_usec``, DESIGN §5), in the body frame at the moment
 of use (the vehicle's yaw now).  Everything here is pure: the SITL feeds received messages with
-:meth:`Avoidance.receive` and the quad's controller asks :meth:`Avoidance.limit` every control
+:meth:`NoAvoidance.receive` (the base of every model) and the quad's controller asks :meth:`NoAvoidance.limit` every control
 tick.  Horizontal only: the vertical demand passes unchanged (the camera's sectors are horizontal).
 
 Scenario TOML, table ``[avoidance]`` (:class:`AvoidanceConfig`); ``flightsim sitl --avoidance
@@ -125,14 +125,21 @@ def _wrap360(deg: float) -> float:
     return deg % 360.0
 
 
-def _body_to_ned(v_body: np.ndarray, yaw: float) -> np.ndarray:
+def body_to_ned(v_body: np.ndarray, yaw: float) -> np.ndarray:
+    """Horizontal body vectors (forward, right) (..., 2) → world (north, east) at heading ``yaw``."""
+    v = np.asarray(v_body, float)
     c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([c * v_body[0] - s * v_body[1], s * v_body[0] + c * v_body[1]])
+    return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], -1)
 
 
-def _ned_to_body(v_ned: np.ndarray, yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([c * v_ned[0] + s * v_ned[1], -s * v_ned[0] + c * v_ned[1]])
+def ned_to_body(v_ned: np.ndarray, yaw: float) -> np.ndarray:
+    """The inverse of :func:`body_to_ned`."""
+    return body_to_ned(v_ned, -yaw)
+
+
+def _increment_deg(msg) -> float:
+    """OBSTACLE_DISTANCE sector width: ``increment_f`` when set, else ``increment`` (both autopilots)."""
+    return float(msg.increment_f) if msg.increment_f else float(msg.increment)
 
 
 def _closest_on_segment(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -168,6 +175,16 @@ class NoAvoidance:
     """``model = "none"``: the pilot's demand passes unchanged."""
 
     name = "none"
+
+    @property
+    def margin_m(self) -> float:
+        """Distance the model keeps from obstacles (from the vehicle's centre), m."""
+        return 0.0
+
+    def braking(self) -> tuple[float, float, float]:
+        """(position gain 1/s, braking acceleration m/s², delay s) of the model's stopping curve, for
+        :func:`stopping_distance` (the outcome's false-stop rule)."""
+        return 1.0, math.inf, 0.0
 
     def __init__(self, config: AvoidanceConfig | None = None):
         self.config = config or AvoidanceConfig()
@@ -250,6 +267,13 @@ class ArduPilotAvoidance(NoAvoidance):
     FILT_RESET_S = 1.0
     ACCEL_CLAMP = 1.0  # AC_AVOID_ACCEL_CMSS_MAX, m/s²
 
+    @property
+    def margin_m(self) -> float:
+        return self.config.avoid_margin_m
+
+    def braking(self) -> tuple[float, float, float]:
+        return self.config.pos_kp, self.ACCEL_CLAMP, 0.0
+
     def __init__(self, config: AvoidanceConfig | None = None):
         super().__init__(config)
         n = self.N_FACES
@@ -279,7 +303,7 @@ class ArduPilotAvoidance(NoAvoidance):
     def _handle(self, t: float, msg) -> None:
         typ = msg.get_type()
         if typ == "OBSTACLE_DISTANCE":
-            inc = float(msg.increment_f) if msg.increment_f else float(msg.increment)
+            inc = _increment_deg(msg)
             if inc == 0:
                 return
             n = min(int(round(360.0 / abs(inc))), 72)
@@ -312,11 +336,11 @@ class ArduPilotAvoidance(NoAvoidance):
     def _has_data(self, t: float) -> bool:
         return bool(np.any(self.valid_faces(t)))
 
-    def boundary_body(self, t: float) -> np.ndarray:
+    def boundary_body(self, t: float, ok: np.ndarray | None = None) -> np.ndarray:
         """(8, 2) boundary points (forward, right) in the body frame, m; point k on the edge between
-        faces k and k+1 (bearing 45k + 22.5°)."""
+        faces k and k+1 (bearing 45k + 22.5°).  ``ok``: :meth:`valid_faces` at ``t`` if already known."""
         n = self.N_FACES
-        ok = self.valid_faces(t)
+        ok = self.valid_faces(t) if ok is None else ok
         d = np.where(ok, self.face_filt, np.inf)
         pts = np.empty((n, 2))
         for k in range(n):
@@ -329,7 +353,8 @@ class ArduPilotAvoidance(NoAvoidance):
         return pts
 
     def boundary_points(self, t: float) -> np.ndarray:
-        return self.boundary_body(t) if self.has_data(t) else np.zeros((0, 2))
+        ok = self.valid_faces(t)
+        return self.boundary_body(t, ok) if np.any(ok) else np.zeros((0, 2))
 
     def obstacles_body(self, t: float) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(segment start, end, closest point to the vehicle) of each face's obstacle in use."""
@@ -337,7 +362,7 @@ class ArduPilotAvoidance(NoAvoidance):
         ok = self.valid_faces(t)
         if not np.any(ok):
             return []
-        pts = self.boundary_body(t)
+        pts = self.boundary_body(t, ok)
         out = []
         zero = np.zeros(2)
         for f in range(n):
@@ -356,7 +381,7 @@ class ArduPilotAvoidance(NoAvoidance):
             return tuple(float(x) for x in v_des)
         a = self.ACCEL_CLAMP  # the mode's acceleration (Loiter, Guided: several m/s²) clamped to 1 m/s²
         kp, margin = cfg.pos_kp, cfg.avoid_margin_m
-        v_in = _ned_to_body(v_des[:2], yaw)
+        v_in = ned_to_body(v_des[:2], yaw)
         v = v_in.copy()
         backups: list[np.ndarray] = []
         moving = float(np.hypot(*v_in)) > 0
@@ -395,7 +420,7 @@ class ArduPilotAvoidance(NoAvoidance):
                     v[i] = max(v[i], b[i])
                 elif b[i] < 0:
                     v[i] = min(v[i], b[i])
-        out = _body_to_ned(v, yaw)
+        out = body_to_ned(v, yaw)
         out = self._limit_accel(v_des[:2], out, t, dt)
         return float(out[0]), float(out[1]), float(v_des[2])
 
@@ -459,6 +484,13 @@ class PX4Avoidance(NoAvoidance):
     N_BINS = 36
     BIN_DEG = 10.0
 
+    @property
+    def margin_m(self) -> float:
+        return self.config.cp_dist_m
+
+    def braking(self) -> tuple[float, float, float]:
+        return self.config.mpc_xy_p, self.config.mpc_acc_hor_mss, self.config.cp_delay_s
+
     def __init__(self, config: AvoidanceConfig | None = None):
         super().__init__(config)
         n = self.N_BINS
@@ -478,7 +510,7 @@ class PX4Avoidance(NoAvoidance):
     def _handle(self, t: float, msg) -> None:
         typ = msg.get_type()
         if typ == "OBSTACLE_DISTANCE":
-            inc = float(msg.increment_f) if msg.increment_f else float(msg.increment)
+            inc = _increment_deg(msg)
             if inc <= 0:
                 return
             self.map_t = max(self.map_t, t)

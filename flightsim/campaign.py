@@ -118,14 +118,9 @@ def run_one(job: RunJob) -> dict:
                           world=sc.world, series_out=run_dir / "score_series.npz")
         write_score(run_dir, score)
         if score.get("avoidance"):
-            try:
-                from flightsim.outcome import read_trajectory
-                from flightsim.plots import avoidance_plot
+            from flightsim.plots import plot_run_outcome
 
-                avoidance_plot(sc.world, read_trajectory(run_dir / "trajectory.npz"), score["avoidance"],
-                               run_dir / "avoidance.png", title=f"{sc.meta.name} seed {job.seed}")
-            except Exception:  # a plot is not the verdict
-                logging.getLogger(__name__).exception("avoidance plot failed")
+            plot_run_outcome(run_dir, sc.world, score["avoidance"], title=f"{sc.meta.name} seed {job.seed}")
         res.update(status="ok", score=score)
     except Exception as exc:  # recorded, the campaign goes on
         res["error"] = f"{type(exc).__name__}: {exc}"

@@ -20,7 +20,6 @@ install it.
 from __future__ import annotations
 
 import dataclasses
-import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -43,24 +42,16 @@ def require_ray():
     return ray
 
 
-def _key_line(text: str, key: str) -> re.Match | None:
-    """The ``key = "value"`` line of the [scenario] table (the first one in the file)."""
-    return re.search(rf'^({key}\s*=\s*)"([^"]*)"', text, re.M)
-
-
 def pack_inputs(scenario: Path, companion_config: Path | None) -> dict[str, str]:
     """The texts a run needs, keyed by the names they get on the worker (module docstring)."""
+    from flightsim.scenario import set_path_key
+
     scenario = Path(scenario)
-    text = scenario.read_text(encoding="utf-8")
-    files: dict[str, str] = {}
-    m = _key_line(text, "world")
-    if m is None:
+    text, world = set_path_key(scenario.read_text(encoding="utf-8"), "world", "world.toml")
+    if world is None:
         raise ConfigError(f"{scenario}: no [scenario] world = \"…\" line to ship")
-    files["world.toml"] = (scenario.parent / m.group(2)).read_text(encoding="utf-8")
-    text = text[: m.start()] + f'{m.group(1)}"world.toml"' + text[m.end():]
-    m = _key_line(text, "companion_config")
-    if m is not None and m.group(2):  # the run gets the resolved config below; the scenario's own is not needed
-        text = text[: m.start()] + f'{m.group(1)}""' + text[m.end():]
+    files = {"world.toml": (scenario.parent / world).read_text(encoding="utf-8")}
+    text, _ = set_path_key(text, "companion_config", "")  # the run gets the resolved config below
     files["scenario.toml"] = text
     if companion_config is not None:
         files["companion.toml"] = Path(companion_config).read_text(encoding="utf-8")

@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 from companion.errors import CompanionError, ConfigError
+from flightsim.avoidance import MODELS as AVOIDANCE_MODELS
 
 log = logging.getLogger("flightsim")
 
@@ -54,18 +55,15 @@ def cmd_fly(args) -> int:
     print(f"{sc.meta.name}: {res.frames} frames, {res.messages} MAVLink messages, {res.duration_s:g} s flown "
           f"in {res.wall_s:.1f} s ({res.realtime_factor:.1f}× real time) → {res.out_dir}")
     if sc.avoidance.model != "none":
-        from flightsim.outcome import evaluate_outcome, read_trajectory
+        from flightsim.outcome import evaluate_outcome, outcome_verdict, read_trajectory
 
-        tr = read_trajectory(Path(args.out) / "trajectory.npz")
-        o = evaluate_outcome(tr, sc.world)
+        o = evaluate_outcome(read_trajectory(Path(args.out) / "trajectory.npz"), sc.world)
         if not args.no_plot:
-            from flightsim.plots import avoidance_plot
+            from flightsim.plots import plot_run_outcome
 
-            avoidance_plot(sc.world, tr, o, Path(args.out) / "avoidance.png", title=sc.meta.name)
-        print(f"avoidance {o['model']} (no companion, so no obstacle data): "
-              + (f"COLLISION with {o['collision_with']} at {o['collision_t_s']:.2f} s" if o["collision"]
-                 else f"no collision, min clearance {o['min_clearance_m']:.2f} m")
-              + f"; progress {100 * o['progress']:.0f} % of the route")
+            plot_run_outcome(Path(args.out), sc.world, o, title=sc.meta.name)
+        print(f"avoidance {o['model']} (no companion, so no obstacle data): {outcome_verdict(o)}; min clearance "
+              f"{o['min_clearance_m']:.2f} m, progress {100 * o['progress']:.0f} % of the route")
     return 0
 
 
@@ -121,10 +119,9 @@ def cmd_sitl(args) -> int:
     print(f"files in {args.out}: " + ", ".join(Path(p).name for p in s["paths"].values()))
     o = (s["score"] or {}).get("avoidance")
     if o:
-        where = (f"COLLISION with {o['collision_with']} at {o['collision_t_s']:.2f} s" if o["collision"] else
-                 f"stopped {o['stop_clearance_m']:.2f} m short of {o['stop_obstacle']} at {o['stop_t_s']:.2f} s" if o["stop_t_s"] is not None
-                 else "no stop in front of an obstacle")
-        print(f"closed loop ({o['model']} avoidance on the companion's ranges): {where}; min clearance "
+        from flightsim.outcome import outcome_verdict
+
+        print(f"closed loop ({o['model']} avoidance on the companion's ranges): {outcome_verdict(o)}; min clearance "
               f"{o['min_clearance_m']:.2f} m, progress {100 * o['progress']:.0f} % of the route; plot {Path(args.out) / 'avoidance.png'}")
     if s["score_failed"]:
         print(f"flightsim: error: {s['score_note']}", file=sys.stderr)
@@ -272,7 +269,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="output directory (created if missing)")
     p.add_argument("--seed", type=int, default=None, help="override the scenario's [scenario] seed")
     p.add_argument("--no-plot", action="store_true", help="skip summary.png")
-    p.add_argument("--avoidance", choices=("ardupilot", "px4", "none"), default=None,
+    p.add_argument("--avoidance", choices=AVOIDANCE_MODELS, default=None,
                    help="override the scenario's [avoidance] model (no companion here: the autopilot holds no obstacle "
                         "data, so ardupilot flies the route as commanded and px4 refuses to move)")
     q = sub.add_parser(
@@ -311,7 +308,7 @@ def main(argv=None) -> int:
     q.add_argument("--connect-timeout", type=float, default=60.0, metavar="S",
                    help="seconds the companion has to connect (×5 with --attach; default 60)")
     q.add_argument("--no-score", action="store_true", help="do not score the received ranges")
-    q.add_argument("--avoidance", choices=("ardupilot", "px4", "none"), default=None,
+    q.add_argument("--avoidance", choices=AVOIDANCE_MODELS, default=None,
                    help="the simulated autopilot's obstacle avoidance fed by the companion's ranges, overriding the "
                         "scenario's [avoidance] model (quad only; DESIGN.md §6): ardupilot = Copter simple avoidance, "
                         "px4 = collision prevention, none = fly the route as commanded")
@@ -370,7 +367,7 @@ def main(argv=None) -> int:
                         "inputs and results travel as data, no shared file system)")
     p.add_argument("--address", default=None, metavar="ADDR",
                    help="--backend ray: the Ray cluster to join (e.g. ray://head:10001 or auto; default: start a local Ray)")
-    p.add_argument("--avoidance", choices=("ardupilot", "px4", "none"), default=None,
+    p.add_argument("--avoidance", choices=AVOIDANCE_MODELS, default=None,
                    help="override the scenario's [avoidance] model: the simulated autopilot avoids obstacles with the "
                         "companion's ranges (closed loop; runs in SITL) and every run gets an outcome (collision, stop "
                         "clearance, false stop, progress), pooled with 95 %% confidence intervals")

@@ -42,7 +42,7 @@ import numpy as np
 
 from companion.core.camera import CameraModel
 from companion.mavlink.dialect import mavlink
-from flightsim.avoidance import F450_RADIUS_M, ArduPilotAvoidance, make_avoidance
+from flightsim.avoidance import F450_RADIUS_M, body_to_ned, make_avoidance
 from flightsim.dynamics import LocalNED, make_vehicle
 from flightsim.render import Renderer
 from flightsim.scenario import Scenario
@@ -211,8 +211,10 @@ class Flight:
         self.timing = {"dynamics": 0.0, "telemetry": 0.0, "render": 0.0, "truth": 0.0}  # wall seconds per part
         # the simulated autopilot's obstacle avoidance (DESIGN §6), fed by whoever hears the companion
         self.avoidance = make_avoidance(sc.avoidance)
-        if sc.avoidance.model != "none":
+        self.avoiding = sc.avoidance.model != "none"
+        if self.avoiding:
             self.vehicle.avoidance = self.avoidance
+        self._boundary_every = max(1, int(round(0.2 / self.dt)))  # steps between boundary snapshots (5 Hz)
         self.body_radius_m = F450_RADIUS_M if sc.vehicle.kind == "quad" else 0.0
         self.collision_t: float | None = None  # simulation time the body first touched an obstacle (the flight ends)
         self.collision_with: str | None = None
@@ -244,16 +246,12 @@ class Flight:
         tr["t_sim_s"].append(st.time_s)
         tr["p_ned"].append(st.p_ned)
         tr["v_ned"].append(st.v_ned)
-        avoiding = self.sc.avoidance.model != "none"
-        tr["v_des_ned"].append(self.vehicle.v_des if avoiding else (np.nan,) * 3)
-        tr["v_cmd_ned"].append(self.vehicle.v_cmd if avoiding else (np.nan,) * 3)
+        tr["v_des_ned"].append(self.vehicle.v_des if self.avoiding else (np.nan,) * 3)
+        tr["v_cmd_ned"].append(self.vehicle.v_cmd if self.avoiding else (np.nan,) * 3)
         tr["clearance_m"].append(clear)
         tr["avoidance_data"].append(self.avoidance.has_data(st.time_s))
-        if self.sc.avoidance.model != "none" and self.step_index % max(1, int(round(0.2 / self.dt))) == 0:
-            yaw = float(st.rpy[2])
-            c, s_ = math.cos(yaw), math.sin(yaw)
-            b = self.avoidance.boundary_points(st.time_s)
-            ne = np.stack([st.p_ned[0] + c * b[:, 0] - s_ * b[:, 1], st.p_ned[1] + s_ * b[:, 0] + c * b[:, 1]], 1)
+        if self.avoiding and self.step_index % self._boundary_every == 0:
+            ne = st.p_ned[:2] + body_to_ned(self.avoidance.boundary_points(st.time_s), float(st.rpy[2]))
             self.boundary.append((st.time_s, ne))
         if clear <= 0.0 and self.body_radius_m > 0 and self.collision_t is None:
             self.collision_t = st.time_s
@@ -339,7 +337,7 @@ class Flight:
         route = [tuple(sc.vehicle.start_ned_m)] + [tuple(w) for w in sc.vehicle.route.waypoints]
         arrays["route_ned"] = np.asarray(route, float).reshape(-1, 3)
         arrays["body_radius_m"] = np.array(self.body_radius_m)
-        arrays["avoid_margin_m"] = np.array(sc.avoidance.avoid_margin_m if sc.avoidance.model == "ardupilot" else sc.avoidance.cp_dist_m)
+        arrays["avoid_margin_m"] = np.array(self.avoidance.margin_m)
         arrays["avoidance_model"] = np.array(sc.avoidance.model, dtype="U16")
         arrays["collision_t_s"] = np.array(np.nan if self.collision_t is None else self.collision_t)
         arrays["collision_with"] = np.array(self.collision_with or "", dtype="U64")
@@ -350,11 +348,10 @@ class Flight:
         for i, (_, b) in enumerate(self.boundary):
             bw[i, : len(b)] = b
         arrays["boundary_ne_m"] = bw  # what the autopilot held as obstacles, world north/east, NaN-padded
-        av = sc.avoidance  # the model's braking curve, for the outcome's false-stop rule
-        ap = av.model == "ardupilot"
-        arrays["braking_kp"] = np.array(av.pos_kp if ap else av.mpc_xy_p)
-        arrays["braking_accel_mss"] = np.array(ArduPilotAvoidance.ACCEL_CLAMP if ap else av.mpc_acc_hor_mss)
-        arrays["braking_delay_s"] = np.array(0.0 if ap else av.cp_delay_s)
+        kp, accel, delay = self.avoidance.braking()  # the model's stopping curve, for the outcome's false-stop rule
+        arrays["braking_kp"] = np.array(kp)
+        arrays["braking_accel_mss"] = np.array(accel)
+        arrays["braking_delay_s"] = np.array(delay)
         return arrays
 
     def write_common(self, out: Path) -> dict[str, np.ndarray]:

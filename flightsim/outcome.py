@@ -192,15 +192,22 @@ def _ahead_clearance(world, p: np.ndarray, v_des: np.ndarray, radius: float, n_o
     return (best, name) if math.isfinite(best) else (None, None)
 
 
+def outcome_verdict(o: dict) -> str:
+    """One phrase for the outcome: the collision, or where it stopped (score.md and the command lines)."""
+    if o["collision"]:
+        return "COLLISION" + (f" with {o['collision_with']}" if o.get("collision_with") else "") + f" at {o['collision_t_s']:.2f} s"
+    if o["stop_t_s"] is not None:
+        return (f"stopped {o['stop_clearance_m']:.2f} m short" + (f" of {o['stop_obstacle']}" if o.get("stop_obstacle") else "")
+                + f" at {o['stop_t_s']:.2f} s")
+    return "no stop in front of an obstacle"
+
+
 def outcome_markdown(o: dict) -> list[str]:
     """score.md lines for the ``"avoidance"`` table."""
     def f(x, fmt="{:.2f}"):
         return "–" if x is None else fmt.format(x)
 
-    verdict = ("**COLLISION**" + (f" with {o['collision_with']}" if o.get("collision_with") else "")
-               + f" at {f(o['collision_t_s'])} s") if o["collision"] else (
-        f"stopped {f(o['stop_clearance_m'])} m short" + (f" of {o['stop_obstacle']}" if o.get("stop_obstacle") else "")
-        + f" at {f(o['stop_t_s'])} s" if o["stop_t_s"] is not None else "no stop in front of an obstacle")
+    verdict = outcome_verdict(o).replace("COLLISION", "**COLLISION**")
     return [
         "## Avoidance (closed loop)", "",
         f"The simulated autopilot's `{o['model']}` avoidance (margin {o['margin_m']:g} m) flew on the companion's "
@@ -220,4 +227,4 @@ def outcome_markdown(o: dict) -> list[str]:
     ]
 
 
-__all__ = ["OutcomeConfig", "evaluate_outcome", "read_trajectory", "route_progress", "outcome_markdown"]
+__all__ = ["OutcomeConfig", "evaluate_outcome", "read_trajectory", "route_progress", "outcome_markdown", "outcome_verdict"]

@@ -100,6 +100,22 @@ def avoidance_plot(world, traj: dict, outcome: dict, path: Path, title: str = ""
     plt.close(fig)
 
 
+def plot_run_outcome(run_dir: Path, world, outcome: dict, title: str = "") -> Path | None:
+    """``run_dir/avoidance.png`` from the run's trajectory.npz (:func:`avoidance_plot`); a failure is
+    logged and None returned — a plot is not the verdict."""
+    import logging
+
+    from flightsim.outcome import read_trajectory
+
+    path = Path(run_dir) / "avoidance.png"
+    try:
+        avoidance_plot(world, read_trajectory(Path(run_dir) / "trajectory.npz"), outcome, path, title=title)
+    except Exception:
+        logging.getLogger(__name__).exception("avoidance plot of %s failed", run_dir)
+        return None
+    return path
+
+
 def flight_summary_plot(sc, truth: dict, path: Path) -> None:
     import matplotlib
 

@@ -277,15 +277,21 @@ def _ms(d: dict, fmt: str = "{:.2f}", pct: bool = False) -> str:
     return f"{fmt.format(d['mean'])} ± {fmt.format(d['std'] or 0)}"
 
 
+def mean_std_text(d: dict | None, fmt: str = "{:.2f}", with_max: bool = True) -> str:
+    """``mean ± std (min …, max …)`` of a :func:`flightsim.campaign._mean_std` summary; "–" when empty."""
+    if not d or not d.get("n"):
+        return "–"
+    tail = f"min {fmt.format(d['min'])}" + (f", max {fmt.format(d['max'])}" if with_max else "")
+    return f"{fmt.format(d['mean'])} ± {fmt.format(d['std'])} ({tail})"
+
+
 def _avoidance_lines(c: dict) -> list[str]:
     """The closed-loop outcome pooled over the runs (flightsim.outcome; campaign.pool_outcomes)."""
     av = (c.get("aggregate") or {}).get("avoidance")
     if not av:
         return []
     ci, fci = av["collision_ci95"], av["false_stop_ci95"]
-
-    def ms(d, fmt="{:.2f}"):
-        return "–" if not d or d.get("n", 0) == 0 else f"{fmt.format(d['mean'])} ± {fmt.format(d['std'])} (min {fmt.format(d['min'])}, max {fmt.format(d['max'])})"
+    ms = mean_std_text
 
     return ["## Avoidance outcome (closed loop), pooled over runs", "",
             f"The simulated autopilot's `{c.get('avoidance')}` avoidance flew on the companion's ranges (each run's "

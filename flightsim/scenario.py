@@ -189,6 +189,18 @@ def resolve_companion_config(sc: Scenario, given: str | os.PathLike | None = Non
     return found
 
 
+def set_path_key(text: str, key: str, value: str) -> tuple[str, str | None]:
+    """Scenario TOML text with the first ``key = "…"`` line (``world``, ``companion_config``) set to
+    ``value``, comments kept, and the value it had (None: no such line, text unchanged).  For
+    copies of a scenario that live elsewhere (a campaign's variants, a Ray task's directory)."""
+    import re
+
+    m = re.search(rf'^({re.escape(key)}\s*=\s*)"([^"]*)"', text, re.M)
+    if m is None:
+        return text, None
+    return text[: m.start()] + f'{m.group(1)}"{value}"' + text[m.end():], m.group(2)
+
+
 def load_scenario(path: str | os.PathLike, seed: int | None = None, avoidance: str | None = None) -> Scenario:
     """Read, validate and pre-flight-check a scenario; ``seed`` overrides ``[scenario] seed``,
     ``avoidance`` the ``[avoidance] model``."""

@@ -699,14 +699,9 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
             log.exception("scoring %s failed", out)
             sc_result, note, score_failed = None, f"scoring failed: {exc!r}", True
     if sc_result is not None and sc_result.get("avoidance") and not score_failed:
-        try:
-            from flightsim.outcome import read_trajectory
-            from flightsim.plots import avoidance_plot
+        from flightsim.plots import plot_run_outcome
 
-            avoidance_plot(sc.world, read_trajectory(out / "trajectory.npz"), sc_result["avoidance"], out / "avoidance.png",
-                           title=sc.meta.name)
-        except Exception:  # a plot is not the verdict: say so and go on
-            log.exception("avoidance plot of %s failed", out)
+        plot_run_outcome(out, sc.world, sc_result["avoidance"], title=sc.meta.name)
     fl = run.flight
     sim_s = fl.state.time_s
     timing = {k: round(v, 3) for k, v in sorted({**fl.timing, **run.timing, "write_files": write_s}.items())}

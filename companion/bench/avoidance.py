@@ -45,9 +45,11 @@ def scenario_file(scenario: str, model: str, out: Path) -> tuple[Path, str]:
     src = SCEN / f"{scenario}.toml"
     if model != "px4_go_no_data":
         return src, model
+    from flightsim.scenario import set_path_key
+
     text = src.read_text(encoding="utf-8")
-    world = (SCEN / re.search(r'^world = "([^"]+)"', text, re.M).group(1)).resolve()
-    text = re.sub(r'^world = "[^"]+"', f'world = "{world.as_posix()}"', text, count=1, flags=re.M)
+    world = set_path_key(text, "world", "")[1]
+    text, _ = set_path_key(text, "world", (SCEN / world).resolve().as_posix())
     text = re.sub(r"^(cp_dist_m = .*)$", r"\1\ncp_go_no_data = true                # CP_GO_NO_DATA = 1: directions never covered do not stall",
                   text, count=1, flags=re.M)
     out.mkdir(parents=True, exist_ok=True)
@@ -131,12 +133,16 @@ def rescore(res: dict) -> dict:
     return res
 
 
-def _pc(v, d=1) -> str:
-    return "–" if v is None else f"{100 * v:.{d}f} %"
+def _pc(v) -> str:
+    from flightsim.report import _pc as pc
+
+    return pc(v, 1)
 
 
 def _m(d, fmt="{:.2f}") -> str:
-    return "–" if not d or not d.get("n") else f"{fmt.format(d['mean'])} ± {fmt.format(d['std'])} (min {fmt.format(d['min'])})"
+    from flightsim.report import mean_std_text
+
+    return mean_std_text(d, fmt, with_max=False)
 
 
 def markdown(res: dict) -> str:

@@ -219,7 +219,7 @@ class QuadSim(JSBSimVehicle):
             return
         self._active = None
 
-    def _update_reference(self, t: float, psi: float, dt: float, p_ned=None, v_ned=None) -> None:
+    def _update_reference(self, t: float, psi: float, dt: float, p_ned, v_ned) -> None:
         v_des_prev = self.v_des
         self.v_des = self.v_cmd = (0.0, 0.0, 0.0)  # no demand outside a leg flown with avoidance
         if self._active is None and self._legs:
@@ -254,7 +254,7 @@ class QuadSim(JSBSimVehicle):
                 self._active = None
                 self._start_next_leg(t, psi)
             return
-        if self.avoidance is not None and p_ned is not None:
+        if self.avoidance is not None:
             self._fly_line_avoiding(act, t, psi, dt, p_ned, v_ned, v_des_prev)
             return
         prof: LineProfile = act[2]
@@ -272,7 +272,7 @@ class QuadSim(JSBSimVehicle):
         waypoint in Loiter, or a companion sending Guided velocity targets): the demand points from
         the reference position to the waypoint at the leg's speed, ramped at ``max_accel_mps2`` and
         slowed to stop at the waypoint (v ≤ √(2·a·d)).  The avoidance limits it from the ranges the
-        autopilot holds now (:class:`flightsim.avoidance.Avoidance`); the reference position moves
+        autopilot holds now (:mod:`flightsim.avoidance`); the reference position moves
         with the limited velocity, so a vehicle held in front of an obstacle stays there and the leg
         ends only when the waypoint is reached (at rest within 5 cm).  The reference velocity follows
         the limited demand at up to the tilt-limited acceleration (a braking demand is not softened).
