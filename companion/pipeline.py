@@ -432,6 +432,7 @@ class Pipeline:
             remembered_p_body=None if rem is None else world_to_body(rem.p_world, R_wb, p_wb),
             remembered_sigma=None if rem is None else rem.range_sigma,
             remembered_tangential_sigma=None if rem is None else rem.tangential_sigma,
+            ground_height_m=float(p_wb[2]),  # NED: the origin's level (take-off ground) relative to the vehicle
         )
         if self.map is not None:
             res.n_map, res.n_remembered = len(self.map), len(rem)

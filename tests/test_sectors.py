@@ -252,3 +252,66 @@ def test_rotated_with_min_points_obstacle_uses_the_nth_nearest_point():
     s = run([[10.0, 0.0, 0.0], [12.0, 0.1, 0.0], [15.0, 0.2, 0.0]], sigma=0.5, config=cfg)
     assert s.distances_cm[0] == 1100  # second nearest: 12 − 2·0.5
     assert s.rotated(math.radians(0.3))[0] == 1100
+
+
+def test_vertical_span_infers_a_pole_through_the_band():
+    """infer_vertical: converged points just above and just below the band at consistent ranges in one
+    sector claim an obstacle at the nearer conservative range (a thin pole whose in-band points did not
+    converge); the ground far below, inconsistent ranges, one side only or the option off claim nothing."""
+    cfg = SectorConfig(infer_vertical=True, infer_vertical_window_m=1.5, sigma_k=0.0)
+    pole = [[12.0, 0.2, -2.5], [11.0, -0.1, 2.2]]  # FRD: 2.5 m above and 2.2 m below, 11–12 m ahead
+    s = run(pole, config=cfg)
+    assert s.state[0] == SectorState.OBSTACLE and s.inferred[0]
+    assert s.distances_cm[0] == round(math.hypot(11.0, 0.1) * 100)  # the nearer of the two
+    assert np.all(s.state[1:] != SectorState.OBSTACLE)
+    assert np.array_equal(s.rotated(0.0), s.distances_cm)  # re-binned like any other claim
+    assert np.all(run(pole, config=SectorConfig(sigma_k=0.0)).distances_cm == UNKNOWN_CM)  # off by default
+    assert np.all(run(pole[:1], config=cfg).distances_cm == UNKNOWN_CM)  # one side only
+    assert np.all(run([[12.0, 0.2, -2.5], [16.0, 0.0, 2.2]], config=cfg).distances_cm == UNKNOWN_CM)  # ranges disagree
+    assert np.all(run([[12.0, 0.2, -2.5], [12.0, 0.0, 5.0]], config=cfg).distances_cm == UNKNOWN_CM)  # ground 5 m below
+    # never clear: a sector with far in-band points and a near vertical span is an obstacle
+    far = [[60.0, b, 0.0] for b in (-1.0, 0.0, 1.0)]
+    s2 = run(far + pole, config=cfg)
+    assert s2.state[0] == SectorState.OBSTACLE
+    # a nearer in-band point keeps its own claim
+    s3 = run(pole + [[6.0, 0.0, 0.0]], config=cfg)
+    assert s3.distances_cm[0] == 600 and not s3.inferred[0]
+
+
+def test_vertical_span_ignores_the_ground_with_its_height_known():
+    """With ``ground_height_m`` (the take-off ground relative to the vehicle, up positive: −5 m for a vehicle 5 m up) a
+    point below the band counts only ``infer_vertical_ground_margin_m`` above the ground: texture on
+    the ground 12 m ahead pairs with nothing, a pole's point 1.5 m above the ground still does."""
+    cfg = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0, infer_vertical_ground_margin_m=1.0, sigma_k=0.0)
+    above = [12.0, 0.1, -3.0]
+    on_ground = [12.0, 0.0, 5.0]  # vehicle 5 m up: this point lies on the ground
+    on_pole = [12.0, 0.0, 3.5]  # 1.5 m above the ground
+    assert np.all(run([above, on_ground], config=cfg, ground_height_m=-5.0).distances_cm == UNKNOWN_CM)
+    s = run([above, on_pole], config=cfg, ground_height_m=-5.0)
+    assert s.state[0] == SectorState.OBSTACLE and s.inferred[0]
+    # without the ground's height the same pair is taken (the window alone keeps the ground out)
+    assert run([above, on_ground], config=cfg).state[0] == SectorState.OBSTACLE
+
+
+def test_vertical_span_only_ever_adds_obstacles_seeded():
+    """Seeded Monte Carlo over random scenes: with ``infer_vertical`` on, no sector becomes clear or
+    unknown that was an obstacle, none becomes clear that was not, and no claimed range grows."""
+    rng = np.random.default_rng(11)
+    on = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0)
+    off = SectorConfig()
+    for _ in range(200):
+        n = int(rng.integers(1, 40))
+        d = rng.uniform(1.0, 60.0, n)
+        b = rng.uniform(-0.6, 0.6, n)
+        h = rng.uniform(-8.0, 8.0, n)
+        pts = np.stack([d * np.cos(b), d * np.sin(b), h], 1)
+        sig = rng.uniform(0.05, 3.0, n)
+        conv = rng.random(n) < 0.8
+        a = run(pts, sigma=sig, converged=conv, config=off, ground_height_m=-5.0)
+        v = run(pts, sigma=sig, converged=conv, config=on, ground_height_m=-5.0)
+        was_obs = a.state == SectorState.OBSTACLE
+        assert np.all(v.state[was_obs] == SectorState.OBSTACLE)
+        assert np.all(v.distances_cm[was_obs] <= a.distances_cm[was_obs])
+        assert not np.any((v.state == SectorState.CLEAR) & (a.state != SectorState.CLEAR))
+        changed = v.state != a.state
+        assert np.all(v.state[changed] == SectorState.OBSTACLE) and np.all(v.inferred[changed])

@@ -94,6 +94,9 @@ class SectorConfig:
     infer_rel_tol: float = 0.15  # the two sides are consistent when their ranges differ by at most this fraction of the nearer
     infer_narrow_gap_m: float = 0.0  # an unknown gap (up to infer_narrow_max_sectors) between two obstacle sectors whose points lie at most this far apart is filled with the straight line between them (too narrow to fly through); 0 = off
     infer_narrow_max_sectors: int = 4  # widest such gap, sectors
+    infer_vertical: bool = False  # a sector with converged points both just above and just below the band whose horizontal ranges agree within infer_rel_tol claims an obstacle at the nearer of them (a pole, mast or trunk standing through the band whose own points in the band did not converge)
+    infer_vertical_window_m: float = 1.5  # ... "just": within this of the band's upper and lower edges, m (keeps the ground out while it lies farther below the band than this)
+    infer_vertical_ground_margin_m: float = 1.0  # with the ground's height known (the autopilot's altitude above its origin), points below the band count only this far above the ground, m
 
     def __post_init__(self) -> None:
         require_finite("min_distance_m", self.min_distance_m, positive=True)
@@ -131,6 +134,9 @@ class SectorConfig:
         require(isinstance(self.infer_narrow_max_sectors, int) and not isinstance(self.infer_narrow_max_sectors, bool)
                 and 0 <= self.infer_narrow_max_sectors <= 12,
                 f"infer_narrow_max_sectors must be an integer in 0..12, got {self.infer_narrow_max_sectors!r}")
+        require(isinstance(self.infer_vertical, bool), "infer_vertical must be true or false")
+        require_finite("infer_vertical_window_m", self.infer_vertical_window_m, positive=True)
+        require_finite("infer_vertical_ground_margin_m", self.infer_vertical_ground_margin_m, nonnegative=True)
 
     @property
     def min_distance_cm(self) -> int:
@@ -329,6 +335,7 @@ def compute_sectors(
     remembered_p_body=None,
     remembered_sigma=None,
     remembered_tangential_sigma=None,
+    ground_height_m: float | None = None,
 ) -> Sectors:
     """Sector distances from ranged points (DESIGN §5 OBSTACLE_DISTANCE rules; see module doc).
 
@@ -345,6 +352,9 @@ def compute_sectors(
     velocity_body : vehicle velocity in body FRD at exposure (sets the band's flight-path angle).
     vfov_rad : vertical field of view; when given the view mask also checks the band centre is
         inside the image vertically.
+
+    ground_height_m : height of the ground below the vehicle relative to it (levelled, up positive,
+        e.g. minus the altitude above the autopilot's origin), used by ``infer_vertical`` only.
 
     remembered_p_body : (M, 3) points of the local obstacle map (DESIGN §7) in body FRD: they may
         claim an obstacle in any sector over 360° (the field-of-view mask does not apply to them),
@@ -478,6 +488,28 @@ def compute_sectors(
 
     inferred = _infer_between(state, dist, range_m, sigma_m, config)
     inferred |= _infer_narrow(state, dist, range_m, sigma_m, xy_m, config, ~inferred)
+    if config.infer_vertical:
+        # a structure standing through the band (DESIGN §7: inference only adds obstacles): converged
+        # points just above and just below it in one sector at consistent ranges; the nearer one is claimed
+        off = height - d_h * math.tan(gamma)  # metres above the band centre
+        lim = config.band_half_height_m if config.band_mode == "metres" else d_h * math.tan(math.radians(config.band_half_angle_deg))
+        win = config.infer_vertical_window_m
+        span = usable & conv & near & (in_view[idx] | mem)
+        above, below = span & (off > lim) & (off <= lim + win), span & (off < -lim) & (off >= -lim - win)
+        if ground_height_m is not None and math.isfinite(ground_height_m):  # the ground itself is no evidence
+            below &= height >= ground_height_m + config.infer_vertical_ground_margin_m
+        vpick = _infer_vertical(idx, d_cons, above, below, config.infer_rel_tol)
+        vert = vpick >= 0
+        vert[vert] &= ~has_obs[vert] | (d_pub[vpick[vert]] < range_m[vert])
+        if np.any(vert):
+            pts = vpick[vert]
+            state[vert] = SectorState.OBSTACLE
+            dist[vert] = pt_cm[pts]
+            range_m[vert] = d_pub[pts]
+            sigma_m[vert] = sig[pts]
+            pick = pick.copy()
+            pick[vert] = pts
+            inferred |= vert
 
     # ---- forward window (DISTANCE_SENSOR) ------------------------------------------------------
     centres = np.arange(SECTOR_COUNT) * SECTOR_DEG
@@ -590,6 +622,27 @@ def _infer_between(state, dist, range_m, sigma_m, config: SectorConfig) -> np.nd
             sigma_m[fill] = max(sigma_m[i], sigma_m[jr])
             inferred[fill] = True
     return inferred
+
+
+def _infer_vertical(idx: np.ndarray, d_cons: np.ndarray, above: np.ndarray, below: np.ndarray, rel_tol: float) -> np.ndarray:
+    """(72,) index of the point a sector claims from a vertical span, −1 where none: the nearer point of
+    the nearest pair, one point above the band and one below it in the same sector, whose conservative
+    horizontal ranges differ by at most ``rel_tol`` of the nearer (a pole, mast or trunk whose points in
+    the band itself were not ranged: an 11 px template on a pole a few px wide in front of a textured
+    background mixes two depths).  Only ever adds an obstacle."""
+    out = np.full(SECTOR_COUNT, -1, np.int64)
+    both = np.flatnonzero((np.bincount(idx[above], minlength=SECTOR_COUNT) > 0) & (np.bincount(idx[below], minlength=SECTOR_COUNT) > 0))
+    for sct in both:
+        a = np.flatnonzero(above & (idx == sct))
+        b = np.flatnonzero(below & (idx == sct))
+        da, db = d_cons[a][:, None], d_cons[b][None, :]
+        ok = np.abs(da - db) <= rel_tol * np.minimum(da, db)
+        if not np.any(ok):
+            continue
+        near = np.where(ok, np.minimum(da, db), np.inf)
+        i, j = np.unravel_index(np.argmin(near), near.shape)
+        out[sct] = a[i] if d_cons[a[i]] <= d_cons[b[j]] else b[j]
+    return out
 
 
 def _line_distance(a: np.ndarray, b: np.ndarray, bearing: np.ndarray) -> np.ndarray:
