@@ -5,8 +5,9 @@ Each campaign is ``flightsim campaign configs/scenarios/<scenario>.toml --avoida
 limits the pilot's velocity with the OBSTACLE_DISTANCE / DISTANCE_SENSOR it receives, and every run
 is scored on its outcome (:mod:`flightsim.outcome`: collision, clearance where it stopped, false
 stops, progress) as well as on the messages.  Scenarios (:data:`SCENARIOS`): the quad commanded
-through a textured wall at 3, 6 and 10 m/s, through a 0.3 m pole, past a building corner, and
-along a slalom line that crosses four poles.  Models: ``ardupilot`` (Copter simple avoidance,
+through a textured wall at 3, 6 and 10 m/s, through a 0.3 m pole and past a building corner at 3, 5
+and 6 m/s (the 3 and 6 m/s ones written from the 5 m/s files, :data:`VARIANTS`), and along a slalom
+line that crosses four poles.  Models: ``ardupilot`` (Copter simple avoidance,
 defaults as shipped), ``px4`` (collision prevention, CP_DIST = 2 m, CP_GO_NO_DATA = 0 as shipped)
 and, with ``--models``, ``px4_go_no_data`` (the same with CP_GO_NO_DATA = 1, written as a scenario variant in the
 campaign's directory: what a PX4 user of a forward camera sets so that directions the sensor never
@@ -32,40 +33,67 @@ SCENARIOS: dict[str, str] = {
     "quad_avoid_wall_6": "through the wall at 6 m/s",
     "quad_avoid_wall_10": "through the wall at 10 m/s",
     "quad_avoid_pole": "through a 0.3 m pole 30 m ahead at 5 m/s",
+    "quad_avoid_pole_3": "through the pole at 3 m/s",
+    "quad_avoid_pole_6": "through the pole at 6 m/s",
     "quad_avoid_corner": "a straight line at 5 m/s that clips a building's corner",
+    "quad_avoid_corner_3": "past the corner at 3 m/s",
+    "quad_avoid_corner_6": "past the corner at 6 m/s",
     "quad_avoid_slalom": "straight along a slalom line through four poles (0.2–0.6 m) at 4 m/s",
+}
+#: speed variants: scenario → (the scenario file it is written from, commanded speed m/s)
+VARIANTS: dict[str, tuple[str, float]] = {
+    "quad_avoid_pole_3": ("quad_avoid_pole", 3.0),
+    "quad_avoid_pole_6": ("quad_avoid_pole", 6.0),
+    "quad_avoid_corner_3": ("quad_avoid_corner", 3.0),
+    "quad_avoid_corner_6": ("quad_avoid_corner", 6.0),
 }
 MODELS = ("ardupilot", "px4", "px4_go_no_data")
 DEFAULT_MODELS = ("ardupilot", "px4")  # what make bench runs; px4_go_no_data on request (--models)
 
 
+def base_file(scenario: str) -> Path:
+    """The scenario TOML in configs/scenarios a scenario (or speed variant) is flown from."""
+    return SCEN / f"{VARIANTS.get(scenario, (scenario,))[0]}.toml"
+
+
 def scenario_file(scenario: str, model: str, out: Path) -> tuple[Path, str]:
-    """The scenario TOML and the ``--avoidance`` model of a campaign; ``px4_go_no_data`` is a variant
-    of the scenario with ``cp_go_no_data = true`` written to ``out`` (world path made absolute)."""
-    src = SCEN / f"{scenario}.toml"
-    if model != "px4_go_no_data":
+    """The scenario TOML and the ``--avoidance`` model of a campaign.  A speed variant
+    (:data:`VARIANTS`) and ``px4_go_no_data`` (the scenario with ``cp_go_no_data = true``) are
+    written to ``out`` from the scenario file they change (world path made absolute, the name
+    and the commanded speed replaced)."""
+    src = base_file(scenario)
+    if model != "px4_go_no_data" and scenario not in VARIANTS:
         return src, model
     from flightsim.scenario import set_path_key
 
     text = src.read_text(encoding="utf-8")
     world = set_path_key(text, "world", "")[1]
     text, _ = set_path_key(text, "world", (SCEN / world).resolve().as_posix())
-    text = re.sub(r"^(cp_dist_m = .*)$", r"\1\ncp_go_no_data = true                # CP_GO_NO_DATA = 1: directions never covered do not stall",
-                  text, count=1, flags=re.M)
+    if scenario in VARIANTS:
+        speed = VARIANTS[scenario][1]
+        text, n = re.subn(r"^speed_mps = [0-9.]+", f"speed_mps = {speed:g}", text, count=1, flags=re.M)
+        text, m = re.subn(r'^name = "[^"]*"', f'name = "{scenario}"', text, count=1, flags=re.M)
+        if n != 1 or m != 1:
+            raise ValueError(f"{src}: no speed_mps / name line to write the variant {scenario}")
+    tag = scenario
+    if model == "px4_go_no_data":
+        text = re.sub(r"^(cp_dist_m = .*)$", r"\1\ncp_go_no_data = true                # CP_GO_NO_DATA = 1: directions never covered do not stall",
+                      text, count=1, flags=re.M)
+        tag += "_px4_go_no_data"
     out.mkdir(parents=True, exist_ok=True)
-    dst = out / f"{scenario}_px4_go_no_data.toml"
+    dst = out / f"{tag}.toml"
     dst.write_text(text, encoding="utf-8")
-    return dst, "px4"
+    return dst, "px4" if model == "px4_go_no_data" else model
 
 
 def _fly_no_companion(args: tuple[str, int, str]) -> dict:
-    """One ``flightsim fly`` of a scenario with ArduPilot avoidance and no companion (worker process)."""
-    scenario, seed, out = args
+    """One ``flightsim fly`` of a scenario file with ArduPilot avoidance and no companion (worker process)."""
+    path, seed, out = args
     from flightsim.fly import fly
     from flightsim.outcome import evaluate_outcome, read_trajectory
     from flightsim.scenario import load_scenario
 
-    sc = load_scenario(SCEN / f"{scenario}.toml", seed=seed, avoidance="ardupilot")
+    sc = load_scenario(path, seed=seed, avoidance="ardupilot")
     fly(sc, out, plot=False)
     return evaluate_outcome(read_trajectory(Path(out) / "trajectory.npz"), sc.world)
 
@@ -84,7 +112,8 @@ def no_companion(runs: int = 20, workers: int = 2, scenarios=None) -> dict:
     with cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as ex:
         for name in names:
             base = OUT / f"{name}_no_companion"
-            jobs = [(name, 1 + i, str(base / f"seed_{1 + i:04d}")) for i in range(runs)]
+            path = str(scenario_file(name, "ardupilot", OUT / "scenarios")[0])
+            jobs = [(path, 1 + i, str(base / f"seed_{1 + i:04d}")) for i in range(runs)]
             outs = list(ex.map(_fly_no_companion, jobs))
             for _, _, d in jobs:  # keep only the outcome: the videos of these flights are not needed
                 shutil.rmtree(d, ignore_errors=True)
@@ -126,7 +155,7 @@ def rescore(res: dict) -> dict:
     from flightsim.scenario import load_scenario
 
     for c in res["campaigns"].values():
-        world = load_scenario(SCEN / f"{c['scenario']}.toml").world
+        world = load_scenario(base_file(c["scenario"])).world
         outs = [evaluate_outcome(read_trajectory(t), world) for t in sorted(Path(c["dir"]).glob("runs/*/trajectory.npz"))]
         if outs:
             c["avoidance"] = pool_outcomes(outs)
