@@ -315,3 +315,19 @@ def test_vertical_span_only_ever_adds_obstacles_seeded():
         assert not np.any((v.state == SectorState.CLEAR) & (a.state != SectorState.CLEAR))
         changed = v.state != a.state
         assert np.all(v.state[changed] == SectorState.OBSTACLE) and np.all(v.inferred[changed])
+
+
+def test_ground_points_are_dropped_with_the_ground_height_known():
+    """``ground_margin_m``: a vehicle 1 m up (taking off) sees the ground ahead inside its height band;
+    with the ground's height known those points are neither an obstacle nor evidence of clear, while a
+    point 0.6 m above the ground still claims; off (0) or without the height, the old behaviour."""
+    cfg = SectorConfig(ground_margin_m=0.5, sigma_k=0.0)
+    ground = [[12.0, 0.0, 1.0], [50.0, 0.0, 1.0], [55.0, 0.5, 1.0], [60.0, -0.5, 1.0]]  # FRD: 1 m below = the ground
+    assert np.all(run(ground, config=cfg, ground_height_m=-1.0).distances_cm == UNKNOWN_CM)
+    s = run(ground, config=cfg)  # height unknown: as before, the near one claims
+    assert s.distances_cm[0] == 1200
+    assert run(ground, config=SectorConfig(sigma_k=0.0), ground_height_m=-1.0).distances_cm[0] == 1200  # off
+    low = run([[12.0, 0.0, 0.4]], config=cfg, ground_height_m=-1.0)  # 0.6 m above the ground
+    assert low.distances_cm[0] == 1200
+    with pytest.raises(ConfigError):
+        SectorConfig(ground_margin_m=-1.0)

@@ -97,6 +97,7 @@ class SectorConfig:
     infer_vertical: bool = False  # a sector with converged points both just above and just below the band whose horizontal ranges agree within infer_rel_tol claims an obstacle at the nearer of them (a pole, mast or trunk standing through the band whose own points in the band did not converge)
     infer_vertical_window_m: float = 1.5  # ... "just": within this of the band's upper and lower edges, m (keeps the ground out while it lies farther below the band than this)
     infer_vertical_ground_margin_m: float = 1.0  # with the ground's height known (the autopilot's altitude above its origin), points below the band count only this far above the ground, m
+    ground_margin_m: float = 0.0  # with the ground's height known, points less than this above it are the ground: never an obstacle nor evidence of clear (taking off, landing, flying low); 0 = off
 
     def __post_init__(self) -> None:
         require_finite("min_distance_m", self.min_distance_m, positive=True)
@@ -137,6 +138,7 @@ class SectorConfig:
         require(isinstance(self.infer_vertical, bool), "infer_vertical must be true or false")
         require_finite("infer_vertical_window_m", self.infer_vertical_window_m, positive=True)
         require_finite("infer_vertical_ground_margin_m", self.infer_vertical_ground_margin_m, nonnegative=True)
+        require_finite("ground_margin_m", self.ground_margin_m, nonnegative=True)
 
     @property
     def min_distance_cm(self) -> int:
@@ -353,8 +355,11 @@ def compute_sectors(
     vfov_rad : vertical field of view; when given the view mask also checks the band centre is
         inside the image vertically.
 
-    ground_height_m : height of the ground below the vehicle relative to it (levelled, up positive,
-        e.g. minus the altitude above the autopilot's origin), used by ``infer_vertical`` only.
+    ground_height_m : height of the ground below the vehicle relative to it (levelled, up positive:
+        the NED z of the vehicle in the autopilot's local frame, whose origin is the take-off ground),
+        used by ``ground_margin_m`` (points that low are dropped: the ground is no obstacle and no
+        evidence of clear) and by ``infer_vertical``.  Assumes level ground at the origin's height:
+        rising ground ahead stays an obstacle; ground that falls away is dropped anyway.
 
     remembered_p_body : (M, 3) points of the local obstacle map (DESIGN §7) in body FRD: they may
         claim an obstacle in any sector over 360° (the field-of-view mask does not apply to them),
@@ -429,6 +434,9 @@ def compute_sectors(
         n = p.shape[0]
     d_h = np.hypot(p_level[:, 0], p_level[:, 1])
     height = -p_level[:, 2]
+    ground_known = ground_height_m is not None and math.isfinite(ground_height_m)
+    if ground_known and config.ground_margin_m > 0:  # the ground is not an obstacle for horizontal avoidance
+        usable &= height >= ground_height_m + config.ground_margin_m
     r_safe = np.where(usable, r, 1.0)
     if config.band_mode == "metres":
         in_band = np.abs(height - d_h * math.tan(gamma)) <= config.band_half_height_m
@@ -496,7 +504,7 @@ def compute_sectors(
         win = config.infer_vertical_window_m
         span = usable & conv & near & (in_view[idx] | mem)
         above, below = span & (off > lim) & (off <= lim + win), span & (off < -lim) & (off >= -lim - win)
-        if ground_height_m is not None and math.isfinite(ground_height_m):  # the ground itself is no evidence
+        if ground_known:  # the ground itself is no evidence
             below &= height >= ground_height_m + config.infer_vertical_ground_margin_m
         vpick = _infer_vertical(idx, d_cons, above, below, config.infer_rel_tol)
         vert = vpick >= 0
