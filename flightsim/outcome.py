@@ -22,7 +22,9 @@ the body's clearance to the nearest obstacle).  :func:`evaluate_outcome` gives s
   before the margin — that is its documented curve, not a false stop.  A no-data stall of the PX4
   model is one (it also shows in ``progress``);
 * ``progress`` — fraction of the route's length flown (the farthest point along the route
-  polyline the vehicle reached);
+  polyline the vehicle reached); a take-off straight up from the start (a first leg with no
+  horizontal extent) is not part of it: avoidance acts horizontally, and counting the climb would
+  credit every run with it;
 * ``time_to_goal_s`` — first time within ``goal_radius_m`` of the last waypoint (None: never).
 """
 
@@ -97,6 +99,16 @@ def route_progress(p_ned: np.ndarray, route_ned: np.ndarray) -> np.ndarray:
     return cum[k] + u[np.arange(len(p)), k] * L[k]
 
 
+def horizontal_route(route_ned: np.ndarray, tol_m: float = 1e-3) -> np.ndarray:
+    """The route without its leading vertical legs (a take-off straight up from the start): the
+    part of it the avoidance acts on.  A route that is vertical throughout is returned unchanged."""
+    r = np.asarray(route_ned, float).reshape(-1, 3)
+    k = 0
+    while k + 1 < len(r) and np.hypot(*(r[k + 1, :2] - r[k, :2])) <= tol_m:
+        k += 1
+    return r if k + 1 >= len(r) else r[k:]
+
+
 def evaluate_outcome(traj: dict, world=None, config: OutcomeConfig = OutcomeConfig()) -> dict:
     """score.json's ``"avoidance"`` table from a trajectory (module docstring); ``world`` (a
     :class:`flightsim.world.World`) lets the stop clearance be measured along the demanded direction."""
@@ -106,7 +118,7 @@ def evaluate_outcome(traj: dict, world=None, config: OutcomeConfig = OutcomeConf
     v = np.asarray(traj["v_ned"], float).reshape(-1, 3)
     v_des = np.asarray(traj["v_des_ned"], float).reshape(-1, 3)
     clear = np.asarray(traj["clearance_m"], float)
-    route = np.asarray(traj["route_ned"], float).reshape(-1, 3)
+    route = horizontal_route(traj["route_ned"])
     radius = float(traj.get("body_radius_m", 0.0))
     margin = float(traj.get("avoid_margin_m", 2.0))
     model = str(traj.get("avoidance_model", "none"))
@@ -227,4 +239,4 @@ def outcome_markdown(o: dict) -> list[str]:
     ]
 
 
-__all__ = ["OutcomeConfig", "evaluate_outcome", "read_trajectory", "route_progress", "outcome_markdown", "outcome_verdict"]
+__all__ = ["OutcomeConfig", "evaluate_outcome", "read_trajectory", "route_progress", "horizontal_route", "outcome_markdown", "outcome_verdict"]

@@ -24,7 +24,7 @@ from flightsim.avoidance import (
     sqrt_controller,
     stopping_distance,
 )
-from flightsim.outcome import OutcomeConfig, evaluate_outcome, read_trajectory, route_progress
+from flightsim.outcome import OutcomeConfig, evaluate_outcome, horizontal_route, read_trajectory, route_progress
 
 ROOT = Path(__file__).resolve().parents[1]
 WALL6 = ROOT / "configs" / "scenarios" / "quad_avoid_wall_6.toml"
@@ -255,6 +255,19 @@ def test_route_progress_is_exact_along_a_polyline():
     assert route_progress(p, route) == pytest.approx([5.0, 14.0, 20.0, 0.0])
 
 
+def test_progress_leaves_out_a_take_off_straight_up():
+    route = np.array([[0, 0, 0], [0, 0, -5], [0, 0, -5], [10, 0, -5], [10, 10, -5]], float)
+    assert horizontal_route(route).tolist() == [[0, 0, -5], [10, 0, -5], [10, 10, -5]]
+    up = np.array([[0, 0, 0], [0, 0, -5]], float)  # vertical throughout: unchanged
+    assert horizontal_route(up).tolist() == up.tolist()
+    flat = np.array([[0, 0, -5], [10, 0, -5]], float)
+    assert horizontal_route(flat).tolist() == flat.tolist()
+    # a flight that took off and flew 5 m of a 20 m horizontal route: 25 %, not (5 + 5) / 25
+    tr = _synthetic(lambda t: 1.0 if t < 5 else 0.0, lambda x: 50.0)
+    tr["route_ned"] = np.array([[0, 0, 0], [0, 0, -5], [20, 0, -5]], float)
+    assert evaluate_outcome(tr)["progress"] == pytest.approx(0.25, abs=0.002)
+
+
 def _synthetic(v_profile, clear, t_end=10.0, dt=0.01, demand=3.0):
     t = np.arange(0.0, t_end, dt)
     vx = np.array([v_profile(x) for x in t])
@@ -288,7 +301,7 @@ def test_outcome_stop_false_stop_progress_and_collision():
 
 
 # ------------------------------------------------------------------------------------ closed loop -
-def _fly_with_true_ranges(model: str, feed: bool, seconds: float = 16.0):
+def _fly_with_true_ranges(model: str, feed: bool, seconds: float = 20.0):
     """Fly quad_avoid_wall_6 step by step; with ``feed`` the autopilot gets OBSTACLE_DISTANCE built
     from the true sectors at 10 Hz (arriving 50 ms after the state they describe)."""
     from flightsim.fly import Flight
@@ -319,10 +332,21 @@ def test_closed_loop_with_true_ranges_stops_short_of_the_wall(model):
 
 
 def test_closed_loop_without_data_crashes_with_ardupilot_and_stalls_with_px4():
-    _, o = _fly_with_true_ranges("ardupilot", feed=False, seconds=12.0)
+    _, o = _fly_with_true_ranges("ardupilot", feed=False, seconds=16.0)
     assert o["collision"] and "warehouse" in (o["collision_with"] or "")  # no data = no constraint: the harness can fail
-    _, o = _fly_with_true_ranges("px4", feed=False, seconds=3.0)
-    assert not o["collision"] and o["progress"] < 0.01 and o["false_stop"]  # no data = refuses to move
+    fl, o = _fly_with_true_ranges("px4", feed=False, seconds=7.0)
+    assert not o["collision"] and o["progress"] < 0.01 and o["false_stop"]  # no data = refuses to move ...
+    tr = fl.trajectory_arrays()
+    assert tr["p_ned"][0][2] > -0.3 and tr["p_ned"][-1][2] == pytest.approx(-5.0, abs=0.3)  # ... but takes off: PX4 limits only the horizontal demand
+
+
+def test_avoidance_scenarios_take_off_straight_up_before_the_horizontal_leg():
+    from flightsim.scenario import load_scenario
+
+    for path in sorted((ROOT / "configs" / "scenarios").glob("quad_avoid_*.toml")):
+        v = load_scenario(path).vehicle
+        start, first = np.asarray(v.start_ned_m), np.asarray(v.route.waypoints[0])
+        assert start[2] == 0.0 and np.allclose(first[:2], start[:2]) and first[2] < -3.0, path.name
 
 
 def test_fly_writes_the_trajectory_and_reports_the_outcome(tmp_path, capsys):
@@ -455,7 +479,7 @@ def test_sitl_closed_loop_is_deterministic_in_lockstep(tmp_path):
 
     text = WALL6.read_text()
     text = re.sub(r'^world = "\.\./worlds/', f'world = "{(ROOT / "configs" / "worlds").as_posix()}/', text, flags=re.M)
-    text = re.sub(r"^duration_s = .*$", "duration_s = 8.5", text, flags=re.M)  # far enough to be braking for the wall
+    text = re.sub(r"^duration_s = .*$", "duration_s = 12.5", text, flags=re.M)  # take-off (~3.5 s) and far enough to be braking for the wall
     sp = tmp_path / "short.toml"
     sp.write_text(text)
     outs = []
