@@ -39,7 +39,10 @@ SCENARIOS: dict[str, str] = {
     "quad_avoid_corner_3": "past the corner at 3 m/s",
     "quad_avoid_corner_6": "past the corner at 6 m/s",
     "quad_avoid_slalom": "straight along a slalom line through four poles (0.2–0.6 m) at 4 m/s",
+    "quad_avoid_pass": "a route that avoids everything: past a building 5 m right and a mast 3 m left at 5 m/s",
 }
+#: scenarios whose route goes through nothing: flown without the companion they cannot show a collision
+CLEAR_ROUTES = ("quad_avoid_pass",)
 #: speed variants: scenario → (the scenario file it is written from, commanded speed m/s)
 VARIANTS: dict[str, tuple[str, float]] = {
     "quad_avoid_pole_3": ("quad_avoid_pole", 3.0),
@@ -107,7 +110,7 @@ def no_companion(runs: int = 20, workers: int = 2, scenarios=None) -> dict:
 
     from flightsim.campaign import pool_outcomes
 
-    names = list(SCENARIOS) if scenarios is None else list(scenarios)
+    names = [n for n in (list(SCENARIOS) if scenarios is None else list(scenarios)) if n not in CLEAR_ROUTES]
     res = {}
     with cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as ex:
         for name in names:
@@ -121,17 +124,23 @@ def no_companion(runs: int = 20, workers: int = 2, scenarios=None) -> dict:
     return res
 
 
-def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=DEFAULT_MODELS, progress=None) -> dict:
-    """The campaigns of ``scenarios`` × ``models`` with ``runs`` seeds each; returns their results."""
+def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=DEFAULT_MODELS, progress=None,
+            variant_models=("ardupilot",), checkpoint=None) -> dict:
+    """The campaigns of ``scenarios`` × ``models`` with ``runs`` seeds each (speed variants only with the
+    models also in ``variant_models``), then the flights without the companion; returns their results.
+    ``checkpoint(res)`` is called after each campaign with the results so far (a long bench cut short
+    keeps what it finished)."""
     from flightsim.campaign import run_campaign
 
     names = list(SCENARIOS) if scenarios is None else list(scenarios)
     bad = [n for n in names if n not in SCENARIOS] + [m for m in models if m not in MODELS]
     if bad:
         raise ValueError(f"unknown scenario(s) or model(s): {', '.join(bad)}")
-    res: dict = {"runs": runs, "campaigns": {}, "no_companion": no_companion(runs, workers, names)}
-    for name in names:
-        for model in models:
+    res: dict = {"runs": runs, "campaigns": {}, "no_companion": {}}
+    for model in models:  # one model's campaigns after the other's
+        for name in names:
+            if name in VARIANTS and model not in variant_models:
+                continue
             out = OUT / f"{name}_{model}"
             path, av = scenario_file(name, model, OUT / "scenarios")
             t0 = time.perf_counter()
@@ -144,6 +153,9 @@ def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=DEFAULT_MOD
             }
             if progress:
                 progress(name, model, res["campaigns"][f"{name}/{model}"])
+            if checkpoint:
+                checkpoint(res)
+    res["no_companion"] = no_companion(runs, workers, names)
     return res
 
 
@@ -223,6 +235,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scenarios", default=None, help=f"comma-separated subset of: {', '.join(SCENARIOS)}")
     ap.add_argument("--models", default=",".join(DEFAULT_MODELS),
                     help=f"comma-separated subset of: {', '.join(MODELS)} (default {','.join(DEFAULT_MODELS)})")
+    ap.add_argument("--variant-models", default="ardupilot",
+                    help="models the 3 and 6 m/s variants of the pole and the corner are flown with (default ardupilot)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of the table")
     ap.add_argument("--from-json", metavar="FILE", help="print the table of a previous run's results (out/bench/avoidance/avoidance.json)")
     ap.add_argument("--rescore", action="store_true", help="with --from-json: score the outcomes again from the runs' "
@@ -234,7 +248,12 @@ def main(argv=None) -> int:
         return 0
     names = [n.strip() for n in args.scenarios.split(",") if n.strip()] if args.scenarios else None
     models = tuple(m.strip() for m in args.models.split(",") if m.strip())
-    res = run_all(args.runs, args.workers, names, models,
+    variant_models = tuple(m.strip() for m in args.variant_models.split(",") if m.strip())
+    def checkpoint(r: dict) -> None:
+        OUT.mkdir(parents=True, exist_ok=True)
+        (OUT / "avoidance.json").write_text(json.dumps(r, default=str, indent=1), encoding="utf-8")
+
+    res = run_all(args.runs, args.workers, names, models, variant_models=variant_models, checkpoint=checkpoint,
                   progress=lambda n, m, c: print(f"{n} {m}: {c['avoidance'] and c['avoidance']['collisions']} collisions "
                                                  f"in {c['runs_ok']} runs ({c['wall_s']:.0f} s)", flush=True))
     (OUT / "avoidance.json").write_text(json.dumps(res, default=str, indent=1), encoding="utf-8")
