@@ -35,3 +35,25 @@ def test_plain_scenarios_are_flown_from_their_file(tmp_path):
     assert not list(tmp_path.iterdir())
     with pytest.raises(ValueError):
         A.run_all(1, 1, ["quad_avoid_pole_4"], ("ardupilot",))
+
+
+def test_the_clear_route_keeps_off_everything_and_the_others_go_through_something():
+    """quad_avoid_pass is what the no-stall target is judged on: its route (sampled every 0.1 m) keeps
+    the body more than AVOID_MARGIN from every obstacle; every other avoidance scenario's route goes
+    through one (the pilot's intent), so flown without the companion it must collide."""
+    import numpy as np
+
+    def route_clearance(name):
+        sc = load_scenario(A.base_file(name))
+        wps = np.array([sc.vehicle.start_ned_m] + [list(w) for w in sc.vehicle.route.waypoints], float)
+        pts = np.concatenate([np.linspace(a, b, max(2, int(np.linalg.norm(b - a) / 0.1)))
+                              for a, b in zip(wps[:-1], wps[1:])])
+        pts = pts[pts[:, 2] < -1.0]  # in the air (the take-off starts on the ground)
+        return min(sc.world.clearance(p)[0] for p in pts) - 0.35, sc.avoidance.avoid_margin_m
+
+    for name in A.CLEAR_ROUTES:
+        c, margin = route_clearance(name)
+        assert c > margin, (name, c)
+    for name in A.SCENARIOS:
+        if name not in A.CLEAR_ROUTES and name not in A.VARIANTS:
+            assert route_clearance(name)[0] < 0.0, name
