@@ -125,7 +125,7 @@ def no_companion(runs: int = 20, workers: int = 2, scenarios=None) -> dict:
 
 
 def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=DEFAULT_MODELS, progress=None,
-            variant_models=("ardupilot",), checkpoint=None) -> dict:
+            variant_models=("ardupilot",), checkpoint=None, with_no_companion: bool = True) -> dict:
     """The campaigns of ``scenarios`` × ``models`` with ``runs`` seeds each (speed variants only with the
     models also in ``variant_models``), then the flights without the companion; returns their results.
     ``checkpoint(res)`` is called after each campaign with the results so far (a long bench cut short
@@ -155,8 +155,21 @@ def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=DEFAULT_MOD
                 progress(name, model, res["campaigns"][f"{name}/{model}"])
             if checkpoint:
                 checkpoint(res)
-    res["no_companion"] = no_companion(runs, workers, names)
+    if with_no_companion:
+        res["no_companion"] = no_companion(runs, workers, names)
     return res
+
+
+def merge_results(parts: list[dict]) -> dict:
+    """Results of several runs of :func:`run_all` as one (in order: a later cell replaces an earlier one)."""
+    runs = {p["runs"] for p in parts}
+    if len(runs) != 1:
+        raise ValueError(f"results with different seeds per case cannot be merged: {sorted(runs)}")
+    out: dict = {"runs": runs.pop(), "campaigns": {}, "no_companion": {}}
+    for p in parts:
+        out["campaigns"].update(p.get("campaigns") or {})
+        out["no_companion"].update(p.get("no_companion") or {})
+    return out
 
 
 def rescore(res: dict) -> dict:
@@ -237,26 +250,35 @@ def main(argv=None) -> int:
                     help=f"comma-separated subset of: {', '.join(MODELS)} (default {','.join(DEFAULT_MODELS)})")
     ap.add_argument("--variant-models", default="ardupilot",
                     help="models the 3 and 6 m/s variants of the pole and the corner are flown with (default ardupilot)")
+    ap.add_argument("--no-companion-flights", choices=("on", "off"), default="on",
+                    help="also fly each scenario without the companion (the harness must show a collision; default on)")
+    ap.add_argument("--json-out", metavar="FILE", default=None,
+                    help="where the results go (default out/bench/avoidance/avoidance.json; written after each campaign)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of the table")
-    ap.add_argument("--from-json", metavar="FILE", help="print the table of a previous run's results (out/bench/avoidance/avoidance.json)")
+    ap.add_argument("--from-json", metavar="FILE", nargs="+",
+                    help="print the table of previous runs' results (out/bench/avoidance/avoidance.json); several files "
+                         "are merged in order (a later file's campaign or no-companion cell replaces an earlier one's)")
     ap.add_argument("--rescore", action="store_true", help="with --from-json: score the outcomes again from the runs' "
                                                            "trajectory.npz with the current scorer (no flight repeated)")
     args = ap.parse_args(argv)
     if args.from_json:
-        res = json.loads(Path(args.from_json).read_text(encoding="utf-8"))
+        res = merge_results([json.loads(Path(f).read_text(encoding="utf-8")) for f in args.from_json])
         print(markdown(rescore(res) if args.rescore else res))
         return 0
     names = [n.strip() for n in args.scenarios.split(",") if n.strip()] if args.scenarios else None
-    models = tuple(m.strip() for m in args.models.split(",") if m.strip())
+    models = tuple(m.strip() for m in args.models.split(",") if m.strip() and m.strip() != "none")  # none: only the no-companion flights
     variant_models = tuple(m.strip() for m in args.variant_models.split(",") if m.strip())
+    json_out = Path(args.json_out) if args.json_out else OUT / "avoidance.json"
+
     def checkpoint(r: dict) -> None:
-        OUT.mkdir(parents=True, exist_ok=True)
-        (OUT / "avoidance.json").write_text(json.dumps(r, default=str, indent=1), encoding="utf-8")
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(r, default=str, indent=1), encoding="utf-8")
 
     res = run_all(args.runs, args.workers, names, models, variant_models=variant_models, checkpoint=checkpoint,
+                  with_no_companion=args.no_companion_flights == "on",
                   progress=lambda n, m, c: print(f"{n} {m}: {c['avoidance'] and c['avoidance']['collisions']} collisions "
                                                  f"in {c['runs_ok']} runs ({c['wall_s']:.0f} s)", flush=True))
-    (OUT / "avoidance.json").write_text(json.dumps(res, default=str, indent=1), encoding="utf-8")
+    checkpoint(res)
     print(json.dumps(res, default=str) if args.json else markdown(res))
     return 0
 
