@@ -57,3 +57,12 @@ def test_the_clear_route_keeps_off_everything_and_the_others_go_through_somethin
     for name in A.SCENARIOS:
         if name not in A.CLEAR_ROUTES and name not in A.VARIANTS:
             assert route_clearance(name)[0] < 0.0, name
+
+
+def test_results_of_a_bench_run_in_parts_merge_in_order():
+    a = {"runs": 20, "campaigns": {"x/ardupilot": {"v": 1}, "y/px4": {"v": 2}}, "no_companion": {"x": {"c": 20}}}
+    b = {"runs": 20, "campaigns": {"y/px4": {"v": 3}}, "no_companion": {}}
+    m = A.merge_results([a, b])
+    assert m == {"runs": 20, "campaigns": {"x/ardupilot": {"v": 1}, "y/px4": {"v": 3}}, "no_companion": {"x": {"c": 20}}}
+    with pytest.raises(ValueError):
+        A.merge_results([a, dict(b, runs=8)])
