@@ -19,8 +19,10 @@ the body's clearance to the nearest obstacle).  :func:`evaluate_outcome` gives s
   demanded speed* (``false_stop_s``: total time so, ``false_stop_t_s``: first).  The stopping
   distance is the model's own (:func:`flightsim.avoidance.stopping_distance` at its braking
   acceleration and gain): ArduPilot brakes at 1 m/s² and starts slowing from 6 m/s about 20 m
-  before the margin — that is its documented curve, not a false stop.  A no-data stall of the PX4
-  model is one (it also shows in ``progress``);
+  before the margin — that is its documented curve, not a false stop.  Only a slowdown the
+  avoidance caused counts: the demand it let through (``v_cmd_ned``) was also below half the
+  pilot's (a vehicle still accelerating from rest towards a new leg's demand is not stopped).
+  A no-data stall of the PX4 model is one (it also shows in ``progress``);
 * ``progress`` — fraction of the route's length flown (the farthest point along the route
   polyline the vehicle reached); a take-off straight up from the start (a first leg with no
   horizontal extent) is not part of it: avoidance acts horizontally, and counting the climb would
@@ -154,6 +156,10 @@ def evaluate_outcome(traj: dict, world=None, config: OutcomeConfig = OutcomeConf
     dem = np.where(np.isfinite(demand), demand, 0.0)
     reach = np.array([stopping_distance(float(x), kp, acc) for x in dem]) + dem * delay
     slow = pushing & (speed < 0.5 * dem) & (clear > cfg.false_stop_margin_factor * margin + reach)
+    if "v_cmd_ned" in traj:  # ... and the avoidance held it back (not the dynamics accelerating from rest)
+        v_cmd = np.asarray(traj["v_cmd_ned"], float).reshape(-1, 3)
+        cmd = np.hypot(v_cmd[:, 0], v_cmd[:, 1])
+        slow &= ~(np.isfinite(cmd) & (cmd >= 0.5 * dem))
     false_runs = [(a, b) for a, b in _runs(slow) if b - a >= n_min]
     false_s = sum(b - a for a, b in false_runs) * dt
     # progress along the route

@@ -293,6 +293,16 @@ def test_outcome_stop_false_stop_progress_and_collision():
     # the same stop with the wall 30 m away: a false stop (nothing within the margins + stopping distance)
     o = evaluate_outcome(_synthetic(lambda t: 3.0 if t < 5 else 0.0, lambda x: 45.0 - x))
     assert o["false_stop"] and o["false_stop_t_s"] == pytest.approx(5.0, abs=0.02) and o["false_stop_s"] > 4.5
+    # a slowdown counts only when the avoidance held the demand back: with its output recorded
+    # (v_cmd_ned) equal to the pilot's demand the same slow spell is the vehicle, not a false stop
+    slow_start = _synthetic(lambda t: min(3.0, 0.5 * t), lambda x: 45.0 - x)  # 1 s below 1.5 m/s
+    assert evaluate_outcome(slow_start)["false_stop"]  # without v_cmd_ned: the speed alone decides
+    slow_start["v_cmd_ned"] = slow_start["v_des_ned"].copy()
+    assert not evaluate_outcome(slow_start)["false_stop"]
+    held = _synthetic(lambda t: 3.0 if t < 5 else 0.0, lambda x: 45.0 - x)
+    held["v_cmd_ned"] = np.where(held["t_sim_s"][:, None] < 5, held["v_des_ned"], 0.0)
+    o = evaluate_outcome(held)
+    assert o["false_stop"] and o["false_stop_t_s"] == pytest.approx(5.0, abs=0.02)
     # flying on into the wall: a collision where the clearance reaches zero
     o = evaluate_outcome(_synthetic(lambda t: 3.0, lambda x: 12.0 - x))
     assert o["collision"] and o["collision_t_s"] == pytest.approx(4.0, abs=0.02) and o["min_clearance_m"] < 0
