@@ -235,7 +235,7 @@ def outcome_markdown(o: dict) -> list[str]:
         f"| min clearance (body to obstacle) | {f(o['min_clearance_m'])} m |",
         f"| stop clearance (along the demanded direction) | {f(o['stop_clearance_m'])} m |",
         f"| stop time | {f(o['stop_t_s'])} s |",
-        f"| false stop (slowed below ½ demand, nothing within {o['config']['false_stop_margin_factor']:g}× margin + stopping distance) | "
+        f"| false stop (avoidance held it below ½ demand, nothing within {o['config']['false_stop_margin_factor']:g}× margin + stopping distance) | "
         f"{'yes' if o['false_stop'] else 'no'} ({f(o['false_stop_s'])} s) |",
         f"| progress along the route | {100 * o['progress']:.1f} % |",
         f"| time to goal | {f(o['time_to_goal_s'])} s |",
