@@ -38,7 +38,9 @@ class TlogWriter:
         if us < self._last_us:
             raise ValueError(f"tlog records must be in time order ({us} µs after {self._last_us} µs)")
         self._last_us = us
-        buf = msg.pack(self._sender(sysid, compid))
+        mav = self._sender(sysid, compid)
+        buf = msg.pack(mav)
+        mav.seq = (mav.seq + 1) % 256  # pack() alone does not advance it (MAVLink.send does): a reader would see loss
         self._fh.write(struct.pack(">Q", us) + buf)
         self.count += 1
 

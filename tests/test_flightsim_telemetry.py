@@ -120,3 +120,20 @@ def test_snapshot_restore_repeats_draws_and_messages():
     first = run()
     tm.restore(snap)
     assert run() == first
+
+
+def test_tlog_records_carry_a_sequence_per_source(tmp_path):
+    """Every record of one (system, component) gets the next MAVLink sequence number, wrapping at 256,
+    so a ground station replaying the tlog sees no packet loss; each source counts on its own."""
+    path = tmp_path / "seq.tlog"
+    with TlogWriter(path, EPOCH) as w:
+        for k in range(300):
+            w.write(k * 0.01, mavlink.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3), sysid=1, compid=1)
+            if k % 3 == 0:
+                w.write(k * 0.01, mavlink.MAVLink_heartbeat_message(18, 8, 0, 0, 4, 3), sysid=1, compid=196)
+    conn = mavutil.mavlink_connection(str(path))
+    seqs: dict[int, list[int]] = {1: [], 196: []}
+    while (m := conn.recv_match()) is not None:
+        seqs[m.get_srcComponent()].append(m.get_seq())
+    assert seqs[1] == [k % 256 for k in range(300)]
+    assert seqs[196] == list(range(100))
