@@ -639,17 +639,20 @@ def _infer_vertical(idx: np.ndarray, d_cons: np.ndarray, above: np.ndarray, belo
     the band itself were not ranged: an 11 px template on a pole a few px wide in front of a textured
     background mixes two depths).  Only ever adds an obstacle."""
     out = np.full(SECTOR_COUNT, -1, np.int64)
-    both = np.flatnonzero((np.bincount(idx[above], minlength=SECTOR_COUNT) > 0) & (np.bincount(idx[below], minlength=SECTOR_COUNT) > 0))
-    for sct in both:
-        a = np.flatnonzero(above & (idx == sct))
-        b = np.flatnonzero(below & (idx == sct))
-        da, db = d_cons[a][:, None], d_cons[b][None, :]
-        ok = np.abs(da - db) <= rel_tol * np.minimum(da, db)
-        if not np.any(ok):
-            continue
-        near = np.where(ok, np.minimum(da, db), np.inf)
-        i, j = np.unravel_index(np.argmin(near), near.shape)
-        out[sct] = a[i] if d_cons[a[i]] <= d_cons[b[j]] else b[j]
+    both = (np.bincount(idx[above], minlength=SECTOR_COUNT) > 0) & (np.bincount(idx[below], minlength=SECTOR_COUNT) > 0)
+    a = np.flatnonzero(above & both[idx])  # only sectors with points on both sides
+    b = np.flatnonzero(below & both[idx])
+    if a.size == 0:
+        return out
+    da, db = d_cons[a][:, None], d_cons[b][None, :]
+    ia, ib = np.nonzero((idx[a][:, None] == idx[b][None, :]) & (np.abs(da - db) <= rel_tol * np.minimum(da, db)))
+    if ia.size == 0:
+        return out
+    pts = np.where(d_cons[a[ia]] <= d_cons[b[ib]], a[ia], b[ib])  # the nearer point of each agreeing pair
+    order = np.lexsort((d_cons[pts], idx[pts]))  # by sector, then range (stable: the first such pair wins ties)
+    sec = idx[pts[order]]
+    first = np.r_[True, sec[1:] != sec[:-1]]
+    out[sec[first]] = pts[order][first]
     return out
 
 
