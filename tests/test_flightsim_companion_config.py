@@ -172,7 +172,8 @@ def test_fixed_wing_config_differs_from_the_default_only_where_a_fixed_wing_need
     assert changed == {"sectors.max_distance_m", "sectors.band_half_height_m", "ekf_anchored.position_sigma_m",
                        "triangulation.min_baseline_m", "triangulation.min_depth_m", "prediction.depth_min_m",
                        "map.radius_m", "map.position_drift_max_m", "ekf_anchored.max_mean_nis", "map.support_radius_rel",
-                       "sectors.infer_vertical"}
+                       "sectors.infer_vertical", "sectors.cap_above_m",
+                       "sectors.infer_vertical_one_side"}
     assert fw.sectors.max_distance_m == 150.0 and round(fw.sectors.max_distance_m * 100) + 1 < 65535
     sc = load_scenario(SCEN / "fixedwing_pass.toml")
     assert sc.meta.sector_max_distance_m > fw.sectors.max_distance_m  # the truth reaches beyond the companion's range

@@ -331,3 +331,102 @@ def test_ground_points_are_dropped_with_the_ground_height_known():
     assert low.distances_cm[0] == 1200
     with pytest.raises(ConfigError):
         SectorConfig(ground_margin_m=-1.0)
+
+
+def test_points_just_above_the_band_cap_what_the_sector_claims():
+    """cap_above_m: a converged point just above the band (a thin pole's upper part, ranged against the
+    sky) caps the sector's claim: a farther in-band obstacle (the background through a patch straddling
+    the pole's edge) is reported at the pole, a clear sector becomes an obstacle, an unknown one stays
+    unknown; points farther above, below the band or unconverged cap nothing; off by default."""
+    cfg = SectorConfig(cap_above_m=2.5, sigma_k=0.0)
+    far_in_band = [25.0, 0.0, 0.0]
+    pole_top = [8.0, 0.1, -3.0]  # FRD: 3 m above the vehicle, 1.5 m above the band's upper edge
+    s = run([far_in_band, pole_top], config=cfg)
+    assert s.state[0] == SectorState.OBSTACLE and s.inferred[0]
+    assert s.distances_cm[0] == round(math.hypot(8.0, 0.1) * 100)
+    assert s.forward.distance_m == pytest.approx(math.hypot(8.0, 0.1), abs=0.01)  # DISTANCE_SENSOR too
+    assert run([far_in_band, pole_top], config=SectorConfig(sigma_k=0.0)).distances_cm[0] == 2500  # off by default
+    # a nearer in-band claim stands
+    s2 = run([[6.0, 0.0, 0.0], pole_top], config=cfg)
+    assert s2.distances_cm[0] == 600 and not s2.inferred[0]
+    # clear becomes an obstacle at the cap; unknown stays unknown
+    clear = [[60.0, b, 0.0] for b in (-1.0, 0.0, 1.0)]
+    assert run(clear, config=cfg).state[0] == SectorState.CLEAR
+    s3 = run(clear + [pole_top], config=cfg)
+    assert s3.state[0] == SectorState.OBSTACLE and s3.distances_cm[0] == round(math.hypot(8.0, 0.1) * 100)
+    assert np.all(run([pole_top], config=cfg).distances_cm == UNKNOWN_CM)
+    # too far above (4.5 m: 3 m past the edge), below the band, or not converged: no cap
+    assert run([far_in_band, [8.0, 0.1, -4.5]], config=cfg).distances_cm[0] == 2500
+    assert run([far_in_band, [8.0, 0.1, 3.0]], config=cfg).distances_cm[0] == 2500
+    assert run([far_in_band, pole_top], converged=[True, False], config=cfg).distances_cm[0] == 2500
+    with pytest.raises(ConfigError):
+        SectorConfig(cap_above_m=-1.0)
+
+
+def test_cap_above_only_ever_lowers_a_claim_seeded():
+    """Seeded Monte Carlo: with ``cap_above_m`` on, an unknown sector stays unknown, nothing becomes clear,
+    an obstacle's range never grows, and every changed sector is an inferred obstacle."""
+    rng = np.random.default_rng(12)
+    on = SectorConfig(cap_above_m=2.5)
+    off = SectorConfig()
+    for _ in range(200):
+        n = int(rng.integers(1, 40))
+        d = rng.uniform(1.0, 60.0, n)
+        b = rng.uniform(-0.6, 0.6, n)
+        h = rng.uniform(-6.0, 6.0, n)
+        pts = np.stack([d * np.cos(b), d * np.sin(b), h], 1)
+        sig = rng.uniform(0.05, 3.0, n)
+        conv = rng.random(n) < 0.8
+        a = run(pts, sigma=sig, converged=conv, config=off)
+        v = run(pts, sigma=sig, converged=conv, config=on)
+        assert np.all(v.state[a.state == SectorState.UNKNOWN] == SectorState.UNKNOWN)
+        assert not np.any((v.state == SectorState.CLEAR) & (a.state != SectorState.CLEAR))
+        was_obs = a.state == SectorState.OBSTACLE
+        assert np.all(v.state[was_obs] == SectorState.OBSTACLE)
+        assert np.all(v.distances_cm[was_obs] <= a.distances_cm[was_obs])
+        changed = v.distances_cm != a.distances_cm
+        assert np.all(v.state[changed] == SectorState.OBSTACLE) and np.all(v.inferred[changed])
+
+
+def test_one_sided_vertical_structure_claims_a_pole_standing_on_the_ground():
+    """infer_vertical_one_side: with the pole's foot on the ground (no evidence), two converged points
+    above the band at consistent ranges, spanning ``infer_vertical_min_extent_m`` of height with the
+    lower within ``infer_vertical_reach_m`` of the band's edge, claim the nearer; one point, a short
+    span, a structure high above the band or disagreeing ranges claim nothing."""
+    cfg = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0, infer_vertical_one_side=True,
+                       infer_vertical_min_extent_m=0.5, infer_vertical_reach_m=2.5, sigma_k=0.0)
+    top = [[10.2, 0.0, -3.8], [10.0, 0.1, -3.0]]  # FRD: 3.8 and 3.0 m above the vehicle (band edge 1.5 m)
+    s = run(top, config=cfg, ground_height_m=-5.0)
+    assert s.state[0] == SectorState.OBSTACLE and s.inferred[0]
+    assert s.distances_cm[0] == round(math.hypot(10.0, 0.1) * 100)
+    assert np.all(s.state[1:] == SectorState.UNKNOWN)
+    two_sided_only = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0, sigma_k=0.0)
+    assert np.all(run(top, config=two_sided_only, ground_height_m=-5.0).distances_cm == UNKNOWN_CM)
+    assert np.all(run(top[:1], config=cfg).distances_cm == UNKNOWN_CM)  # one point
+    assert np.all(run([[10.2, 0.0, -3.2], [10.0, 0.1, -3.0]], config=cfg).distances_cm == UNKNOWN_CM)  # 0.2 m span
+    assert np.all(run([[10.2, 0.0, -5.5], [10.0, 0.1, -4.5]], config=cfg).distances_cm == UNKNOWN_CM)  # 3 m over the edge
+    assert np.all(run([[14.0, 0.0, -3.8], [10.0, 0.1, -3.0]], config=cfg).distances_cm == UNKNOWN_CM)  # ranges disagree
+    assert np.all(run([[10.2, 0.0, 3.8], [10.0, 0.1, 3.0]], config=cfg).distances_cm == UNKNOWN_CM)  # below: not this rule
+
+
+def test_one_sided_vertical_structure_only_ever_adds_obstacles_seeded():
+    """Seeded Monte Carlo as for the two-sided rule: nothing becomes clear or unknown, no claim grows."""
+    rng = np.random.default_rng(13)
+    on = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0, infer_vertical_one_side=True, infer_vertical_reach_m=2.5)
+    off = SectorConfig()
+    for _ in range(200):
+        n = int(rng.integers(1, 40))
+        d = rng.uniform(1.0, 60.0, n)
+        b = rng.uniform(-0.6, 0.6, n)
+        h = rng.uniform(-8.0, 8.0, n)
+        pts = np.stack([d * np.cos(b), d * np.sin(b), h], 1)
+        sig = rng.uniform(0.05, 3.0, n)
+        conv = rng.random(n) < 0.8
+        a = run(pts, sigma=sig, converged=conv, config=off, ground_height_m=-5.0)
+        v = run(pts, sigma=sig, converged=conv, config=on, ground_height_m=-5.0)
+        was_obs = a.state == SectorState.OBSTACLE
+        assert np.all(v.state[was_obs] == SectorState.OBSTACLE)
+        assert np.all(v.distances_cm[was_obs] <= a.distances_cm[was_obs])
+        assert not np.any((v.state == SectorState.CLEAR) & (a.state != SectorState.CLEAR))
+        changed = v.state != a.state
+        assert np.all(v.state[changed] == SectorState.OBSTACLE) and np.all(v.inferred[changed])

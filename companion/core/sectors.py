@@ -97,6 +97,10 @@ class SectorConfig:
     infer_vertical: bool = False  # a sector with converged points both just above and just below the band whose horizontal ranges agree within infer_rel_tol claims an obstacle at the nearer of them (a pole, mast or trunk standing through the band whose own points in the band did not converge)
     infer_vertical_window_m: float = 1.5  # ... "just": within this of the band's upper and lower edges, m (keeps the ground out while it lies farther below the band than this)
     infer_vertical_ground_margin_m: float = 1.0  # with the ground's height known (the autopilot's altitude above its origin), points below the band count only this far above the ground, m
+    infer_vertical_one_side: bool = False  # with infer_vertical: points above the band alone suffice when they show a vertical structure reaching down towards it (two at consistent ranges whose heights differ by infer_vertical_min_extent_m, the lower within infer_vertical_reach_m of the band's edge): a pole standing on the ground, whose foot is no evidence
+    infer_vertical_min_extent_m: float = 0.5  # ... the two points' heights differ by at least this, m
+    infer_vertical_reach_m: float = 1.5  # ... and the lower one lies within this above the band's edge, m
+    cap_above_m: float = 0.0  # a converged point up to this far above the band caps the range its sector claims (an obstacle sector reports no farther than it, a clear one becomes an obstacle at it; unknown stays unknown), m; 0 = off
     ground_margin_m: float = 0.0  # with the ground's height known, points less than this above it are the ground: never an obstacle nor evidence of clear (taking off, landing, flying low); 0 = off
 
     def __post_init__(self) -> None:
@@ -138,6 +142,10 @@ class SectorConfig:
         require(isinstance(self.infer_vertical, bool), "infer_vertical must be true or false")
         require_finite("infer_vertical_window_m", self.infer_vertical_window_m, positive=True)
         require_finite("infer_vertical_ground_margin_m", self.infer_vertical_ground_margin_m, nonnegative=True)
+        require(isinstance(self.infer_vertical_one_side, bool), "infer_vertical_one_side must be true or false")
+        require_finite("infer_vertical_min_extent_m", self.infer_vertical_min_extent_m, positive=True)
+        require_finite("infer_vertical_reach_m", self.infer_vertical_reach_m, nonnegative=True)
+        require_finite("cap_above_m", self.cap_above_m, nonnegative=True)
         require_finite("ground_margin_m", self.ground_margin_m, nonnegative=True)
 
     @property
@@ -507,6 +515,12 @@ def compute_sectors(
         if ground_known:  # the ground itself is no evidence
             below &= height >= ground_height_m + config.infer_vertical_ground_margin_m
         vpick = _infer_vertical(idx, d_cons, above, below, config.infer_rel_tol)
+        if config.infer_vertical_one_side:
+            one = _infer_vertical_one_side(idx, d_cons, above, off - lim, config.infer_rel_tol,
+                                           config.infer_vertical_min_extent_m, config.infer_vertical_reach_m)
+            if np.any(one >= 0):
+                take = (one >= 0) & ((vpick < 0) | (d_cons[np.maximum(one, 0)] < d_cons[np.maximum(vpick, 0)]))
+                vpick = np.where(take, one, vpick)
         vert = vpick >= 0
         vert[vert] &= ~has_obs[vert] | (d_pub[vpick[vert]] < range_m[vert])
         if np.any(vert):
@@ -518,6 +532,28 @@ def compute_sectors(
             pick = pick.copy()
             pick[vert] = pts
             inferred |= vert
+
+    if config.cap_above_m > 0:
+        # a surface just above the band limits what the band may claim (DESIGN §7: only nearer, never
+        # "clear"): a thin pole whose in-band points did not range (or ranged the background through
+        # a patch straddling its edge) but whose upper part did
+        off = height - d_h * math.tan(gamma)
+        lim = config.band_half_height_m if config.band_mode == "metres" else d_h * math.tan(math.radians(config.band_half_angle_deg))
+        cap_pts = np.flatnonzero(usable & conv & near & (in_view[idx] | mem) & (off > lim) & (off <= lim + config.cap_above_m))
+        if cap_pts.size:
+            cap = SectorRanking(idx[cap_pts], d_cons[cap_pts], ids=cap_pts).nth(1)
+            claimed = (state == SectorState.CLEAR) | (state == SectorState.OBSTACLE)
+            capped = (cap >= 0) & claimed
+            capped[capped] &= (state[capped] == SectorState.CLEAR) | (d_pub[cap[capped]] < range_m[capped])
+            if np.any(capped):
+                pts = cap[capped]
+                state[capped] = SectorState.OBSTACLE
+                dist[capped] = pt_cm[pts]
+                range_m[capped] = d_pub[pts]
+                sigma_m[capped] = sig[pts]
+                pick = pick.copy()
+                pick[capped] = pts
+                inferred |= capped
 
     # ---- forward window (DISTANCE_SENSOR) ------------------------------------------------------
     centres = np.arange(SECTOR_COUNT) * SECTOR_DEG
@@ -650,6 +686,41 @@ def _infer_vertical(idx: np.ndarray, d_cons: np.ndarray, above: np.ndarray, belo
         return out
     pts = np.where(d_cons[a[ia]] <= d_cons[b[ib]], a[ia], b[ib])  # the nearer point of each agreeing pair
     order = np.lexsort((d_cons[pts], idx[pts]))  # by sector, then range (stable: the first such pair wins ties)
+    sec = idx[pts[order]]
+    first = np.r_[True, sec[1:] != sec[:-1]]
+    out[sec[first]] = pts[order][first]
+    return out
+
+
+def _infer_vertical_one_side(idx: np.ndarray, d_cons: np.ndarray, above: np.ndarray, over: np.ndarray, rel_tol: float,
+                             min_extent: float, reach: float) -> np.ndarray:
+    """(72,) index of the point a sector claims from a vertical structure standing above the band, −1
+    where none: the nearer point of the nearest pair of points in ``above`` (in one sector) whose
+    conservative horizontal ranges agree within ``rel_tol`` of the nearer, whose heights differ by at
+    least ``min_extent`` (``over``: metres above the band's upper edge) and of which the lower lies within
+    ``reach`` of the edge.  A pole standing on the ground shows its upper part against the sky while its
+    in-band part, in front of a textured background, does not range and its foot is the ground (no
+    evidence); a structure that spans that much height at one range and comes that close to the band is
+    taken to stand through it.  Only ever adds an obstacle; an overhead structure whose face is that tall
+    that low over the path (a bridge deck, a low canopy) is claimed too: a stop where there may be a way
+    under it."""
+    out = np.full(SECTOR_COUNT, -1, np.int64)
+    a = np.flatnonzero(above)
+    if a.size < 2:
+        return out
+    a = a[np.bincount(idx[a], minlength=SECTOR_COUNT)[idx[a]] >= 2]  # sectors with two such points
+    if a.size < 2:
+        return out
+    da, ha = d_cons[a], over[a]
+    pair = (idx[a][:, None] == idx[a][None, :]) & (np.arange(a.size)[:, None] < np.arange(a.size)[None, :])
+    pair &= np.abs(da[:, None] - da[None, :]) <= rel_tol * np.minimum(da[:, None], da[None, :])
+    pair &= np.abs(ha[:, None] - ha[None, :]) >= min_extent
+    pair &= np.minimum(ha[:, None], ha[None, :]) <= reach
+    ia, ib = np.nonzero(pair)
+    if ia.size == 0:
+        return out
+    pts = np.where(da[ia] <= da[ib], a[ia], a[ib])  # the nearer point of each qualifying pair
+    order = np.lexsort((d_cons[pts], idx[pts]))  # by sector, then range
     sec = idx[pts[order]]
     first = np.r_[True, sec[1:] != sec[:-1]]
     out[sec[first]] = pts[order][first]
