@@ -85,6 +85,7 @@ class PipelineConfig:
     startup_grace_s: float = 5.0  # until the first valid frame, problems are reported as "starting" for this long, s
     active_hold_s: float = 1.0  # HEARTBEAT stays ACTIVE this long after the last sector that made a claim, s
     status_debounce_s: float = 0.2  # a state must hold this long before STATUSTEXT announces it (the HEARTBEAT changes at once), s
+    statustext_min_interval_s: float = 1.0  # the same STATUSTEXT is sent at most once per this interval; repeats in between are counted and the next one says how many, s
     rotate_sectors: bool = True  # rotate sectors by the yaw change between exposure and sending
     depth_prediction: bool = True  # converged landmark depths narrow the NCC search windows
 
@@ -92,7 +93,7 @@ class PipelineConfig:
         for name in ("max_frame_age_s", "telemetry_wait_s", "max_frame_gap_s", "clock_jump_s", "result_max_age_s",
                      "camera_timeout_s", "active_hold_s", "startup_grace_s"):
             require_finite(name, getattr(self, name), positive=True)
-        for name in ("position_extrapolation_s", "future_tolerance_s", "status_debounce_s"):
+        for name in ("position_extrapolation_s", "future_tolerance_s", "status_debounce_s", "statustext_min_interval_s"):
             require_finite(name, getattr(self, name), nonnegative=True)
         require(self.telemetry_wait_s < self.max_frame_age_s, "telemetry_wait_s must be < max_frame_age_s")
         require(self.result_max_age_s <= 0.5, "result_max_age_s must be <= 0.5 s (both autopilots treat older data as stale)")
@@ -577,6 +578,8 @@ class Reporter:
         self.schedule = M.OutputSchedule(config.outputs)
         self.health = Health(pipeline, start)
         self.text_ids = M.StatusTextIds()
+        self._text_last: dict[str, float] = {}  # text -> when it was last sent (bounded: see _texts)
+        self._text_repeats: collections.Counter[str] = collections.Counter()  # repeats suppressed since
         self._hb = M.RateLimiter(config.link.heartbeat_hz) if heartbeat else None
         self._frame_times: collections.deque[float] = collections.deque()
         self.last_latency_s = math.nan
@@ -651,9 +654,26 @@ class Reporter:
         vals = (self.fps(now), tracks, nearest, lat, n_map, mem_sec, inferred)
         return [M.named_value_float(name, v, time_boot_ms) for name, v in zip(self.DIAG_NAMES, vals)]
 
-    def _texts(self, events) -> list:
+    def _texts(self, events, now: float) -> list:
+        """STATUSTEXT for each event, the same text at most once per ``statustext_min_interval_s`` (a fault
+        repeating every frame must not flood a 57600-baud radio or the log); the next one sent says how many
+        were held back."""
         out = []
+        gap = self.pcfg.statustext_min_interval_s
         for sev, text in events:
+            last = self._text_last.get(text)
+            if last is not None and 0.0 <= now - last < gap:
+                self._text_repeats[text] += 1
+                self.counters["statustext_suppressed"] += 1
+                continue
+            if len(self._text_last) >= 64:  # texts with numbers in them (clock jumps) must not grow this
+                for k in [k for k, t in self._text_last.items() if not 0.0 <= now - t < gap]:
+                    del self._text_last[k]
+                    self._text_repeats.pop(k, None)
+            self._text_last[text] = now
+            n = self._text_repeats.pop(text, 0)
+            if n:
+                text = f"{text} (+{n} in {gap:g} s)"
             log.log(logging.WARNING if sev <= mavlink.MAV_SEVERITY_WARNING else logging.INFO, "STATUSTEXT: %s", text)
             for m in self.text_ids.encode(text, sev):
                 for o in self.outputs:
@@ -671,7 +691,7 @@ class Reporter:
         if res.restart and res.restart != "gap":
             events.append((mavlink.MAV_SEVERITY_WARNING, f"Ranging restarted: {res.restart}"))
         events += self.health.update(now, res, last_frame_at, link_ok, telemetry_problem)
-        msgs = self._texts(events)
+        msgs = self._texts(events, now)
         valid = self.health.valid and res.ok and now - res.t_capture <= self.pcfg.result_max_age_s
         if valid:
             for o in self.outputs:
@@ -683,7 +703,7 @@ class Reporter:
              telemetry_problem: str = "", time_boot_ms: int = 0, events=()) -> list:
         """Periodic duties: state, STATUSTEXT, unknown messages while invalid, diagnostics, HEARTBEAT."""
         evs = list(events) + self.health.update(now, self._result, last_frame_at, link_ok, telemetry_problem)
-        msgs = self._texts(evs)
+        msgs = self._texts(evs, now)
         res = self._result
         valid = self.health.valid and res is not None and res.ok and now - res.t_capture <= self.pcfg.result_max_age_s
         for o in self.outputs:

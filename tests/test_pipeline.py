@@ -637,3 +637,24 @@ def test_tracker_refill_gets_the_priority_region_from_the_previous_frame():
     # off by default: no region computed
     flight, tel, p = make_pipeline()
     assert p._detection_priority(res, np.eye(3), np.zeros(3)) is None
+
+
+def test_a_fault_repeating_every_frame_sends_its_statustext_at_most_once_a_second():
+    """A restart on every frame (an internal error, a spoofed clock) must not flood the radio: the same
+    STATUSTEXT leaves at most once per ``statustext_min_interval_s`` and the next one says how many were held."""
+    cfg = small_config()
+    rep = Reporter(cfg, PipelineConfig(), start=9.0)
+    sent = []
+    for k in range(90):  # 3 s at 30 frames/s
+        t = 10.0 + k / 30.0
+        res = FrameResult(k, t, t, 0.005, False, "error: internal", restart="internal error")
+        sent += [m.text for _, m in rep.on_result(res, t + 0.01, yaw_now=0.0, last_frame_at=t)
+                 if m.get_type() == "STATUSTEXT" and "restarted" in m.text]
+    assert 3 <= len(sent) <= 4
+    assert sent[0] == "Ranging restarted: internal error"
+    assert "(+29 in 1 s)" in sent[1]
+    assert rep.counters["statustext_suppressed"] == 90 - len(sent)
+    # a different text is not held back by the first
+    res = FrameResult(90, 13.0, 13.0, 0.005, False, "x", restart="clock jump +1.00 s")
+    assert any("clock jump" in m.text for _, m in rep.on_result(res, 13.01, yaw_now=0.0, last_frame_at=13.0)
+               if m.get_type() == "STATUSTEXT")
