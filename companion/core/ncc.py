@@ -257,8 +257,8 @@ def _ncc_batch(img: np.ndarray, tpl: np.ndarray, centres: np.ndarray, sb: int, h
     from the numerator).  Numerator: for each column offset j the windows' columns j … j+T−1
     are copied once, after which every row offset is a contiguous T² block of that copy, so one
     einsum per column offset scores all rows and all points.  Window sums Σ g, Σ g² come from
-    ``cv2.boxFilter`` / ``cv2.sqrBoxFilter`` over the windows laid side by side (valid positions
-    never straddle two windows; integer sums below 2²⁴ are exact in float32).  Same values as
+    ``cv2.integral2`` of the windows laid side by side (valid positions never straddle two
+    windows; integer sums, exact).  Same values as
     ``cv2.matchTemplate(..., TM_CCOEFF_NORMED)`` to ~1e-4.  Windows must lie inside the image.
     Returns (B, 2·sb+1, 2·sb+1) float32, 0 where the window is flat.
     """
@@ -267,26 +267,29 @@ def _ncc_batch(img: np.ndarray, tpl: np.ndarray, centres: np.ndarray, sb: int, h
     rb = 2 * sb + 1
     nb = len(centres)
     win = np.lib.stride_tricks.sliding_window_view(img, (size, size))[centres[:, 1] - sb - h, centres[:, 0] - sb - h]
-    win = win.astype(np.float32)  # (B, size, size)
     f = tpl.reshape(nb, t * t).astype(np.float32)
     f = f - f.mean(axis=1, keepdims=True)
     f = f / np.sqrt(np.einsum("nk,nk->n", f, f))[:, None]
     num = np.empty((nb, rb, rb), np.float32)
-    item = win.itemsize
+    item = np.dtype(np.float32).itemsize
     cols = np.empty((nb, size, t), np.float32)  # reused for every column offset
     blocks = np.ndarray((nb, rb, t * t), np.float32, cols, 0, (size * t * item, t * item, item))  # view of cols
     for j in range(rb):
-        np.copyto(cols, win[:, :, j : j + t])  # (B, size, t)
+        np.copyto(cols, win[:, :, j : j + t])  # (B, size, t), uint8 → float32 (exact)
         num[:, :, j] = np.einsum("nik,nk->ni", blocks, f)
+    # Σ g and Σ g² over every valid position from integral images of the windows laid side by side
+    # (integers: the same values a box filter gives)
     wide = np.ascontiguousarray(win.transpose(1, 0, 2)).reshape(size, nb * size)
-    s1 = cv2.boxFilter(wide, -1, (t, t), normalize=False, borderType=cv2.BORDER_REPLICATE)
-    s2 = cv2.sqrBoxFilter(wide, -1, (t, t), normalize=False, borderType=cv2.BORDER_REPLICATE)
+    I1, I2 = cv2.integral2(wide, sdepth=cv2.CV_32S, sqdepth=cv2.CV_64F)  # (size+1, nb·size+1)
 
-    def valid(a: np.ndarray) -> np.ndarray:
-        return a.reshape(size, nb, size).transpose(1, 0, 2)[:, h : h + rb, h : h + rb].astype(np.float64)
+    def valid(ii: np.ndarray) -> np.ndarray:
+        lo = ii[:, : nb * size].reshape(size + 1, nb, size)[:, :, :rb]  # column n·size + j
+        hi = ii[:, 1:].reshape(size + 1, nb, size)[:, :, t - 1 : t - 1 + rb]  # column n·size + j + t
+        box = hi[t : t + rb] - lo[t : t + rb] - hi[:rb] + lo[:rb]  # rows i … i + t − 1
+        return box.transpose(1, 0, 2).astype(np.float64)
 
-    m1 = valid(s1)
-    var = valid(s2) - m1 * m1 / (t * t)
+    m1 = valid(I1)
+    var = valid(I2) - m1 * m1 / (t * t)
     den = np.sqrt(np.maximum(var, 0.0))
     ok = den > 1e-3
     return np.where(ok, num / np.where(ok, den, 1.0), 0.0).astype(np.float32)
