@@ -273,3 +273,18 @@ def test_ncc_batch_is_bit_identical_to_the_box_filter_version(sb):
     assert got.dtype == want.dtype and got.shape == want.shape
     assert np.array_equal(got, want)
     assert np.all(got[0] == 0.0)
+
+
+def test_ncc_batch_cell_scores_do_not_depend_on_the_batch_radius():
+    # _score_group scores each radius in its own batch: a cell's score must be bit-identical to
+    # the centre cells of a batch with a larger radius (and to a batch of different points)
+    rng = np.random.default_rng(7)
+    h = 5
+    img = rng.integers(0, 256, (100, 140), dtype=np.uint8)
+    m = 30
+    centres = np.stack([rng.integers(12, 128, m), rng.integers(12, 88, m)], 1)
+    tpl = np.stack([img[y - h : y + h + 1, x - h : x + h + 1] for x, y in rng.integers(h + 1, 90, (m, 2))])
+    big = ncc._ncc_batch(img, tpl, centres, 6, h)
+    for sb in range(1, 6):
+        small = ncc._ncc_batch(img, tpl[::2], centres[::2], sb, h)
+        assert np.array_equal(small, big[::2, 6 - sb : 7 + sb, 6 - sb : 7 + sb])

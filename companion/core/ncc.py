@@ -504,12 +504,14 @@ def _score_group(grp, as_batch, run, templates, img_cur, c, s, lo, hi, h, config
     x0, y0 = lo[k_run, 0], lo[k_run, 1]
     x1, y1 = hi[k_run, 0], hi[k_run, 1]
     if as_batch:  # every window inside the image and unclipped
-        res = _ncc_batch(img_cur, templates[k_run, 1:-1, 1:-1], c[k_run], smax, h)
-        if np.any(sr < smax):  # searched beyond a point's own radius: hide those cells
-            ii = np.abs(np.arange(m) - smax)
-            outside = (ii[None, :, None] > sr[:, None, None]) | (ii[None, None, :] > sr[:, None, None])
-            res[outside] = _EMPTY
-        stack[:, :m, :] = res
+        # one batch per radius, each scoring only its own (2·r+1)² cells, written at the block's
+        # centre (the cells beyond a point's radius keep the sentinel): cell scores do not depend
+        # on the batch they are computed in
+        tpl = templates[:, 1:-1, 1:-1]
+        for rad in np.unique(sr).tolist():
+            sel = np.flatnonzero(sr == rad)
+            a, b = smax - rad, smax + rad + 1
+            stack[sel, a:b, a:b] = _ncc_batch(img_cur, tpl[k_run[sel]], c[k_run[sel]], rad, h)
     else:
         ox, oy = x0 - origin[:, 0], y0 - origin[:, 1]
         whole = (x1 - x0 == 2 * sr) & (y1 - y0 == 2 * sr) & (sr == smax)  # fills the block: written in place
