@@ -223,3 +223,68 @@ def test_a_template_on_a_straight_edge_is_refused():
     assert ok.ok.all()
     with pytest.raises(ConfigError, match="min_eigen_ratio"):
         NCCConfig(min_eigen_ratio=1.0)
+
+
+def _ncc_batch_box_filter(img, tpl, centres, sb, h):
+    """The former _ncc_batch (window sums by cv2.boxFilter / sqrBoxFilter): the reference for
+    the integral-image version, which must give bit-identical scores."""
+    t = 2 * h + 1
+    size = t + 2 * sb
+    rb = 2 * sb + 1
+    nb = len(centres)
+    win = np.lib.stride_tricks.sliding_window_view(img, (size, size))[centres[:, 1] - sb - h, centres[:, 0] - sb - h]
+    win = win.astype(np.float32)
+    f = tpl.reshape(nb, t * t).astype(np.float32)
+    f = f - f.mean(axis=1, keepdims=True)
+    f = f / np.sqrt(np.einsum("nk,nk->n", f, f))[:, None]
+    num = np.empty((nb, rb, rb), np.float32)
+    for j in range(rb):
+        cols = np.ascontiguousarray(win[:, :, j : j + t])
+        blocks = np.lib.stride_tricks.sliding_window_view(cols, (t, t), axis=(1, 2))[:, :, 0].reshape(nb, rb, t * t)
+        num[:, :, j] = np.einsum("nik,nk->ni", np.ascontiguousarray(blocks), f)
+    wide = np.ascontiguousarray(win.transpose(1, 0, 2)).reshape(size, nb * size)
+    s1 = cv2.boxFilter(wide, -1, (t, t), normalize=False, borderType=cv2.BORDER_REPLICATE)
+    s2 = cv2.sqrBoxFilter(wide, -1, (t, t), normalize=False, borderType=cv2.BORDER_REPLICATE)
+
+    def valid(a):
+        return a.reshape(size, nb, size).transpose(1, 0, 2)[:, h : h + rb, h : h + rb].astype(np.float64)
+
+    m1 = valid(s1)
+    var = valid(s2) - m1 * m1 / (t * t)
+    den = np.sqrt(np.maximum(var, 0.0))
+    ok = den > 1e-3
+    return np.where(ok, num / np.where(ok, den, 1.0), 0.0).astype(np.float32)
+
+
+@pytest.mark.parametrize("sb", [1, 3, 5])
+def test_ncc_batch_is_bit_identical_to_the_box_filter_version(sb):
+    rng = np.random.default_rng(sb)
+    h = 5
+    img = rng.integers(0, 256, (120, 160), dtype=np.uint8)
+    img[:40, :60] = 77  # flat windows: score 0
+    img[60:, 80:] = (img[60:, 80:] // 64) * 64  # few grey levels: ties and exact sums
+    m = 40
+    lo = sb + h
+    centres = np.stack([rng.integers(lo, 160 - lo, m), rng.integers(lo, 120 - lo, m)], 1)
+    centres[0] = (lo + 5, lo + 5)  # inside the flat block
+    tpl = np.stack([img[y - h : y + h + 1, x - h : x + h + 1] for x, y in rng.integers(h + 41, 110, (m, 2))])  # textured
+    got = ncc._ncc_batch(img, tpl, centres, sb, h)
+    want = _ncc_batch_box_filter(img, tpl, centres, sb, h)
+    assert got.dtype == want.dtype and got.shape == want.shape
+    assert np.array_equal(got, want)
+    assert np.all(got[0] == 0.0)
+
+
+def test_ncc_batch_cell_scores_do_not_depend_on_the_batch_radius():
+    # _score_group scores each radius in its own batch: a cell's score must be bit-identical to
+    # the centre cells of a batch with a larger radius (and to a batch of different points)
+    rng = np.random.default_rng(7)
+    h = 5
+    img = rng.integers(0, 256, (100, 140), dtype=np.uint8)
+    m = 30
+    centres = np.stack([rng.integers(12, 128, m), rng.integers(12, 88, m)], 1)
+    tpl = np.stack([img[y - h : y + h + 1, x - h : x + h + 1] for x, y in rng.integers(h + 1, 90, (m, 2))])
+    big = ncc._ncc_batch(img, tpl, centres, 6, h)
+    for sb in range(1, 6):
+        small = ncc._ncc_batch(img, tpl[::2], centres[::2], sb, h)
+        assert np.array_equal(small, big[::2, 6 - sb : 7 + sb, 6 - sb : 7 + sb])

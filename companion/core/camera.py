@@ -94,6 +94,13 @@ class CameraModel:
         self.dist = config.dist
         self._R_cam_body = config.R_cam_body
         self._p_body_cam = config.p_body_cam
+        self._has_distortion = config.has_distortion  # the config is frozen: evaluated once
+        self._grid_rays: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    @property
+    def R_cam_body(self) -> np.ndarray:
+        """The mount rotation of the config (computed once; do not modify)."""
+        return self._R_cam_body
 
     # -- pinhole <-> pixels ------------------------------------------------------------------
     def project(self, p_cam: np.ndarray) -> np.ndarray:
@@ -109,7 +116,7 @@ class CameraModel:
     def normalized_to_pixels(self, xy: np.ndarray) -> np.ndarray:
         """Distort normalized coordinates (x = X/Z, y = Y/Z) and map them to pixels."""
         xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-        if self.config.has_distortion:
+        if self._has_distortion:
             xy = self._distort(xy)
         c = self.config
         return np.stack([c.fx * xy[:, 0] + c.cx, c.fy * xy[:, 1] + c.cy], 1)
@@ -132,7 +139,7 @@ class CameraModel:
             raise InputError("pixels_to_normalized: pixels contain NaN or inf")
         if len(uv) == 0:
             return np.zeros((0, 2))
-        if not self.config.has_distortion:
+        if not self._has_distortion:
             c = self.config
             return np.stack([(uv[:, 0] - c.cx) / c.fx, (uv[:, 1] - c.cy) / c.fy], 1)
         out = cv2.undistortPoints(
@@ -145,6 +152,22 @@ class CameraModel:
         xy = self.pixels_to_normalized(uv)
         rays = np.concatenate([xy, np.ones((len(xy), 1))], 1)
         return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+    def grid_rays(self, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Columns ``us``, rows ``vs`` of the pixel grid every ``stride`` px from ``stride // 2`` and the
+        unit rays (len(vs)·len(us), 3) through it (row-major): :meth:`unproject` of the grid, computed
+        once per stride (the camera is fixed).  Read-only arrays."""
+        got = self._grid_rays.get(stride)
+        if got is None:
+            c = self.config
+            us = np.arange(stride // 2, c.width, stride, dtype=float)
+            vs = np.arange(stride // 2, c.height, stride, dtype=float)
+            uu, vv = np.meshgrid(us, vs)
+            rays = self.unproject(np.stack([uu.ravel(), vv.ravel()], 1))
+            for a in (us, vs, rays):
+                a.flags.writeable = False
+            got = self._grid_rays[stride] = (us, vs, rays)
+        return got
 
     def undistort_to_pinhole(self, uv: np.ndarray) -> np.ndarray:
         """Pixels of an ideal (distortion-free) camera with the same K: what the filters measure."""

@@ -257,8 +257,8 @@ def _ncc_batch(img: np.ndarray, tpl: np.ndarray, centres: np.ndarray, sb: int, h
     from the numerator).  Numerator: for each column offset j the windows' columns j … j+T−1
     are copied once, after which every row offset is a contiguous T² block of that copy, so one
     einsum per column offset scores all rows and all points.  Window sums Σ g, Σ g² come from
-    ``cv2.boxFilter`` / ``cv2.sqrBoxFilter`` over the windows laid side by side (valid positions
-    never straddle two windows; integer sums below 2²⁴ are exact in float32).  Same values as
+    ``cv2.integral2`` of the windows laid side by side (valid positions never straddle two
+    windows; integer sums, exact).  Same values as
     ``cv2.matchTemplate(..., TM_CCOEFF_NORMED)`` to ~1e-4.  Windows must lie inside the image.
     Returns (B, 2·sb+1, 2·sb+1) float32, 0 where the window is flat.
     """
@@ -267,26 +267,29 @@ def _ncc_batch(img: np.ndarray, tpl: np.ndarray, centres: np.ndarray, sb: int, h
     rb = 2 * sb + 1
     nb = len(centres)
     win = np.lib.stride_tricks.sliding_window_view(img, (size, size))[centres[:, 1] - sb - h, centres[:, 0] - sb - h]
-    win = win.astype(np.float32)  # (B, size, size)
     f = tpl.reshape(nb, t * t).astype(np.float32)
     f = f - f.mean(axis=1, keepdims=True)
     f = f / np.sqrt(np.einsum("nk,nk->n", f, f))[:, None]
     num = np.empty((nb, rb, rb), np.float32)
-    item = win.itemsize
+    item = np.dtype(np.float32).itemsize
     cols = np.empty((nb, size, t), np.float32)  # reused for every column offset
     blocks = np.ndarray((nb, rb, t * t), np.float32, cols, 0, (size * t * item, t * item, item))  # view of cols
     for j in range(rb):
-        np.copyto(cols, win[:, :, j : j + t])  # (B, size, t)
+        np.copyto(cols, win[:, :, j : j + t])  # (B, size, t), uint8 → float32 (exact)
         num[:, :, j] = np.einsum("nik,nk->ni", blocks, f)
+    # Σ g and Σ g² over every valid position from integral images of the windows laid side by side
+    # (integers: the same values a box filter gives)
     wide = np.ascontiguousarray(win.transpose(1, 0, 2)).reshape(size, nb * size)
-    s1 = cv2.boxFilter(wide, -1, (t, t), normalize=False, borderType=cv2.BORDER_REPLICATE)
-    s2 = cv2.sqrBoxFilter(wide, -1, (t, t), normalize=False, borderType=cv2.BORDER_REPLICATE)
+    I1, I2 = cv2.integral2(wide, sdepth=cv2.CV_32S, sqdepth=cv2.CV_64F)  # (size+1, nb·size+1)
 
-    def valid(a: np.ndarray) -> np.ndarray:
-        return a.reshape(size, nb, size).transpose(1, 0, 2)[:, h : h + rb, h : h + rb].astype(np.float64)
+    def valid(ii: np.ndarray) -> np.ndarray:
+        lo = ii[:, : nb * size].reshape(size + 1, nb, size)[:, :, :rb]  # column n·size + j
+        hi = ii[:, 1:].reshape(size + 1, nb, size)[:, :, t - 1 : t - 1 + rb]  # column n·size + j + t
+        box = hi[t : t + rb] - lo[t : t + rb] - hi[:rb] + lo[:rb]  # rows i … i + t − 1
+        return box.transpose(1, 0, 2).astype(np.float64)
 
-    m1 = valid(s1)
-    var = valid(s2) - m1 * m1 / (t * t)
+    m1 = valid(I1)
+    var = valid(I2) - m1 * m1 / (t * t)
     den = np.sqrt(np.maximum(var, 0.0))
     ok = den > 1e-3
     return np.where(ok, num / np.where(ok, den, 1.0), 0.0).astype(np.float32)
@@ -501,12 +504,14 @@ def _score_group(grp, as_batch, run, templates, img_cur, c, s, lo, hi, h, config
     x0, y0 = lo[k_run, 0], lo[k_run, 1]
     x1, y1 = hi[k_run, 0], hi[k_run, 1]
     if as_batch:  # every window inside the image and unclipped
-        res = _ncc_batch(img_cur, templates[k_run, 1:-1, 1:-1], c[k_run], smax, h)
-        if np.any(sr < smax):  # searched beyond a point's own radius: hide those cells
-            ii = np.abs(np.arange(m) - smax)
-            outside = (ii[None, :, None] > sr[:, None, None]) | (ii[None, None, :] > sr[:, None, None])
-            res[outside] = _EMPTY
-        stack[:, :m, :] = res
+        # one batch per radius, each scoring only its own (2·r+1)² cells, written at the block's
+        # centre (the cells beyond a point's radius keep the sentinel): cell scores do not depend
+        # on the batch they are computed in
+        tpl = templates[:, 1:-1, 1:-1]
+        for rad in np.unique(sr).tolist():
+            sel = np.flatnonzero(sr == rad)
+            a, b = smax - rad, smax + rad + 1
+            stack[sel, a:b, a:b] = _ncc_batch(img_cur, tpl[k_run[sel]], c[k_run[sel]], rad, h)
     else:
         ox, oy = x0 - origin[:, 0], y0 - origin[:, 1]
         whole = (x1 - x0 == 2 * sr) & (y1 - y0 == 2 * sr) & (sr == smax)  # fills the block: written in place

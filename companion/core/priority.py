@@ -85,11 +85,8 @@ def detection_priority(
     v_level = None if velocity_body is None else R_lb @ np.asarray(velocity_body, dtype=float).reshape(3)
     gamma, psi = flight_path(sectors, v_level)
 
-    us = np.arange(stride // 2, c.width, stride, dtype=float)
-    vs = np.arange(stride // 2, c.height, stride, dtype=float)
-    uu, vv = np.meshgrid(us, vs)
-    rays = camera.unproject(np.stack([uu.ravel(), vv.ravel()], 1))  # (N, 3) camera
-    d = rays @ (R_lb @ c.R_cam_body.T).T  # camera → body → levelled
+    us, vs, rays = camera.grid_rays(stride)  # (N, 3) camera, cached per camera
+    d = rays @ (R_lb @ camera.R_cam_body.T).T  # camera → body → levelled
     horiz = np.hypot(d[:, 0], d[:, 1])
     up = -d[:, 2]
     if sectors.band_mode == "metres":

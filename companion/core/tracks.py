@@ -191,7 +191,9 @@ class TrackManager:
         self._prev_gray: np.ndarray | None = None
         self._prev_t: float | None = None
         self._prev_frame: int | None = None
-        self._just_dropped: dict[int, Track] = {}
+        self._just_dropped: dict[int, int] = {}  # id → row of _dropped, the tracks dropped in the latest step
+        self._dropped: dict = {}
+        self._dropped_frame = 0
         self._label: np.ndarray | None = None  # scratch image of the duplicate test
         self.tracks = _TrackView(self)
 
@@ -211,30 +213,38 @@ class TrackManager:
         track_id = int(track_id)
         if track_id in self._slot_of:
             return self._snapshot(self._slot_of[track_id], alive=True)
-        if track_id in self._just_dropped:
-            return self._just_dropped[track_id]
+        if track_id in self._just_dropped:  # built on demand from the copy kept at the drop
+            row = self._just_dropped[track_id]
+            return self._snapshot(row, alive=False, latest=self._dropped_frame, src=self._dropped)
         raise KeyError(f"no live track with id {track_id} (it may have been dropped earlier)")
 
-    def _snapshot(self, slot: int, alive: bool, latest: int | None = None) -> Track:
+    #: per-slot arrays a :class:`Track` snapshot is built from
+    _SNAPSHOT_FIELDS = ("_id", "_anchor_frame", "_anchor_t", "_anchor_uv", "_n_obs", "_h_frame", "_h_t", "_h_uv",
+                        "_score", "_fail")
+
+    def _snapshot(self, slot: int, alive: bool, latest: int | None = None, src: dict | None = None) -> Track:
+        """:class:`Track` of ``slot``; ``src`` (field → array, as :data:`_SNAPSHOT_FIELDS`) reads a copy
+        kept when the track was dropped instead of the live arrays (``slot`` then indexes that copy)."""
+        a = src if src is not None else {name: getattr(self, name) for name in self._SNAPSHOT_FIELDS}
         hlen = self.config.max_history
-        n = int(self._n_obs[slot])
+        n = int(a["_n_obs"][slot])
         k = np.arange(max(0, n - hlen), n) % hlen
         obs = [
             (int(f), float(t), uv.copy())
-            for f, t, uv in zip(self._h_frame[slot, k], self._h_t[slot, k], self._h_uv[slot, k])
+            for f, t, uv in zip(a["_h_frame"][slot, k], a["_h_t"][slot, k], a["_h_uv"][slot, k])
         ]
         if latest is None:
-            latest = self._prev_frame if self._prev_frame is not None else int(self._anchor_frame[slot])
+            latest = self._prev_frame if self._prev_frame is not None else int(a["_anchor_frame"][slot])
         return Track(
-            id=int(self._id[slot]),
-            anchor_frame=int(self._anchor_frame[slot]),
-            anchor_t=float(self._anchor_t[slot]),
-            anchor_uv=self._anchor_uv[slot].copy(),
+            id=int(a["_id"][slot]),
+            anchor_frame=int(a["_anchor_frame"][slot]),
+            anchor_t=float(a["_anchor_t"][slot]),
+            anchor_uv=a["_anchor_uv"][slot].copy(),
             observations=obs,
             n_observations=n,
-            age=int(latest - self._anchor_frame[slot]),
-            last_score=float(self._score[slot]),
-            failures=int(self._fail[slot]),
+            age=int(latest - a["_anchor_frame"][slot]),
+            last_score=float(a["_score"][slot]),
+            failures=int(a["_fail"][slot]),
             alive=alive,
         )
 
@@ -389,10 +399,12 @@ class TrackManager:
             ds = np.concatenate(drop_slots)
             drop_reason = np.concatenate(drop_codes).astype(np.int8)
             dropped_ids = self._id[ds].copy()
-            for slot in ds.tolist():
-                snap = self._snapshot(slot, alive=False, latest=frame_index)
-                self._just_dropped[snap.id] = snap
-                del self._slot_of[snap.id]
+            # keep a copy of their rows; their Track snapshots are built only if asked for
+            self._dropped = {name: getattr(self, name)[ds] for name in self._SNAPSHOT_FIELDS}
+            self._dropped_frame = frame_index
+            self._just_dropped = {i: row for row, i in enumerate(dropped_ids.tolist())}
+            for i in self._just_dropped:
+                del self._slot_of[i]
             self._id[ds] = -1
             self._tpl_ok[ds] = False
 
