@@ -430,3 +430,15 @@ def test_one_sided_vertical_structure_only_ever_adds_obstacles_seeded():
         assert not np.any((v.state == SectorState.CLEAR) & (a.state != SectorState.CLEAR))
         changed = v.state != a.state
         assert np.all(v.state[changed] == SectorState.OBSTACLE) and np.all(v.inferred[changed])
+
+
+def test_forward_reading_of_an_inferred_sector_carries_that_sector_sigma():
+    """A forward sector filled by inference has no point of its own: DISTANCE_SENSOR's σ is the sector's
+    (the larger of its two sides), never that of whatever point happens to be last in the array."""
+    cfg = SectorConfig(infer_max_gap_sectors=1, sigma_k=0.0)
+    b = np.radians([-5.0, 5.0, 30.0])
+    pts = np.stack([[10.0, 10.0, 30.0] * np.cos(b), [10.0, 10.0, 30.0] * np.sin(b), np.zeros(3)], 1)
+    s = run(pts, sigma=[0.2, 0.3, 3.0], config=cfg)
+    assert s.inferred[0] and s.state[0] == SectorState.OBSTACLE
+    assert s.forward.sigma_m == pytest.approx(0.3)
+    assert math.isnan(s.forward.estimate_m)

@@ -36,7 +36,8 @@ proper posterior of its own measurements (the bank does not pool b across landma
 drift (n = 3 states) the same equations hold with b = 0.
 
 Update: iterated EKF (Gauss–Newton on the prior + measurement cost, ``iterations`` relinearizations;
-1 = the plain EKF), χ² innovation gate on the first linearization, Joseph-form covariance.
+1 = the plain EKF), χ² innovation gate on the first linearization; covariance in the standard form
+P = (I − K H) P₀ at the last linearization, symmetrized (the looming update below uses the Joseph form).
 Measurement noise R = (σ_px/f)² + σ_att² (white attitude noise of each telemetry sample)
 + 2 (ρ σ_p)² (the telemetry's position error at the anchor and now, seen from the landmark at
 inverse depth ρ; treated as white, an approximation for GPS-like correlated error).

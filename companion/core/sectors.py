@@ -562,8 +562,11 @@ def compute_sectors(
     fwd_obs = fwd[state[fwd] == SectorState.OBSTACLE]
     if fwd_obs.size:
         j = fwd_obs[np.argmin(range_m[fwd_obs])]
-        pt = pick[j]
-        forward = ForwardRange(SectorState.OBSTACLE, float(range_m[j]), float(sig[pt]), float(d_h[pt]))
+        pt = pick[j]  # −1 where the sector was inferred between two others: its own σ, no single point's estimate
+        if pt >= 0:
+            forward = ForwardRange(SectorState.OBSTACLE, float(range_m[j]), float(sig[pt]), float(d_h[pt]))
+        else:
+            forward = ForwardRange(SectorState.OBSTACLE, float(range_m[j]), float(sigma_m[j]), math.nan)
     elif fwd.size and np.all(state[fwd] == SectorState.CLEAR):
         forward = ForwardRange(SectorState.CLEAR, (max_cm + 1) / 100.0, math.nan, math.nan)
     else:
