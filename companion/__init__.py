@@ -1,9 +1,10 @@
 """Monocular obstacle ranging for a drone companion computer.
 
-``companion.core`` holds the pure estimation code (DESIGN.md §2–§3): camera model and frames,
+``companion.core`` holds the pure estimation code (derived in docs/derivations/): camera model and frames,
 Harris corners, NCC matching, tracks, triangulation and the inverse-depth EKFs.  It performs no
 I/O and keeps no global state.  ``companion.io`` holds the thin file readers (TOML, OpenCV
-calibration YAML); ``companion.bench`` the reproducible benchmarks of DESIGN.md §4.
+calibration YAML); ``companion.bench`` the reproducible benchmarks of the source papers'
+scenarios (seeds 000 and 004).
 """
 
 __version__ = "0.1.0"

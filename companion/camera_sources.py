@@ -1,4 +1,4 @@
-"""Camera sources: grey frames with their capture time on the companion's clock (issue 4, DESIGN §1–§2).
+"""Camera sources: grey frames with their capture time on the companion's clock (issue 4; frames: docs/derivations/frames.md).
 
 Every source is a :class:`FrameSource`.  It hands out :class:`Frame` tuples ``(index, t, gray)``:
 
@@ -11,7 +11,7 @@ Every source is a :class:`FrameSource`.  It hands out :class:`Frame` tuples ``(i
 
 A live source never queues: :meth:`FrameSource.read` returns the newest frame not yet returned
 and counts the older ones it skipped as ``dropped`` (a late frame is worth less than a fresh one,
-DESIGN §5).  Corrupt, empty or wrongly sized images are rejected and counted by reason in
+docs/derivations/sectors.md).  Corrupt, empty or wrongly sized images are rejected and counted by reason in
 :attr:`SourceStatus.rejected`, never raised.  Live sources that stop delivering are reopened with
 exponential backoff; :meth:`FrameSource.drain_events` reports "camera lost" / "camera restored"
 for STATUSTEXT.

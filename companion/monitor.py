@@ -1,6 +1,6 @@
 """``companion monitor CONN``: a ground-station view of a running companion in the terminal (issue 5).
 
-What the messages mean is DESIGN.md §5; this module only listens and shows.
+What the messages mean is in docs/derivations/sectors.md; this module only listens and shows.
 
 Pure layer (no I/O; the caller's clock)
     :func:`decode_obstacle_distance` / :func:`decode_distance_sensor` read one message the way the
@@ -187,7 +187,7 @@ def _wrap_deg(a):
 
 
 def decode_obstacle_distance(m) -> DecodedSectors:
-    """Decode an OBSTACLE_DISTANCE message (DESIGN §5); :class:`DecodeError` when it cannot be read.
+    """Decode an OBSTACLE_DISTANCE message (docs/derivations/sectors.md); :class:`DecodeError` when it cannot be read.
 
     * UINT16_MAX = unknown; ``max_distance + 1`` = clear; a value above that (other than
       UINT16_MAX) has no defined meaning and is shown as unknown (with a warning);
@@ -255,7 +255,7 @@ def bin_sectors(d: DecodedSectors, bins: int = SECTOR_COUNT) -> tuple[np.ndarray
 
 @dataclasses.dataclass(frozen=True)
 class ForwardReading:
-    """One DISTANCE_SENSOR (orientation forward) as the companion encodes it (DESIGN §5)."""
+    """One DISTANCE_SENSOR (orientation forward) as the companion encodes it (docs/derivations/sectors.md)."""
 
     state: str  # "obstacle", "clear" (beyond max_distance) or "unknown" (UINT16_MAX or signal_quality 1)
     distance_m: float  # nan unless obstacle

@@ -1,4 +1,4 @@
-"""The per-frame ranging pipeline and the live companion process (issue 4; DESIGN §1, §2, §5).
+"""The per-frame ranging pipeline and the live companion process (issue 4; docs/derivations/frames.md, docs/derivations/sectors.md).
 
 Three layers, each usable on its own:
 
@@ -332,7 +332,7 @@ class Pipeline:
         return self._out_prev
 
     def _update_map(self, t, out: RangeOutput, tf, p_world, R_wc, p_wc, p_wb):
-        """The local obstacle map's steps for this frame, in order (DESIGN §7; see
+        """The local obstacle map's steps for this frame, in order (docs/derivations/obstacle_map.md; see
         :mod:`companion.core.obstacle_map`); returns the remembered points (None without a map)."""
         omap = self.map
         if omap is None:
@@ -567,7 +567,7 @@ class Reporter:
     """
 
     #: NAMED_VALUE_FLOAT diagnostics: frame rate, live tracks, nearest range, latency, points held by the
-    #: obstacle map, sectors claimed from memory only (no live point), sectors inferred between two sides (DESIGN §7)
+    #: obstacle map, sectors claimed from memory only (no live point), sectors inferred between two sides (docs/derivations/obstacle_map.md, sectors.md)
     DIAG_NAMES = ("MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER")
 
     def __init__(self, config, pipeline: PipelineConfig, outputs=("autopilot",), start: float = 0.0,

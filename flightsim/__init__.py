@@ -1,1 +1,1 @@
-"""flightsim: JSBSim flights that prove the companion (DESIGN.md §1)."""
+"""flightsim: JSBSim flights that prove the companion."""

@@ -1,6 +1,6 @@
 """What the autopilot does with the companion's ranges: obstacle avoidance in the simulated autopilot.
 
-DESIGN.md §6: an autopilot does not fly on ranges, it limits the pilot's velocity with them, and
+docs/derivations/sectors.md: an autopilot does not fly on ranges, it limits the pilot's velocity with them, and
 the two autopilots differ exactly where a camera is weak — ArduPilot applies no constraint in a
 direction without data, PX4 refuses to move into it.  This module models both from their
 documented behaviour and source (rules cited per function), so a simulated flight shows whether
@@ -18,7 +18,7 @@ the vehicle stops short of an obstacle with the ranges the companion really sent
 * :class:`NoAvoidance` — ``model = "none"``: the pilot's demand passes unchanged.
 
 Messages are taken as the autopilot takes them: stamped with their *arrival* time on the
-simulation clock (both autopilots ignore ``time_usec``, DESIGN §5), in the body frame at the moment
+simulation clock (both autopilots ignore ``time_usec``, docs/derivations/sectors.md), in the body frame at the moment
 of use (the vehicle's yaw now).  Everything here is pure: the SITL feeds received messages with
 :meth:`NoAvoidance.receive` (the base of every model) and the quad's controller asks :meth:`NoAvoidance.limit` every control
 tick.  Horizontal only: the vertical demand passes unchanged (the camera's sectors are horizontal).
@@ -231,7 +231,7 @@ class NoAvoidance:
 
 
 class ArduPilotAvoidance(NoAvoidance):
-    """ArduPilot Copter simple avoidance fed by OBSTACLE_DISTANCE / DISTANCE_SENSOR (DESIGN §6).
+    """ArduPilot Copter simple avoidance fed by OBSTACLE_DISTANCE / DISTANCE_SENSOR (docs/derivations/sectors.md).
 
     Proximity (``AP_Proximity_MAV::handle_obstacle_distance_msg``, ``AP_Proximity_Boundary_3D``):
     each reading (0, UINT16_MAX, below ``min_distance`` or above ``max_distance`` are skipped — so

@@ -310,7 +310,7 @@ def main(argv=None) -> int:
     q.add_argument("--no-score", action="store_true", help="do not score the received ranges")
     q.add_argument("--avoidance", choices=AVOIDANCE_MODELS, default=None,
                    help="the simulated autopilot's obstacle avoidance fed by the companion's ranges, overriding the "
-                        "scenario's [avoidance] model (quad only; DESIGN.md §6): ardupilot = Copter simple avoidance, "
+                        "scenario's [avoidance] model (quad only; docs/derivations/sectors.md): ardupilot = Copter simple avoidance, "
                         "px4 = collision prevention, none = fly the route as commanded")
     p = sub.add_parser("score", help="score a recorded run against its truth (score.json, score.md)",
                        formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -209,7 +209,7 @@ class Flight:
         self.state = None
         self.step_index = -1
         self.timing = {"dynamics": 0.0, "telemetry": 0.0, "render": 0.0, "truth": 0.0}  # wall seconds per part
-        # the simulated autopilot's obstacle avoidance (DESIGN §6), fed by whoever hears the companion
+        # the simulated autopilot's obstacle avoidance (docs/derivations/sectors.md), fed by whoever hears the companion
         self.avoidance = make_avoidance(sc.avoidance)
         self.avoiding = sc.avoidance.model != "none"
         if self.avoiding:

@@ -1,6 +1,6 @@
 """The outcome of a closed-loop flight: did the vehicle using the companion's ranges stop short?
 
-DESIGN.md §6 judges ranges by what an autopilot does with them; with the simulated autopilot's
+docs/derivations/sectors.md judges ranges by what an autopilot does with them; with the simulated autopilot's
 avoidance on (:mod:`flightsim.avoidance`) a flight has an outcome, read from ``trajectory.npz``
 (every physics step: position, velocity, the pilot's demand and what the avoidance let through,
 the body's clearance to the nearest obstacle).  :func:`evaluate_outcome` gives score.json's

@@ -14,7 +14,7 @@
   covers them (issue 11);
 * ``latency_hist.png`` — exposure → message latency, pooled;
 * ``index.md`` — the tables of campaign.json (targets ✓/✗, pooled rates, per-run mean ± std,
-  in view / out of view (issue 11, DESIGN.md §7), detection and unknown by true-range bin,
+  in view / out of view (issue 11, docs/derivations/obstacle_map.md), detection and unknown by true-range bin,
   remembered obstacles, range error by bin, time to the first valid range per obstacle, latency, NEES, runs) linking
   the plots and each run's score.md.
 

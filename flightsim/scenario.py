@@ -10,7 +10,7 @@ dataclass of its module (unknown or misspelt keys stop with an error naming them
 * ``[render]`` — :class:`flightsim.render.RenderOptions` (pixel noise, blur, exposure);
 * ``[telemetry]`` — :class:`flightsim.telemetry.TelemetryConfig` (rates, noise, latency);
 * ``[avoidance]`` — :class:`flightsim.avoidance.AvoidanceConfig` (the simulated autopilot's
-  obstacle avoidance, DESIGN.md §6: ``model`` "ardupilot", "px4" or "none").  With a model the quad's
+  obstacle avoidance, docs/derivations/sectors.md: ``model`` "ardupilot", "px4" or "none").  With a model the quad's
   route is the pilot's intent and may cross obstacles; without one the route must be clear.
 
 The ``[scenario] seed`` seeds everything (turbulence, gyro bias, GPS noise, pixel noise); the
@@ -20,7 +20,7 @@ too close to an obstacle, a quad route whose waypoints or straight legs pass wit
 obstacle (:func:`check_route_clear`), a camera that sees nothing but sky, a ``companion_config``
 that names no file.
 
-Hard flights (issue 11; DESIGN.md §6–§7: hovering and turning in place are where avoidance needs
+Hard flights (issue 11; docs/derivations/sectors.md: hovering and turning in place are where avoidance needs
 ranges most) use the quad route's per-waypoint ``hold_s`` (hover) and ``turn_deg`` (turn in place,
 360 = a full turn) at ``yaw_rate_dps`` (:class:`flightsim.dynamics.RouteConfig`).
 

@@ -1,4 +1,4 @@
-"""Scoring the companion's published ranges against the simulator's truth (issue 5; DESIGN §5).
+"""Scoring the companion's published ranges against the simulator's truth (issue 5; docs/derivations/sectors.md).
 
 Pure logic: arrays in, arrays and a JSON-ready dict out.  Reading the tlog and ``truth.npz`` and
 writing ``score.json`` / ``score.md`` live in :mod:`flightsim.score_io`; :func:`score_run` and
@@ -46,7 +46,7 @@ Per message: the share of messages *with no false obstacle in a clear sector*, o
 that make at least one claim (a range or "clear" in any sector) and have at least one clear cell
 in view (an all-unknown message claims nothing and is not counted).
 
-Over 360° (issue 11 item 6; DESIGN.md §6 — an unknown sector means no constraint — and §7 — the
+Over 360° (issue 11 item 6; docs/derivations/sectors.md — an unknown sector means no constraint — and docs/derivations/obstacle_map.md — the
 local map publishes remembered obstacles beside and behind the vehicle).  A truth.npz with
 ``sector_all_m`` and ``in_view`` knows every sector.  Cells in the camera's view are scored as
 above.  Out of view only a *claim* is scored (a range or "clear"): a range within tolerance on an
@@ -267,7 +267,7 @@ class SectorTruth:
 
     ``sector_m`` is the truth of every sector known (NaN = unknown: not scored); ``in_view`` says
     which sectors the camera sees.  A 360° truth (``truth.npz`` with ``sector_all_m`` and
-    ``in_view``, issue 11; DESIGN.md §7) knows every sector; an older one knows only the sectors in
+    ``in_view``, issue 11; docs/derivations/obstacle_map.md) knows every sector; an older one knows only the sectors in
     view (``in_view`` None: in view = known).
     """
 
@@ -583,7 +583,7 @@ def _classify_published(cm: np.ndarray, min_cm: np.ndarray, max_cm: np.ndarray) 
 def remembered_cells(truth: SectorTruth, labels: np.ndarray, view_f: np.ndarray, frame: np.ndarray, lab: np.ndarray,
                      candidates: np.ndarray, config: ScoreConfig) -> np.ndarray:
     """(N, 72) bool: the *remembered* cells among ``candidates`` (out-of-view obstacle cells of the
-    messages; issue 11 targets, DESIGN.md §7).
+    messages; issue 11 targets, docs/derivations/obstacle_map.md).
 
     Rule (per obstacle, by the grouping of :func:`group_obstacles`): the cell's obstacle ``k``
     (``lab``) occupied an in-view finite truth cell in some truth frame at most

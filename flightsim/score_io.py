@@ -41,7 +41,7 @@ else:  # pragma: no cover
 
 log = logging.getLogger(__name__)
 
-COMPANION_COMPONENT = 196  # MAV_COMP_ID_OBSTACLE_AVOIDANCE (DESIGN §5)
+COMPANION_COMPONENT = 196  # MAV_COMP_ID_OBSTACLE_AVOIDANCE (docs/derivations/sectors.md)
 _BOOT_TYPES = ("DISTANCE_SENSOR", "NAMED_VALUE_FLOAT", "OBSTACLE_DISTANCE_3D")  # time_boot_ms = sending time
 
 
@@ -128,7 +128,7 @@ def read_ranges_tlog(path: str | Path, component_id: int = COMPANION_COMPONENT, 
 def read_truth_npz(path: str | Path) -> SectorTruth:
     """:class:`SectorTruth` from a flightsim ``truth.npz`` (``t_s``, ``sector_m``, ``p_ned``, ``rpy``, ``sector_max_m``).
 
-    A truth over 360° (issue 11; DESIGN.md §7) also holds ``sector_all_m`` (every sector, in view or
+    A truth over 360° (issue 11; docs/derivations/obstacle_map.md) also holds ``sector_all_m`` (every sector, in view or
     not) and ``in_view`` (F, 72): then the score uses them; an older file has only ``sector_m``
     (NaN out of view) and out-of-view claims stay unscored.
     """

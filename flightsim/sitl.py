@@ -311,7 +311,7 @@ class _Run:
         self.timing["ipc_recv"] += time.perf_counter() - w0
 
     def _inspect(self, t: float, msg) -> None:
-        """Count and check what the companion sends (DESIGN §5 fields, the lockstep clock model)."""
+        """Count and check what the companion sends (the fields of docs/derivations/sectors.md, the lockstep clock model)."""
         typ = msg.get_type()
         src = (msg.get_srcSystem(), msg.get_srcComponent())
         self.counts_rx[typ] += 1

@@ -1,1 +1,1 @@
-"""Reproducible benchmarks (DESIGN.md §4): ``python -m companion.bench --help``."""
+"""Reproducible benchmarks (the source papers' scenarios, seeds 000 and 004): ``python -m companion.bench --help``."""

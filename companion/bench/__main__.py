@@ -1,10 +1,10 @@
-"""``python -m companion.bench``: the reproducible benchmarks of DESIGN.md §4.
+"""``python -m companion.bench``: the reproducible benchmarks (the source papers' scenarios and more).
 
 Subcommands:
   seed004   seed-004 scenario, Monte Carlo over pixel noise (and the gyro model)
   seed000   seed-000 scenario, relative range error against L = V·T/D0
   timing    per-stage timings on one core
-  looming   head-on approaches at the focus of expansion: range with and without looming (DESIGN §7)
+  looming   head-on approaches at the focus of expansion: range with and without looming (docs/derivations/looming.md)
   map_memory, map_tradeoff   the local obstacle map: memory over a long hover; its publishing trade-offs in SITL
   all       all of these plus the simulator's speed; with --write FILE, rewrite docs/BENCHMARKS.md
 """
@@ -124,7 +124,7 @@ def cmd_timing(args) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m companion.bench",
-        description="Benchmarks of the estimation core against the source papers' scenarios (DESIGN.md §4).",
+        description="Benchmarks of the estimation core against the source papers' scenarios (seeds 000 and 004).",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Examples:\n  python -m companion.bench seed004 --runs 100\n"
                "  python -m companion.bench timing --json\n"
@@ -154,26 +154,26 @@ def main(argv=None) -> int:
     p = sub.add_parser("looming", help="head-on approaches: range at the focus of expansion with and without looming",
                        description="head-on approaches (quad 4 m/s from 30 m, fixed-wing 25 m/s from 200 m, points 0–3° off "
                                    "the direction of travel; and a rendered wall tracked end to end): range error, "
-                                   "convergence time and NEES with and without the looming measurement (DESIGN §7)")
+                                   "convergence time and NEES with and without the looming measurement (docs/derivations/looming.md)")
     p.add_argument("--runs", type=int, default=20, help="Monte Carlo runs per synthetic case (default 20)")
     p.add_argument("--rendered-runs", type=int, default=3, help="rendered flights per case (default 3; 0 = skip)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p = sub.add_parser("map_memory", help="the obstacle map's size and RSS over a long synthetic hover in front of a wall",
                        description="a synthetic hover 5 m in front of a textured wall through the whole pipeline: the local "
-                                   "obstacle map's size and the process's RSS once per simulated minute (DESIGN §7)")
+                                   "obstacle map's size and the process's RSS once per simulated minute (docs/derivations/obstacle_map.md)")
     p.add_argument("--minutes", type=float, default=30.0, help="simulated hover, minutes (default 30)")
     p.add_argument("--fps", type=float, default=5.0, help="frames per simulated second (default 5)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
     p = sub.add_parser("map_tradeoff", help="the map's publishing settings (support_radius_rel, max_entry_nis_ratio, remembered_spread_k, remembered_drop_spread_deg, infer_narrow_gap_m) in SITL",
                        description="quad_wall_hover, quad_slalom and quad_corner in lockstep SITL (2 seeds each) with "
                                    "configs/companion.toml as shipped and with one map setting changed at a time: remembered "
-                                   "share, false obstacles, detection (DESIGN §7)")
+                                   "share, false obstacles, detection (docs/derivations/obstacle_map.md)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
     p = sub.add_parser("avoidance", help="closed-loop avoidance campaigns: the simulated autopilot flies on the companion's ranges",
                        description="the quad commanded through a wall (3, 6, 10 m/s), a pole, a building corner and a slalom "
                                    "line in lockstep SITL with the simulated autopilot's avoidance (ArduPilot, PX4, PX4 with "
                                    "CP_GO_NO_DATA = 1) on the companion's ranges: collisions with 95 % intervals, stop "
-                                   "clearance, false stops, progress (DESIGN §6)")
+                                   "clearance, false stops, progress (docs/derivations/sectors.md)")
     p.add_argument("--runs", type=int, default=20, help="seeds per scenario × model (default 20)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
     p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")

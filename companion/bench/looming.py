@@ -1,4 +1,4 @@
-"""Looming benchmark (DESIGN §7, issue 11 item 2): range on the direction of travel.
+"""Looming benchmark (docs/derivations/looming.md, issue 11 item 2): range on the direction of travel.
 
 ``python -m companion.bench looming [--runs N] [--json]``
 

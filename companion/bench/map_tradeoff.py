@@ -1,4 +1,4 @@
-"""The local obstacle map's publishing settings, measured in lockstep SITL (DESIGN.md §7).
+"""The local obstacle map's publishing settings, measured in lockstep SITL (docs/derivations/obstacle_map.md).
 
 What each setting of ``configs/companion.toml`` buys and costs, on the flights where it matters
 (a wall hover past a thin mast, a slalom between poles, a corner round a building):

@@ -1,7 +1,7 @@
 """Seed-004 through the whole pipeline: rendered frames, real Harris/NCC, telemetry from a tlog (issue 5).
 
 Each run flies ``configs/scenarios/seed004_straight.toml`` with its own seed (JSBSim J3Cub at
-30 m/s towards the six checker targets of DESIGN §4, the paper's gyro model on the attitude,
+30 m/s towards the six checker targets of seed 004, the paper's gyro model on the attitude,
 rendered 320×240 / 45° frames) and replays the export through :func:`companion.replay.replay` with
 ``configs/companion.toml`` — the same code path as the live companion.  At the frame nearest to
 ``t_eval_s`` (5 s: the paper's frame 150) each target is matched to the landmark whose estimated

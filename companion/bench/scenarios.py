@@ -1,4 +1,4 @@
-"""Synthetic scenarios of the source papers (DESIGN.md §4), generated exactly and seeded.
+"""Synthetic scenarios of the source papers (seeds 000 and 004), generated exactly and seeded.
 
 These produce measurement-level data (true poses, true points, noisy pixels, telemetry poses with
 an optional gyro error model) that the estimators consume through

@@ -1,4 +1,4 @@
-"""Seed-000 reproduction (DESIGN.md §4): relative range error against L = V·T/D0.
+"""Seed-000 reproduction (the paper's reference figures): relative range error against L = V·T/D0.
 
 As in the paper (§4, table 1), the filter starts at t = 0 with an initial range error of 3 m (sign
 drawn per run; the prior σ covers it) and is then driven by the *measured* forward velocity V_z and

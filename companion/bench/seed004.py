@@ -1,4 +1,4 @@
-"""Seed-004 reproduction (DESIGN.md §4): triangulation vs the two inverse-depth EKFs vs the bound.
+"""Seed-004 reproduction (the paper's reference figures): triangulation vs the two inverse-depth EKFs vs the bound.
 
 Each Monte Carlo run draws fresh pixel noise (and, with the gyro model, a fresh gyro bias and
 drift), feeds the same pixel stream to :class:`RangeEstimator` once per filter, and scores the
@@ -25,7 +25,7 @@ from companion.core.estimator import EstimatorConfig, RangeEstimator
 from companion.core.triangulation import TriangulationConfig, triangulate_poses
 
 EVAL_FRAMES = (15, 50, 150)
-PAPER = {  # seed 004, §4 of DESIGN.md: mean absolute range error, m
+PAPER = {  # seed 004's reference figures: mean absolute range error, m
     "tri": {"0": 18.0, "2": 40.0, "4": 68.0},
     "ekf_final": {"0": 5.0, "2": 10.0, "4": 25.0},
 }

@@ -4,7 +4,7 @@
   ≥ 10×) and the companion's work per lockstep round;
 * campaigns (:func:`flightsim.campaign.run_campaign`, SITL mode) of every scenario in
   :data:`CAMPAIGNS`: ``quad_approach`` and ``fixedwing_pass`` (issue 5), and the hard flights of
-  issue 11 where DESIGN.md §6–§7 say avoidance needs ranges most and a single camera gains least
+  issue 11 where docs/derivations/sectors.md says avoidance needs ranges most and a single camera gains least
   (hovering at a wall, turning in place, head-on, close in): ``quad_wall_hover``, ``quad_slalom``,
   ``quad_corner``, ``quad_yaw_spin``, ``fixedwing_tower``.  Pooled detection, unknown,
   false-obstacle and dangerous-clear rates against the targets, range error by bin, latency and

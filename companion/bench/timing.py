@@ -1,4 +1,4 @@
-"""Per-stage timings on one core (DESIGN.md §4 timing figures; issue targets).
+"""Per-stage timings on one core (issue targets).
 
 Front-end figures come from :mod:`companion.bench.frontend_timing`; the filter figures time one
 frame's work for N landmarks (anchored EKF: update of every landmark; seed-000 EKF: predict +

@@ -1,4 +1,4 @@
-"""Pinhole camera with OpenCV distortion and its mount on the vehicle (DESIGN.md §2).
+"""Pinhole camera with OpenCV distortion and its mount on the vehicle (docs/derivations/frames.md).
 
 Pixels follow OpenCV: u = fx·X/Z + cx, v = fy·Y/Z + cy for a point (X, Y, Z) in the camera frame,
 then the OpenCV radial–tangential distortion (k1, k2, p1, p2, k3).  Undistortion uses

@@ -1,4 +1,4 @@
-"""Anchored inverse-depth EKF, one 3-state filter per landmark (DESIGN.md §3.4).
+"""Anchored inverse-depth EKF, one 3-state filter per landmark (docs/derivations/ekf_anchored.md).
 
 Parametrization (Civera et al., ref. [4] of seed 004), with the anchor pose taken from telemetry
 instead of being estimated:
@@ -20,7 +20,7 @@ analytic Jacobian is H = ∂z/∂h_c · [R_ca ∂m/∂θ, R_ca ∂m/∂φ, t] wi
 ∂z/∂h = [[1/h_z, 0, −h_x/h_z²], [0, 1/h_z, −h_y/h_z²]],
 ∂m/∂θ = (cos φ cos θ, 0, −cos φ sin θ), ∂m/∂φ = (−sin φ sin θ, −cos φ, −sin φ cos θ).
 
-Attitude drift (DESIGN §4 gyro model).  Telemetry attitude drifts (gyro bias), and that error is
+Attitude drift (seed 004 gyro model; docs/derivations/ekf_anchored.md).  Telemetry attitude drifts (gyro bias), and that error is
 correlated in time, so inflating R cannot keep the filter honest.  When ``attitude_drift_deg_s`` > 0
 each filter carries three more states: the gyro bias b (camera axes, rad/s, prior σ =
 attitude_drift_deg_s).  A body-fixed bias makes the reported attitude drift in the world frame at
@@ -44,7 +44,7 @@ inverse depth ρ; treated as white, an approximation for GPS-like correlated err
 
 All operations are batched over landmarks: arrays of shape (N, 3), (N, 3, 3); no loop per landmark.
 
-Looming (DESIGN §7, "Looming / time to contact").  A small surface patch facing the camera images
+Looming (docs/derivations/looming.md).  A small surface patch facing the camera images
 with a size ∝ 1/Z, Z its depth along the optical axis, so the patch scale change between the
 previous frame (pose R_world_cam', C', time t') and the current one (R_world_cam, C, t) measured
 by the matcher, s = size now / size before, is the depth ratio s = Z'/Z — also on the optical axis,
@@ -103,7 +103,7 @@ class AnchoredEKFConfig:
     max_range_m: float = 10000.0  # ranges beyond this are reported as this value
     nis_window: float = 10.0  # updates averaged (exponentially) in each landmark's mean NIS
     max_mean_nis: float = 0.0  # mean NIS above this flags the landmark diverged (not a static point); 0 = off
-    looming: bool = True  # fuse the matcher's patch scale change (looming, DESIGN §7) when given
+    looming: bool = True  # fuse the matcher's patch scale change (looming, docs/derivations/looming.md) when given
     looming_sigma_floor: float = 0.003  # floor added (in quadrature) to the matcher's scale σ
     looming_gate_probability: float = 0.999  # χ² (1 dof) gate of the looming innovation
     looming_iterations: int = 1  # iterated-EKF relinearizations of the looming update (1 = plain EKF)
@@ -184,7 +184,7 @@ class LandmarkEstimates:
 
 
 def ray(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """m(θ, φ) of DESIGN §3.4, (N, 3)."""
+    """m(θ, φ) of docs/derivations/ekf_anchored.md, (N, 3)."""
     return _ray_columns(theta, phi)[:, :, 0]
 
 
@@ -218,7 +218,7 @@ def _ray_products(angles: np.ndarray) -> np.ndarray:
 
 
 def _ray_basis() -> np.ndarray:
-    """(6, 3, 4): [m, ∂m/∂θ, ∂m/∂φ, 0] (columns, DESIGN §3.4) as a linear map of :func:`_ray_products`."""
+    """(6, 3, 4): [m, ∂m/∂θ, ∂m/∂φ, 0] (columns, docs/derivations/ekf_anchored.md) as a linear map of :func:`_ray_products`."""
     M = np.zeros((6, 3, 4))
     cc, cs, c, sc, ss, s = range(6)  # cos φ cos θ, cos φ sin θ, cos φ, sin φ cos θ, sin φ sin θ, sin φ
     M[cs, 0, 0], M[s, 1, 0], M[cc, 2, 0] = 1, -1, 1  # m = (cos φ sin θ, −sin φ, cos φ cos θ)
@@ -659,7 +659,7 @@ class AnchoredInverseDepthEKF:
             full = nis_count >= cfg.nis_window
             self.diverged[rows] |= full & (nis_avg > cfg.max_mean_nis)
 
-    # -- looming (module docstring, DESIGN §7) --------------------------------------------------
+    # -- looming (module docstring, docs/derivations/looming.md) ------------------------------
     @staticmethod
     def measure_looming(x, R_world_camA, p_world_camA, R_world_cam_prev, p_world_cam_prev, R_world_cam, p_world_cam,
                         dt_prev=None, dt=None):

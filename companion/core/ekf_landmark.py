@@ -1,4 +1,4 @@
-"""Per-landmark inverse-depth EKF driven by the measured camera motion (DESIGN.md §3.5, seed 000).
+"""Per-landmark inverse-depth EKF driven by the measured camera motion (docs/derivations/ekf_landmark.md, seed 000).
 
 Model
 -----
@@ -128,7 +128,7 @@ FROZEN = 2  # landmark flagged invalid, measurement not used
 
 @dataclasses.dataclass(frozen=True)
 class LandmarkEKFConfig:
-    """The ``[ekf_landmark]`` table (DESIGN §3.5)."""
+    """The ``[ekf_landmark]`` table (docs/derivations/ekf_landmark.md)."""
 
     sigma_px: float = 1.0  # pixel measurement noise σ (px)
     sigma_v: float | tuple[float, float, float] = 0.1  # linear-velocity input noise PSD^½ (m/s/√Hz), one or per camera axis
@@ -401,7 +401,7 @@ def points_from_state(x) -> np.ndarray:
 
 # -- the bank -----------------------------------------------------------------------------------
 class LandmarkEKFBank:
-    """N independent 3-state filters (DESIGN §3.5), addressed by int64 landmark id (kept sorted).
+    """N independent 3-state filters (docs/derivations/ekf_landmark.md), addressed by int64 landmark id (kept sorted).
 
     Arrays: ``ids`` (N,), ``x`` (N,3), ``P`` (N,3,3), ``n_updates`` (accepted), ``n_rejects``
     (consecutive gated), ``diverged`` and ``invalid`` (sticky flags).
@@ -447,7 +447,7 @@ class LandmarkEKFBank:
         """Start filters at measured normalized coordinates ``xy`` (M,2) with a prior on ξ.
 
         Initial P = diag((σ_px/fx)², (σ_px/fy)², inv_depth_sigma²).  ``inv_depth`` (M,) must lie in
-        [0, inv_depth_max] (e.g. from a coarse triangulation, seed 000 / DESIGN §3.5); ids new, unique.
+        [0, inv_depth_max] (e.g. from a coarse triangulation, seed 000 / docs/derivations/ekf_landmark.md); ids new, unique.
         """
         ids = _ids("add: ids", ids)
         m = len(ids)

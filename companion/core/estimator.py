@@ -1,4 +1,4 @@
-"""The one entry point from pixel tracks and camera poses to ranges (DESIGN.md §3.3–§3.5).
+"""The one entry point from pixel tracks and camera poses to ranges (docs/derivations/triangulation.md, ekf_anchored.md, ekf_landmark.md).
 
 ``RangeEstimator.process`` takes one frame at a time, in time order: the camera pose from
 telemetry (``R_world_cam``, ``p_world_cam``; optionally the camera velocity and angular rate), and
@@ -22,7 +22,7 @@ Life of a landmark (the "combined method" of seeds 000 and 004):
    over unchanged; a triangulated start replays its buffer from the triangulated prior.
 4. a landmark unseen for ``max_unseen_s``, or flagged diverged or invalid, is dropped.
 
-Looming (DESIGN §7): with the anchored filter, ``process`` optionally takes each track's patch
+Looming (docs/derivations/looming.md): with the anchored filter, ``process`` optionally takes each track's patch
 scale change since the previous frame (``scale``, ``scale_sigma``, keyed like the pixels, NaN where
 the matcher could not measure it: see :class:`companion.core.tracks.TrackFrame`).  After the pixel
 update, the running filters *and* the pending landmarks' wide-prior filters get the looming

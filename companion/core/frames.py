@@ -1,4 +1,4 @@
-"""Frames and rotations (DESIGN.md §2).
+"""Frames and rotations (docs/derivations/frames.md).
 
 Conventions used everywhere in the package:
 
@@ -165,7 +165,7 @@ def so3_log(R: np.ndarray) -> np.ndarray:
 
 
 def se3_twist(R_world_cam0, p_world_cam0, R_world_cam1, p_world_cam1, dt: float):
-    """Constant body-frame twist that carries camera pose 0 to pose 1 in ``dt`` (DESIGN §3.5 inputs).
+    """Constant body-frame twist that carries camera pose 0 to pose 1 in ``dt`` (the inputs of docs/derivations/ekf_landmark.md).
 
     Returns ``(v_cam, w_cam)``: the camera's linear velocity and angular rate in its own frame,
     such that a point obeys dP/dt = −v − w × P (the seed-000 motion model) along the whole step.

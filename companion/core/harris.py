@@ -1,4 +1,4 @@
-"""Harris corner detector with grid bucketing and sub-pixel refinement (DESIGN.md §3.1, seed 004 eq. 11–12).
+"""Harris corner detector with grid bucketing and sub-pixel refinement (seed 004 eq. 11–12).
 
 For every pixel the structure tensor of the image gradients summed over a ``block_size`` window,
 
@@ -303,7 +303,7 @@ def detect_harris(
     priority: np.ndarray | None = None,
     priority_max: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Harris corners of ``gray`` (DESIGN.md §3.1, eq. 11–12).
+    """Harris corners of ``gray`` (seed 004 eq. 11–12).
 
     Parameters
     ----------

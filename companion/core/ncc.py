@@ -1,4 +1,4 @@
-"""Normalized cross-correlation matching in a predicted window (DESIGN.md §3.2, seed 004 eq. 13–14).
+"""Normalized cross-correlation matching in a predicted window (seed 004 eq. 13–14).
 
 For a template f around a point of the previous frame and a candidate patch g of the current
 frame (eq. 13)
@@ -42,7 +42,7 @@ and since each frame's match becomes the next frame's template, that bias would 
 along a track; Lucas–Kanade is exact for whole-pixel shifts and within a few hundredths of a
 pixel otherwise.
 
-Scale change (looming, DESIGN §7).  For each accepted match of two frames, :func:`estimate_scale`
+Scale change (looming, docs/derivations/looming.md).  For each accepted match of two frames, :func:`estimate_scale`
 refines a scale + translation warp of the patch: I_cur(p_cur + s·x + d) ≈ a·I_prev(p_prev + x) + b
 over x in a (2·scale_half+1)² grid, by inverse-compositional Gauss–Newton on the zero-mean,
 unit-norm patches (gain/offset invariant like eq. 13), vectorized over points.  With f̂ the
@@ -622,7 +622,7 @@ def match_ncc(
     scale_pred=None,
     rescale_threshold: float = 0.0,
 ) -> NCCResult:
-    """Find each point of ``img_prev`` in ``img_cur`` by NCC (DESIGN.md §3.2, eq. 13–14).
+    """Find each point of ``img_prev`` in ``img_cur`` by NCC (seed 004 eq. 13–14).
 
     Parameters
     ----------

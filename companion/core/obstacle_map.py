@@ -1,9 +1,9 @@
-"""Local obstacle map: converged landmarks kept as world points after their tracks end (DESIGN.md §7).
+"""Local obstacle map: converged landmarks kept as world points after their tracks end (docs/derivations/obstacle_map.md).
 
 Pure logic, no I/O, no globals.  The pipeline calls, in order, once per frame:
 
 1. :func:`points_on_current_rays` — each landmark seen in this frame placed at its estimated range
-   along the ray measured now (the filter's own point lies on its *anchor* ray, DESIGN §3.4);
+   along the ray measured now (the filter's own point lies on its *anchor* ray, docs/derivations/ekf_anchored.md);
 2. :meth:`ObstacleMap.observe` — converged landmarks enter (or refresh) the map with a world
    covariance (:func:`landmark_covariance`); retired (diverged) landmarks are forgotten;
 3. :meth:`ObstacleMap.check_view` — remembered points predicted in view are compared with the live
@@ -15,8 +15,8 @@ Pure logic, no I/O, no globals.  The pipeline calls, in order, once per frame:
    :func:`companion.core.sectors.compute_sectors` (over 360°);
 6. :func:`world_to_body` — points into body FRD at exposure.
 
-Model (DESIGN §7)
------------------
+Model (docs/derivations/obstacle_map.md)
+----------------------------------------
 The point is static in the world (local NED); what grows is its uncertainty *relative to the
 vehicle*: the vehicle's position estimate drifts after the point was last observed (σ_drift =
 min(position_drift_mps · Δt, position_drift_max_m) per axis, a random-walk bound of the correlated
@@ -32,8 +32,8 @@ of its filter: σ_range² along the line of sight and (r · σ_bearing)² across
 remembered point is published only with ``min_support`` map points within max(``support_radius_m``,
 ``support_radius_rel`` × its distance).
 
-Retention (seed 003 §3.6, DESIGN §7)
-------------------------------------
+Retention (seed 003 §3.6, docs/derivations/obstacle_map.md)
+-----------------------------------------------------------
 Usage score s = (o − 0.5·u)/(1 + o), o = re-observations (a remembered point predicted in view
 and found again: a live converged landmark within ``reobserve_radius_px`` of its predicted pixel
 whose depth agrees within ``gate_k`` σ; or a newly converged landmark that lands within ``gate_k``
@@ -100,7 +100,7 @@ class MapConfig:
 
 def consistent_for_entry(mean_nis: np.ndarray, converged: np.ndarray, ratio: float, min_count: int = 10) -> np.ndarray:
     """(N,) bool: landmarks whose filter's mean NIS is at most ``ratio`` × the median mean NIS of the
-    ``converged`` ones (DESIGN §7: a static point is well explained by its filter; a track at an
+    ``converged`` ones (docs/derivations/obstacle_map.md: a static point is well explained by its filter; a track at an
     occlusion edge mixes two depths and is not).  All True when ``ratio`` is 0 or fewer than
     ``min_count`` converged landmarks have a NIS (no reference); NaN (no update yet) is False."""
     nis = np.asarray(mean_nis, float).reshape(-1)
@@ -113,14 +113,14 @@ def consistent_for_entry(mean_nis: np.ndarray, converged: np.ndarray, ratio: flo
 
 
 def usage_score(o: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Seed 003's usage score s = (o − 0.5·u)/(1 + o) (DESIGN §3.6, §7)."""
+    """Seed 003's usage score s = (o − 0.5·u)/(1 + o) (docs/derivations/obstacle_map.md)."""
     o = np.asarray(o, float)
     return (o - 0.5 * np.asarray(u, float)) / (1.0 + o)
 
 
 def landmark_covariance(p_world: np.ndarray, p_world_cam: np.ndarray, range_sigma: np.ndarray, bearing_sigma_rad: float) -> np.ndarray:
     """(N, 3, 3) world covariance of landmarks from their filter: σ_range² along the line of sight
-    from the camera, (r·σ_bearing)² across it (DESIGN §3.4: the ray is measured to the pixel σ)."""
+    from the camera, (r·σ_bearing)² across it (docs/derivations/ekf_anchored.md: the ray is measured to the pixel σ)."""
     p = np.asarray(p_world, float).reshape(-1, 3)
     d = p - np.asarray(p_world_cam, float).reshape(3)
     r = np.linalg.norm(d, axis=1)
@@ -137,7 +137,7 @@ def points_on_current_rays(out_ids: np.ndarray, out_p_world: np.ndarray, out_ran
     along the ray measured now (``rays_cam``: unit rays of the tracks' current pixels, camera frame),
     the others where the filter puts them.
 
-    The filter's point lies on the *anchor* ray (DESIGN §3.4), so a range error moves it sideways
+    The filter's point lies on the *anchor* ray (docs/derivations/ekf_anchored.md), so a range error moves it sideways
     as seen from the current camera (≈ range error × baseline / range): on a fast pass a mast edge's
     point drifts into the neighbouring sector.  The current pixel measures the bearing directly (to
     ~σ_px/f); only the range is the filter's.  Both id arrays must be sorted.
@@ -156,7 +156,7 @@ def points_on_current_rays(out_ids: np.ndarray, out_p_world: np.ndarray, out_ran
 
 
 def world_to_body(p_world: np.ndarray, R_world_body: np.ndarray, p_world_body: np.ndarray) -> np.ndarray:
-    """Points (N, 3) from local NED into body FRD at the pose (R_world_body, p_world_body) (DESIGN §2)."""
+    """Points (N, 3) from local NED into body FRD at the pose (R_world_body, p_world_body) (docs/derivations/frames.md)."""
     return (np.asarray(p_world, float).reshape(-1, 3) - np.asarray(p_world_body, float)) @ np.asarray(R_world_body, float)
 
 

@@ -1,4 +1,4 @@
-"""Where a tracked point should appear in the next frame, from telemetry (DESIGN.md §3.2).
+"""Where a tracked point should appear in the next frame, from telemetry (seed 004, NCC search window).
 
 Seed 004 notes that the known camera motion shrinks the NCC search area through the epipolar
 constraint E = [t]× R: a pixel of the previous frame can only reappear on the image of its

@@ -1,4 +1,4 @@
-"""Obstacle sectors for OBSTACLE_DISTANCE / DISTANCE_SENSOR / OBSTACLE_DISTANCE_3D (DESIGN.md §5).
+"""Obstacle sectors for OBSTACLE_DISTANCE / DISTANCE_SENSOR / OBSTACLE_DISTANCE_3D (docs/derivations/sectors.md).
 
 Pure logic: 3-D points with range σ in the current body frame (FRD) in, 72 × 5° sector distances
 out.  No I/O, no globals.
@@ -10,15 +10,15 @@ Geometry
   angle ``i · increment`` and PX4 centres its 5° bins the same way.
 * Bearings and heights are taken in the *levelled* body frame (yaw kept, roll and pitch removed)
   when the attitude is given, so a rolled or pitched vehicle still fills the horizontal sectors
-  correctly (DESIGN §5: the wiki script "ignores roll").  Without attitude the body is taken as
+  correctly (docs/derivations/sectors.md: the wiki script "ignores roll").  Without attitude the body is taken as
   level.
 * Only points inside a vertical band around the flight path count: ``|h − d·tan γ| ≤ half height``
   (``band_mode = "metres"``) or ``|elevation − γ| ≤ half angle`` (``"degrees"``), where ``h`` is the
   point's height above the vehicle, ``d`` its horizontal distance and ``γ`` the flight-path angle
   (0 when the velocity is unknown or small).
 
-Rules (DESIGN §5, issue 4)
---------------------------
+Rules (docs/derivations/sectors.md, issue 4)
+--------------------------------------------
 * conservative range: ``r − k·σ`` along the ray, projected on the horizontal;
 * a sector that the camera's horizontal field of view does not touch: ``UINT16_MAX`` (unknown);
 * a sector with at least ``min_points_obstacle`` converged in-band points ranged (conservatively)
@@ -32,7 +32,7 @@ Rules (DESIGN §5, issue 4)
 * 0 ("touching") only when the estimate itself is at or below ``touching_distance_m`` (off by
   default: ArduPilot ignores 0).
 
-:meth:`Sectors.rotated` turns the sectors by the yaw change between exposure and sending (DESIGN §5:
+:meth:`Sectors.rotated` turns the sectors by the yaw change between exposure and sending (docs/derivations/sectors.md:
 the autopilots stamp with arrival time): obstacle *points* are re-binned at their turned bearings
 (an obstacle inside one sector stays in one sector; turning a whole sector array would smear every
 obstacle into a neighbour on any fractional yaw change, a phantom beside every real obstacle), while
@@ -51,7 +51,7 @@ from companion.config import require, require_finite
 from companion.core.frames import euler_zyx_to_R, mount_rotation
 from companion.errors import InputError
 
-#: OBSTACLE_DISTANCE holds 72 distances; 72 × 5° covers 360° (DESIGN §5).
+#: OBSTACLE_DISTANCE holds 72 distances; 72 × 5° covers 360° (docs/derivations/sectors.md).
 SECTOR_COUNT = 72
 #: Width of one sector, degrees (``increment`` / ``increment_f`` of OBSTACLE_DISTANCE).
 SECTOR_DEG = 5.0
@@ -347,7 +347,7 @@ def compute_sectors(
     remembered_tangential_sigma=None,
     ground_height_m: float | None = None,
 ) -> Sectors:
-    """Sector distances from ranged points (DESIGN §5 OBSTACLE_DISTANCE rules; see module doc).
+    """Sector distances from ranged points (OBSTACLE_DISTANCE rules, docs/derivations/sectors.md; see module doc).
 
     Parameters
     ----------
@@ -369,7 +369,7 @@ def compute_sectors(
         evidence of clear) and by ``infer_vertical``.  Assumes level ground at the origin's height:
         rising ground ahead stays an obstacle; ground that falls away is dropped anyway.
 
-    remembered_p_body : (M, 3) points of the local obstacle map (DESIGN §7) in body FRD: they may
+    remembered_p_body : (M, 3) points of the local obstacle map (docs/derivations/obstacle_map.md) in body FRD: they may
         claim an obstacle in any sector over 360° (the field-of-view mask does not apply to them),
         never "clear"; ``remembered_sigma`` (M,) their range σ and ``remembered_tangential_sigma``
         (M,) their σ across the line of sight, both grown since last observed.  A point whose
@@ -378,7 +378,7 @@ def compute_sectors(
 
     After the rules above, an unknown gap of at most ``infer_max_gap_sectors`` between two obstacle
     sectors whose ranges agree within ``infer_rel_tol`` is filled with the nearer of the two and
-    flagged in :attr:`Sectors.inferred` (DESIGN §7: inference only ever adds an obstacle, never
+    flagged in :attr:`Sectors.inferred` (docs/derivations/sectors.md: inference only ever adds an obstacle, never
     "clear").  Then an unknown gap of at most ``infer_narrow_max_sectors`` whose two sides' points lie
     at most ``infer_narrow_gap_m`` apart (levelled horizontal plane) is filled with the straight line
     between the two points, each sector at the line's nearest distance over its bearings: a surface
@@ -454,7 +454,7 @@ def compute_sectors(
     in_band &= usable
     bearing = np.arctan2(p_level[:, 1], p_level[:, 0])
     idx = sector_index(bearing)
-    in_band &= in_view[idx] | mem  # remembered points claim over 360° (DESIGN §7)
+    in_band &= in_view[idx] | mem  # remembered points claim over 360° (docs/derivations/sectors.md)
 
     r_cons = np.maximum(r - config.sigma_k * np.where(usable, sig, 0.0), 0.0)
     d_cons = d_h * (r_cons / r_safe)  # conservative horizontal range
@@ -505,7 +505,7 @@ def compute_sectors(
     inferred = _infer_between(state, dist, range_m, sigma_m, config)
     inferred |= _infer_narrow(state, dist, range_m, sigma_m, xy_m, config, ~inferred)
     if config.infer_vertical:
-        # a structure standing through the band (DESIGN §7: inference only adds obstacles): converged
+        # a structure standing through the band (docs/derivations/sectors.md: inference only adds obstacles): converged
         # points just above and just below it in one sector at consistent ranges; the nearer one is claimed
         off = height - d_h * math.tan(gamma)  # metres above the band centre
         lim = config.band_half_height_m if config.band_mode == "metres" else d_h * math.tan(math.radians(config.band_half_angle_deg))
@@ -534,7 +534,7 @@ def compute_sectors(
             inferred |= vert
 
     if config.cap_above_m > 0:
-        # a surface just above the band limits what the band may claim (DESIGN §7: only nearer, never
+        # a surface just above the band limits what the band may claim (docs/derivations/sectors.md: only nearer, never
         # "clear"): a thin pole whose in-band points did not range (or ranged the background through
         # a patch straddling its edge) but whose upper part did
         off = height - d_h * math.tan(gamma)
@@ -612,7 +612,7 @@ def _spread_remembered(p, p_level, sig, conv, usable, mem, r, mem_tan, n_live, c
     """Copies of each remembered point at bearings covering β ± k·σ_t/d (k = ``remembered_spread_k``,
     at most ``remembered_max_spread_deg``), turned about the levelled vertical through the vehicle (range and height unchanged).
     A point with k·σ_t/d beyond ``remembered_drop_spread_deg`` is marked unusable: spread over that
-    many sectors it would claim obstacles in the clear sectors beside a thin one (DESIGN §7)."""
+    many sectors it would claim obstacles in the clear sectors beside a thin one (docs/derivations/sectors.md)."""
     d_h = np.hypot(p_level[n_live:, 0], p_level[n_live:, 1])
     w_raw = config.remembered_spread_k * mem_tan / np.maximum(d_h, 1e-6)
     usable = usable.copy()
@@ -796,7 +796,7 @@ def unknown_sectors(config: SectorConfig = SectorConfig()) -> np.ndarray:
 
 
 def rotate_sectors(distances, yaw_change_rad: float, max_distance_cm: int, increment_deg: float = SECTOR_DEG) -> np.ndarray:
-    """Turn sector distances by the vehicle's yaw change since exposure (DESIGN §5).
+    """Turn sector distances by the vehicle's yaw change since exposure (docs/derivations/sectors.md).
 
     ``yaw_change_rad`` = yaw now − yaw at exposure (NED yaw, + = turned right).  An obstacle seen
     at bearing β is now at β − Δψ, so new sector ``i`` takes what old bearing ``i·inc + Δψ`` held.

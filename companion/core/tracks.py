@@ -1,4 +1,4 @@
-"""Feature tracks: Harris corners followed frame to frame by NCC (DESIGN.md §3.1–§3.2).
+"""Feature tracks: Harris corners followed frame to frame by NCC (seed 004, Harris corners and NCC matching).
 
 Every frame, each live track is searched for in the new frame with :func:`~companion.core.ncc.match_ncc`
 around a predicted pixel (from telemetry through the optional ``predict`` callable, see
@@ -19,7 +19,7 @@ unbiased at integer shifts (Lucas–Kanade on the two frames, see :mod:`companio
 the anchor observation (frame, time, pixel) is kept for the estimators, which need the longest
 baseline rather than the template.
 
-Scale (looming, DESIGN §7): every match of two consecutive frames also gets the patch's scale
+Scale (looming, docs/derivations/looming.md): every match of two consecutive frames also gets the patch's scale
 change s = size now / size in the previous frame and its σ from the matcher
 (:func:`~companion.core.ncc.estimate_scale`), reported per track in :class:`TrackFrame` (``scale``,
 ``scale_sigma``, NaN where not measured: new tracks, tracks matched from a stored template, flat or
@@ -155,7 +155,7 @@ class _TrackView(Mapping):
 
 
 class TrackManager:
-    """Harris + NCC tracker with bounded, id-stable tracks (DESIGN.md §3.1–§3.2)."""
+    """Harris + NCC tracker with bounded, id-stable tracks (seed 004, Harris corners and NCC matching)."""
 
     def __init__(self, camera: CameraModel, harris: HarrisConfig, ncc: NCCConfig, config: TrackConfig):
         require(

@@ -1,4 +1,4 @@
-"""Triangulation with explicit gates (DESIGN.md §3.3, seed 004 eq. 9–10).
+"""Triangulation with explicit gates (docs/derivations/triangulation.md, seed 004 eq. 9–10).
 
 Two views: rays ``p`` (camera 1) and ``p'`` (camera 2) in normalized coordinates (z = 1),
 ``R = R_cam1_cam2`` and ``t = C2 − C1`` expressed in camera 1.  The point satisfies

@@ -4,10 +4,10 @@
   holds and L1 waypoint following;
 * :class:`QuadSim` — the F450 (its own body-rate loop) with our attitude, velocity and position
   loops: take-off, hover, straight legs at up to 10 m/s that end at rest, hovers of a set time and
-  turns in place by a set angle at a waypoint (``RouteConfig.hold_s`` / ``turn_deg``, DESIGN.md
-  §6–§7), hold;
+  turns in place by a set angle at a waypoint (``RouteConfig.hold_s`` / ``turn_deg``,
+  docs/derivations/sectors.md), hold;
 * :class:`VehicleState` — ground truth in the world frame (local NED at the origin, body FRD,
-  ZYX roll/pitch/yaw; DESIGN.md §2);
+  ZYX roll/pitch/yaw; docs/derivations/frames.md);
 * config dataclasses (frozen, validated, fillable by ``companion.config.from_mapping``).
 
 Both vehicles advance in whole JSBSim frames (``sim_rate_hz``, 120 Hz by default) with

@@ -3,7 +3,7 @@
 All dataclasses are frozen and validate themselves (``require`` → :class:`ConfigError` naming the
 key), so :func:`companion.config.from_mapping` can fill them straight from a scenario TOML table.
 Units: metres, seconds, degrees where the name says ``_deg``; positions in the world frame (local
-NED at the origin, DESIGN.md §2).
+NED at the origin, docs/derivations/frames.md).
 """
 
 from __future__ import annotations
@@ -159,7 +159,7 @@ class RouteConfig:
     ``face_travel`` it first turns in place to face along the leg (forward camera).
 
     Quad only, per waypoint (one value per waypoint, or empty for none), the hovering and turning
-    in place where DESIGN.md §6–§7 say avoidance needs ranges most:
+    in place where docs/derivations/sectors.md says avoidance needs ranges most:
 
     * ``hold_s[i]`` — after arriving at waypoint i, hover there for this many seconds;
     * ``turn_deg[i]`` — then turn in place by this signed angle (positive = clockwise seen from

@@ -1,4 +1,4 @@
-"""WGS-84 geodetic <-> local NED about a fixed origin (DESIGN.md §2, world frame).
+"""WGS-84 geodetic <-> local NED about a fixed origin (docs/derivations/frames.md, world frame).
 
 The world frame of the simulator is the local tangent plane (north, east, down) at a geodetic
 origin: ``p_ned`` is the exact ECEF displacement from the origin rotated into that plane, so it is

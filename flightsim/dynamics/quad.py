@@ -11,7 +11,7 @@ Cascade (every ``QuadGains.control_rate_hz``):
 * reference: a queue of legs — turn to face the next leg, then a straight line with a trapezoidal
   speed profile (rest to rest); at a waypoint, optionally a hover of a set time and a turn in place
   by a set angle (``RouteConfig.hold_s`` / ``turn_deg``: hovering and turning in place are where
-  avoidance needs ranges most, DESIGN.md §6–§7) — giving position, velocity, acceleration and
+  avoidance needs ranges most, docs/derivations/sectors.md) — giving position, velocity, acceleration and
   heading references;
 * position P → velocity demand (+ reference velocity); velocity PI → acceleration demand
   (+ reference acceleration); acceleration → thrust vector → roll/pitch demand (tilt-limited) and
@@ -266,7 +266,7 @@ class QuadSim(JSBSimVehicle):
             self._start_next_leg(t, psi)
 
     def _fly_line_avoiding(self, act, t: float, psi: float, dt: float, p_ned, v_ned, v_des_prev) -> None:
-        """A straight leg flown as a pilot's velocity demand that the avoidance may limit (DESIGN §6).
+        """A straight leg flown as a pilot's velocity demand that the avoidance may limit (docs/derivations/sectors.md).
 
         With avoidance on, the leg is the pilot's intent (as a pilot pushing the stick towards the
         waypoint in Loiter, or a companion sending Guided velocity targets): the demand points from

@@ -1,4 +1,4 @@
-"""Ground-truth vehicle state in the project's frames (DESIGN.md §2)."""
+"""Ground-truth vehicle state in the project's frames (docs/derivations/frames.md)."""
 
 from __future__ import annotations
 

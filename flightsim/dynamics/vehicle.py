@@ -307,7 +307,7 @@ class JSBSimVehicle:
         return any(g() > 0.5 for g in self._g_wow)
 
     def state(self) -> VehicleState:
-        """Ground truth now, in the world frame (DESIGN.md §2).
+        """Ground truth now, in the world frame (docs/derivations/frames.md).
 
         Velocity and attitude, which JSBSim gives relative to the local level frame under the
         vehicle, are rotated into the world frame (the origin's tangent plane), so position,

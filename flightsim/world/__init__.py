@@ -9,7 +9,7 @@
   the check that a camera sees something;
 * :mod:`.textures`: the seeded procedural textures the renderer draws.
 
-Frames (DESIGN.md §2): world = local NED (z down, ground at z = −ground.altitude_m), body FRD,
+Frames (docs/derivations/frames.md): world = local NED (z down, ground at z = −ground.altitude_m), body FRD,
 camera OpenCV.
 """
 

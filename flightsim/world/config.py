@@ -1,7 +1,7 @@
 """World description: the ``configs/worlds/*.toml`` files as frozen, validated dataclasses.
 
 A world is a textured ground plane plus obstacles, all in the world frame (local NED at the
-origin, DESIGN.md §2; positions in metres, ``_ne_m`` = (north, east), heights measured up):
+origin, docs/derivations/frames.md; positions in metres, ``_ne_m`` = (north, east), heights measured up):
 
 * ``[[box]]`` — a building: an upright box on a rectangular footprint, turned by ``yaw_deg``;
 * ``[[cylinder]]`` — a vertical cylinder: a mast, a chimney, a tree trunk;

@@ -1,6 +1,6 @@
 """World geometry: obstacles as solids, vectorized ray casting, clearances and horizontal ranges.
 
-Frames (DESIGN.md §2): world = local NED (x north, y east, z down), metres.  Every obstacle is an
+Frames (docs/derivations/frames.md): world = local NED (x north, y east, z down), metres.  Every obstacle is an
 upright solid between ``z_top`` and ``z_base`` (NED, ``z_top < z_base``):
 
 * boxes, walls and targets are *oriented boxes*: centre, yaw ψ of their first local axis

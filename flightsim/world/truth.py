@@ -1,6 +1,6 @@
 """Ground truth per frame: OBSTACLE_DISTANCE sectors, target positions and ranges, camera checks.
 
-Sector convention (DESIGN.md §5, MAVLink OBSTACLE_DISTANCE with MAV_FRAME_BODY_FRD):
+Sector convention (docs/derivations/sectors.md, MAVLink OBSTACLE_DISTANCE with MAV_FRAME_BODY_FRD):
 72 sectors of 5°, sector ``i`` centred on the body bearing 5·i degrees clockwise from forward.
 Bearings are measured in the horizontal plane using the vehicle's yaw only (roll and pitch do
 not tilt the sectors): sector ``i`` looks along the world bearing ``yaw + 5·i°``.
@@ -19,7 +19,7 @@ direction of its centre bearing, from the camera centre at the camera's own heig
 the image (through the companion's camera model, distortion and mount included).  Sectors with
 nothing within ``max_distance_m`` are ``inf``.
 
-Scoring over 360° (issue 11 item 6; DESIGN.md §7: the local obstacle map publishes remembered
+Scoring over 360° (issue 11 item 6; docs/derivations/obstacle_map.md: the local obstacle map publishes remembered
 obstacles beside and behind the vehicle): :func:`sector_truth_360` gives the true distance of *all*
 72 sectors and the in-view mask separately, so claims outside the camera's view can be scored too.
 """
@@ -107,7 +107,8 @@ def sector_truth_360(
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(distance (72,), in_view (72,) bool)``: the true horizontal distance of every sector over
     360° (``inf`` where nothing lies within ``max_distance_m``; never NaN) and which sectors the
-    camera sees (all True when ``camera_config`` is None).  DESIGN.md §5 (sectors), §7 (360°)."""
+    camera sees (all True when ``camera_config`` is None).  docs/derivations/sectors.md (sectors),
+    docs/derivations/obstacle_map.md (360°)."""
     dist = sector_truth(world, R_world_body, p_world_body, None, max_distance_m, band_half_height_m=band_half_height_m)
     if camera_config is None:
         return dist, np.ones(N_SECTORS, bool)
