@@ -36,6 +36,17 @@ def wall(x=10.0, bearings_deg=range(-20, 21)):
     return np.stack([np.full(b.shape, x), x * np.tan(b), np.zeros(b.shape)], 1)
 
 
+def random_scenes(seed: int, n_scenes: int = 200, max_height: float = 8.0):
+    """Seeded random scenes for the only-adds / only-lowers Monte Carlo tests: (points, σ, converged)."""
+    rng = np.random.default_rng(seed)
+    for _ in range(n_scenes):
+        n = int(rng.integers(1, 40))
+        d = rng.uniform(1.0, 60.0, n)
+        b = rng.uniform(-0.6, 0.6, n)
+        h = rng.uniform(-max_height, max_height, n)
+        yield np.stack([d * np.cos(b), d * np.sin(b), h], 1), rng.uniform(0.05, 3.0, n), rng.random(n) < 0.8
+
+
 def test_fov_mask_forward_60deg():
     in_view, full = sector_view_masks(HFOV, 0.0)
     # sectors centred at −30…30° touch the 60° field of view; −25…25° lie entirely inside it
@@ -296,17 +307,9 @@ def test_vertical_span_ignores_the_ground_with_its_height_known():
 def test_vertical_span_only_ever_adds_obstacles_seeded():
     """Seeded Monte Carlo over random scenes: with ``infer_vertical`` on, no sector becomes clear or
     unknown that was an obstacle, none becomes clear that was not, and no claimed range grows."""
-    rng = np.random.default_rng(11)
     on = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0)
     off = SectorConfig()
-    for _ in range(200):
-        n = int(rng.integers(1, 40))
-        d = rng.uniform(1.0, 60.0, n)
-        b = rng.uniform(-0.6, 0.6, n)
-        h = rng.uniform(-8.0, 8.0, n)
-        pts = np.stack([d * np.cos(b), d * np.sin(b), h], 1)
-        sig = rng.uniform(0.05, 3.0, n)
-        conv = rng.random(n) < 0.8
+    for pts, sig, conv in random_scenes(11, max_height=8.0):
         a = run(pts, sigma=sig, converged=conv, config=off, ground_height_m=-5.0)
         v = run(pts, sigma=sig, converged=conv, config=on, ground_height_m=-5.0)
         was_obs = a.state == SectorState.OBSTACLE
@@ -366,17 +369,9 @@ def test_points_just_above_the_band_cap_what_the_sector_claims():
 def test_cap_above_only_ever_lowers_a_claim_seeded():
     """Seeded Monte Carlo: with ``cap_above_m`` on, an unknown sector stays unknown, nothing becomes clear,
     an obstacle's range never grows, and every changed sector is an inferred obstacle."""
-    rng = np.random.default_rng(12)
     on = SectorConfig(cap_above_m=2.5)
     off = SectorConfig()
-    for _ in range(200):
-        n = int(rng.integers(1, 40))
-        d = rng.uniform(1.0, 60.0, n)
-        b = rng.uniform(-0.6, 0.6, n)
-        h = rng.uniform(-6.0, 6.0, n)
-        pts = np.stack([d * np.cos(b), d * np.sin(b), h], 1)
-        sig = rng.uniform(0.05, 3.0, n)
-        conv = rng.random(n) < 0.8
+    for pts, sig, conv in random_scenes(12, max_height=6.0):
         a = run(pts, sigma=sig, converged=conv, config=off)
         v = run(pts, sigma=sig, converged=conv, config=on)
         assert np.all(v.state[a.state == SectorState.UNKNOWN] == SectorState.UNKNOWN)
@@ -411,17 +406,9 @@ def test_one_sided_vertical_structure_claims_a_pole_standing_on_the_ground():
 
 def test_one_sided_vertical_structure_only_ever_adds_obstacles_seeded():
     """Seeded Monte Carlo as for the two-sided rule: nothing becomes clear or unknown, no claim grows."""
-    rng = np.random.default_rng(13)
     on = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0, infer_vertical_one_side=True, infer_vertical_reach_m=2.5)
     off = SectorConfig()
-    for _ in range(200):
-        n = int(rng.integers(1, 40))
-        d = rng.uniform(1.0, 60.0, n)
-        b = rng.uniform(-0.6, 0.6, n)
-        h = rng.uniform(-8.0, 8.0, n)
-        pts = np.stack([d * np.cos(b), d * np.sin(b), h], 1)
-        sig = rng.uniform(0.05, 3.0, n)
-        conv = rng.random(n) < 0.8
+    for pts, sig, conv in random_scenes(13, max_height=8.0):
         a = run(pts, sigma=sig, converged=conv, config=off, ground_height_m=-5.0)
         v = run(pts, sigma=sig, converged=conv, config=on, ground_height_m=-5.0)
         was_obs = a.state == SectorState.OBSTACLE

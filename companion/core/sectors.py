@@ -446,8 +446,10 @@ def compute_sectors(
     if ground_known and config.ground_margin_m > 0:  # the ground is not an obstacle for horizontal avoidance
         usable &= height >= ground_height_m + config.ground_margin_m
     r_safe = np.where(usable, r, 1.0)
+    off = height - d_h * math.tan(gamma)  # metres above the band centre (the flight path)
+    lim = config.band_half_height_m if config.band_mode == "metres" else d_h * math.tan(math.radians(config.band_half_angle_deg))
     if config.band_mode == "metres":
-        in_band = np.abs(height - d_h * math.tan(gamma)) <= config.band_half_height_m
+        in_band = np.abs(off) <= lim
     else:
         elev = np.arctan2(height, d_h)
         in_band = np.abs(elev - gamma) <= math.radians(config.band_half_angle_deg)
@@ -507,53 +509,30 @@ def compute_sectors(
     if config.infer_vertical:
         # a structure standing through the band (docs/derivations/sectors.md: inference only adds obstacles): converged
         # points just above and just below it in one sector at consistent ranges; the nearer one is claimed
-        off = height - d_h * math.tan(gamma)  # metres above the band centre
-        lim = config.band_half_height_m if config.band_mode == "metres" else d_h * math.tan(math.radians(config.band_half_angle_deg))
         win = config.infer_vertical_window_m
         span = usable & conv & near & (in_view[idx] | mem)
         above, below = span & (off > lim) & (off <= lim + win), span & (off < -lim) & (off >= -lim - win)
         if ground_known:  # the ground itself is no evidence
             below &= height >= ground_height_m + config.infer_vertical_ground_margin_m
-        vpick = _infer_vertical(idx, d_cons, above, below, config.infer_rel_tol)
+        cand = _infer_vertical(idx, d_cons, above, below, config.infer_rel_tol)
         if config.infer_vertical_one_side:
-            one = _infer_vertical_one_side(idx, d_cons, above, off - lim, config.infer_rel_tol,
-                                           config.infer_vertical_min_extent_m, config.infer_vertical_reach_m)
-            if np.any(one >= 0):
-                take = (one >= 0) & ((vpick < 0) | (d_cons[np.maximum(one, 0)] < d_cons[np.maximum(vpick, 0)]))
-                vpick = np.where(take, one, vpick)
+            cand = np.concatenate([cand, _infer_vertical_one_side(idx, d_cons, above, off - lim, config.infer_rel_tol,
+                                                                  config.infer_vertical_min_extent_m, config.infer_vertical_reach_m)])
+        vpick = _nearest_per_sector(idx, d_cons, cand)  # two-sided pairs first: they win ties
         vert = vpick >= 0
         vert[vert] &= ~has_obs[vert] | (d_pub[vpick[vert]] < range_m[vert])
-        if np.any(vert):
-            pts = vpick[vert]
-            state[vert] = SectorState.OBSTACLE
-            dist[vert] = pt_cm[pts]
-            range_m[vert] = d_pub[pts]
-            sigma_m[vert] = sig[pts]
-            pick = pick.copy()
-            pick[vert] = pts
-            inferred |= vert
+        pick = _claim_inferred(vert, vpick, state, dist, range_m, sigma_m, pick, inferred, pt_cm, d_pub, sig)
 
     if config.cap_above_m > 0:
         # a surface just above the band limits what the band may claim (docs/derivations/sectors.md: only nearer, never
         # "clear"): a thin pole whose in-band points did not range (or ranged the background through
         # a patch straddling its edge) but whose upper part did
-        off = height - d_h * math.tan(gamma)
-        lim = config.band_half_height_m if config.band_mode == "metres" else d_h * math.tan(math.radians(config.band_half_angle_deg))
         cap_pts = np.flatnonzero(usable & conv & near & (in_view[idx] | mem) & (off > lim) & (off <= lim + config.cap_above_m))
         if cap_pts.size:
             cap = SectorRanking(idx[cap_pts], d_cons[cap_pts], ids=cap_pts).nth(1)
-            claimed = (state == SectorState.CLEAR) | (state == SectorState.OBSTACLE)
-            capped = (cap >= 0) & claimed
+            capped = (cap >= 0) & ((state == SectorState.CLEAR) | (state == SectorState.OBSTACLE))
             capped[capped] &= (state[capped] == SectorState.CLEAR) | (d_pub[cap[capped]] < range_m[capped])
-            if np.any(capped):
-                pts = cap[capped]
-                state[capped] = SectorState.OBSTACLE
-                dist[capped] = pt_cm[pts]
-                range_m[capped] = d_pub[pts]
-                sigma_m[capped] = sig[pts]
-                pick = pick.copy()
-                pick[capped] = pts
-                inferred |= capped
+            pick = _claim_inferred(capped, cap, state, dist, range_m, sigma_m, pick, inferred, pt_cm, d_pub, sig)
 
     # ---- forward window (DISTANCE_SENSOR) ------------------------------------------------------
     centres = np.arange(SECTOR_COUNT) * SECTOR_DEG
@@ -672,33 +651,52 @@ def _infer_between(state, dist, range_m, sigma_m, config: SectorConfig) -> np.nd
 
 
 def _infer_vertical(idx: np.ndarray, d_cons: np.ndarray, above: np.ndarray, below: np.ndarray, rel_tol: float) -> np.ndarray:
-    """(72,) index of the point a sector claims from a vertical span, −1 where none: the nearer point of
-    the nearest pair, one point above the band and one below it in the same sector, whose conservative
+    """Candidate points (indices) a sector may claim from a vertical span: the nearer point of each
+    pair, one point above the band and one below it in the same sector, whose conservative
     horizontal ranges differ by at most ``rel_tol`` of the nearer (a pole, mast or trunk whose points in
     the band itself were not ranged: an 11 px template on a pole a few px wide in front of a textured
     background mixes two depths).  Only ever adds an obstacle."""
-    out = np.full(SECTOR_COUNT, -1, np.int64)
     both = (np.bincount(idx[above], minlength=SECTOR_COUNT) > 0) & (np.bincount(idx[below], minlength=SECTOR_COUNT) > 0)
     a = np.flatnonzero(above & both[idx])  # only sectors with points on both sides
     b = np.flatnonzero(below & both[idx])
-    if a.size == 0:
-        return out
     da, db = d_cons[a][:, None], d_cons[b][None, :]
     ia, ib = np.nonzero((idx[a][:, None] == idx[b][None, :]) & (np.abs(da - db) <= rel_tol * np.minimum(da, db)))
-    if ia.size == 0:
+    return np.where(d_cons[a[ia]] <= d_cons[b[ib]], a[ia], b[ib])  # the nearer point of each agreeing pair
+
+
+def _nearest_per_sector(idx: np.ndarray, d_cons: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """(72,) the nearest of candidate points ``pts`` in each sector, −1 where none (stable: the first
+    candidate wins ties)."""
+    out = np.full(SECTOR_COUNT, -1, np.int64)
+    if pts.size == 0:
         return out
-    pts = np.where(d_cons[a[ia]] <= d_cons[b[ib]], a[ia], b[ib])  # the nearer point of each agreeing pair
-    order = np.lexsort((d_cons[pts], idx[pts]))  # by sector, then range (stable: the first such pair wins ties)
+    order = np.lexsort((d_cons[pts], idx[pts]))  # by sector, then range
     sec = idx[pts[order]]
     first = np.r_[True, sec[1:] != sec[:-1]]
     out[sec[first]] = pts[order][first]
     return out
 
 
+def _claim_inferred(mask, point_of, state, dist, range_m, sigma_m, pick, inferred, pt_cm, d_pub, sig) -> np.ndarray:
+    """Sectors ``mask`` become inferred obstacles at their points ``point_of[mask]`` (``state``, ``dist``,
+    ``range_m``, ``sigma_m`` and ``inferred`` updated in place); returns ``pick`` with those points."""
+    if not np.any(mask):
+        return pick
+    pts = point_of[mask]
+    state[mask] = SectorState.OBSTACLE
+    dist[mask] = pt_cm[pts]
+    range_m[mask] = d_pub[pts]
+    sigma_m[mask] = sig[pts]
+    inferred |= mask
+    pick = pick.copy()
+    pick[mask] = pts
+    return pick
+
+
 def _infer_vertical_one_side(idx: np.ndarray, d_cons: np.ndarray, above: np.ndarray, over: np.ndarray, rel_tol: float,
                              min_extent: float, reach: float) -> np.ndarray:
-    """(72,) index of the point a sector claims from a vertical structure standing above the band, −1
-    where none: the nearer point of the nearest pair of points in ``above`` (in one sector) whose
+    """Candidate points (indices) a sector may claim from a vertical structure standing above the band:
+    the nearer point of each pair of points in ``above`` (in one sector) whose
     conservative horizontal ranges agree within ``rel_tol`` of the nearer, whose heights differ by at
     least ``min_extent`` (``over``: metres above the band's upper edge) and of which the lower lies within
     ``reach`` of the edge.  A pole standing on the ground shows its upper part against the sky while its
@@ -707,27 +705,15 @@ def _infer_vertical_one_side(idx: np.ndarray, d_cons: np.ndarray, above: np.ndar
     taken to stand through it.  Only ever adds an obstacle; an overhead structure whose face is that tall
     that low over the path (a bridge deck, a low canopy) is claimed too: a stop where there may be a way
     under it."""
-    out = np.full(SECTOR_COUNT, -1, np.int64)
     a = np.flatnonzero(above)
-    if a.size < 2:
-        return out
     a = a[np.bincount(idx[a], minlength=SECTOR_COUNT)[idx[a]] >= 2]  # sectors with two such points
-    if a.size < 2:
-        return out
     da, ha = d_cons[a], over[a]
     pair = (idx[a][:, None] == idx[a][None, :]) & (np.arange(a.size)[:, None] < np.arange(a.size)[None, :])
     pair &= np.abs(da[:, None] - da[None, :]) <= rel_tol * np.minimum(da[:, None], da[None, :])
     pair &= np.abs(ha[:, None] - ha[None, :]) >= min_extent
     pair &= np.minimum(ha[:, None], ha[None, :]) <= reach
     ia, ib = np.nonzero(pair)
-    if ia.size == 0:
-        return out
-    pts = np.where(da[ia] <= da[ib], a[ia], a[ib])  # the nearer point of each qualifying pair
-    order = np.lexsort((d_cons[pts], idx[pts]))  # by sector, then range
-    sec = idx[pts[order]]
-    first = np.r_[True, sec[1:] != sec[:-1]]
-    out[sec[first]] = pts[order][first]
-    return out
+    return np.where(da[ia] <= da[ib], a[ia], a[ib])  # the nearer point of each qualifying pair
 
 
 def _line_distance(a: np.ndarray, b: np.ndarray, bearing: np.ndarray) -> np.ndarray:
