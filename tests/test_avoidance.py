@@ -518,3 +518,27 @@ def test_stop_clearance_sweeps_the_bodys_width():
     # 1 m beside it the body passes: the hall behind is what it meets
     d, name = _ahead_clearance(world, np.array([27.0, -1.0, -5.0]), np.array([1.0, 0.0, 0.0]), F450_RADIUS_M)
     assert "hall" in name
+
+
+def test_released_after_a_hold_the_quad_never_flies_faster_than_the_demand():
+    """Stop-go (an autopilot holding, then letting the pilot's 6 m/s through, again and again): a
+    position controller catching up with its own reference must not push the vehicle past what the
+    avoidance let through (before: 1.6x the demand after a few cycles)."""
+    from flightsim.fly import Flight
+    from flightsim.scenario import load_scenario
+
+    class StopGo:
+        def limit(self, t, p_ned, v_ned, yaw, v_des):
+            return (0.0, 0.0, v_des[2]) if int(t / 1.5) % 2 else tuple(v_des)
+
+    sc = load_scenario(WALL6, avoidance="ardupilot")
+    sc = dataclasses.replace(sc, meta=dataclasses.replace(sc.meta, duration_s=16.0))
+    fl = Flight(sc)
+    fl.vehicle.avoidance = StopGo()
+    v_max_h, v_cmd_max_h = 0.0, 0.0
+    while (st := fl.physics_step()) is not None:
+        if st.time_s > 4.0:  # after the climb
+            v_max_h = max(v_max_h, float(np.hypot(st.v_ned[0], st.v_ned[1])))
+            v_cmd_max_h = max(v_cmd_max_h, float(np.hypot(*fl.vehicle.v_cmd[:2])))
+    assert v_cmd_max_h == pytest.approx(6.0, abs=0.05)
+    assert v_max_h <= 1.08 * v_cmd_max_h, (v_max_h, v_cmd_max_h)
