@@ -7,10 +7,10 @@ RUNS ?= 200
 .PHONY: demo test bench clean
 
 # (Re)create the virtual environment whenever pyproject.toml changes.
-$(VENV): pyproject.toml
+$(VENV): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --upgrade pip
-	$(BIN)/python -m pip install -e '.[dev]'
+	$(BIN)/python -m pip install -e '.[dev,sim,gcs]'
 	touch $(VENV)
 
 # Main job, the closed loop: the quad is commanded at 6 m/s through a textured wall in JSBSim; the

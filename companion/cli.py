@@ -159,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _common(sp) -> None:
-    sp.add_argument("--config", metavar="TOML", help="companion configuration (e.g. configs/companion.toml); default: built-in values")
+    sp.add_argument("--config", metavar="TOML", help="companion configuration TOML (a full file, or an overlay: extends = \"companion.toml\" plus the keys it changes); default: the shipped configs/companion.toml")
     sp.add_argument("--calibration", metavar="YAML", help="OpenCV calibration file (camera_matrix, distortion_coefficients); "
                                                           "replaces the intrinsics of [camera]")
     sp.add_argument("--log-level", default="INFO", type=str.upper,
@@ -181,16 +181,12 @@ class RunConfig:
 
 
 def load_config(path: str | None, calibration: str | None = None, camera_config: str | None = None) -> RunConfig:
-    """The whole :class:`CompanionConfig` from ``path`` (defaults when None), with the camera
-    replaced by a flightsim ``camera.toml`` and/or an OpenCV calibration file when given."""
+    """The whole :class:`CompanionConfig` from ``path`` (the shipped ``companion.toml`` when None),
+    with the camera replaced by a flightsim ``camera.toml`` and/or an OpenCV calibration file when given."""
     from companion.config import from_mapping
-    from companion.io.config_files import CompanionConfig, load_opencv_calibration, read_toml
+    from companion.io.config_files import load_companion_config, load_opencv_calibration, read_toml
 
-    data = read_toml(path) if path else {}
-    try:
-        cfg = from_mapping(CompanionConfig, data, "")
-    except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}" if path else str(exc)) from None
+    cfg = load_companion_config(path or None)
     if camera_config:
         cam_data = read_toml(camera_config)
         if "camera" not in cam_data:
@@ -307,6 +303,14 @@ def cmd_run(args) -> int:
 
 
 # ---------------------------------------------------------------------- replay ------------------
+def _installed(module: str) -> bool:
+    """True when ``module`` can be imported: the optional extras (matplotlib, rich) are not on
+    the onboard install."""
+    import importlib.util
+
+    return importlib.util.find_spec(module) is not None
+
+
 class _Progress:
     def __init__(self, enabled: bool, label: str):
         self.enabled = enabled
@@ -315,7 +319,7 @@ class _Progress:
         self._task = None
 
     def __enter__(self):
-        if self.enabled:
+        if self.enabled and _installed("rich"):
             from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
             self._p = Progress(TextColumn(self.label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True)
@@ -356,6 +360,11 @@ def cmd_replay(args) -> int:
             log.info("using the camera of %s (next to the video); --camera-config overrides", beside)
     if args.no_plot:
         args.plot = None
+    elif not _installed("matplotlib"):  # the onboard install has no plotting (the `sim` extra brings it)
+        if args.plot is not None:
+            raise ConfigError(f"--plot {args.plot}: plotting needs matplotlib (pip install 'monorange[sim]'), "
+                              "or leave out --plot")
+        log.info("no plot: matplotlib is not installed (pip install 'monorange[sim]')")
     elif args.plot is None:
         args.plot = str(out.with_suffix(".png"))
     truth = args.truth
@@ -389,6 +398,8 @@ def cmd_replay(args) -> int:
 
 # ---------------------------------------------------------------------- monitor -----------------
 def cmd_monitor(args) -> int:
+    if not args.json and not _installed("rich"):
+        raise ConfigError("companion monitor's view needs rich (pip install 'monorange[gcs]'); --json works without it")
     from companion.monitor import cmd_monitor as run
 
     check_connection_string("CONN", args.conn)

@@ -74,7 +74,7 @@ def cmd_sitl(args) -> int:
     from flightsim.sitl import SitlConfig, run_sitl
 
     cfg = SitlConfig(processing_ms=args.processing_ms, connect_timeout_s=args.connect_timeout)
-    # --config, else the scenario's [scenario] companion_config, else (None) run_sitl's configs/companion.toml
+    # --config, else the scenario's [scenario] companion_config, else (None) the shipped configs/companion.toml
     companion_config = default_companion_config(args.scenario, args.config)
     log.info("SITL %s (%s clock) into %s, companion config %s", args.scenario, args.clock, args.out,
              companion_config or "configs/companion.toml")
@@ -251,6 +251,14 @@ def cmd_campaign(args) -> int:
     return campaign_from_args(args)
 
 
+def missing_sim_modules() -> list[str]:
+    """The simulator's own dependencies (the ``sim`` extra) that are not installed: the companion's
+    onboard install ships flightsim's code but not JSBSim, matplotlib or rich."""
+    import importlib.util
+
+    return [m for m in ("jsbsim", "matplotlib", "rich") if importlib.util.find_spec(m) is None]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
         prog="flightsim",
@@ -295,7 +303,7 @@ def main(argv=None) -> int:
     q.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep", help="lockstep (default) or realtime")
     q.add_argument("--config", metavar="TOML", default=None,
                    help="companion configuration (default: the scenario's [scenario] companion_config, else "
-                        "configs/companion.toml of this repository)")
+                        "the shipped configs/companion.toml)")
     q.add_argument("--attach", action="store_true",
                    help="do not start the companion: print the command line to run and wait for it to connect")
     q.add_argument("--video", action="store_true", help="also write video.avi (MJPG)")
@@ -352,7 +360,7 @@ def main(argv=None) -> int:
     p.add_argument("--seed0", type=int, default=None, help="first seed (default: the scenario's [scenario] seed)")
     p.add_argument("--companion-config", default=None,
                    help="companion TOML for the runs and for undoing k·σ (default: the scenario's [scenario] "
-                        "companion_config, else configs/companion.toml if present)")
+                        "companion_config, else the shipped configs/companion.toml)")
     p.add_argument("--score-config", default=None, help="TOML with a [score] table (default: built-in defaults)")
     p.add_argument("--fixed-processing-ms", type=float, default=30.0,
                    help="processing time per frame, ms: replay stamps it on every frame, SITL lockstep advances the "
@@ -375,6 +383,11 @@ def main(argv=None) -> int:
                                                              "the seed reproduces it)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    missing = missing_sim_modules()
+    if missing:
+        print(f"flightsim: the simulator needs the 'sim' extra ({', '.join(missing)} not installed): "
+              "pip install 'monorange[sim]'", file=sys.stderr)
+        return 2
     try:
         if args.cmd == "fly":
             return cmd_fly(args)

@@ -43,7 +43,7 @@ from companion.config import from_mapping, require, require_finite
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.frames import euler_zyx_to_R
 from companion.errors import ConfigError
-from companion.io.config_files import read_toml
+from companion.io.config_files import read_toml, shipped_config
 from flightsim.avoidance import AvoidanceConfig
 from flightsim.dynamics import DynamicsConfig
 from flightsim.render import RenderOptions
@@ -52,8 +52,8 @@ from flightsim.world import World, check_camera_sees_something, load_world
 
 
 EPOCH_2026 = 1_767_225_600.0  # 2026-01-01T00:00:00Z
-#: the companion configuration of this repository: what a run uses when neither the user nor the scenario names one
-DEFAULT_COMPANION_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "companion.toml"
+#: the shipped companion configuration: what a run uses when neither the user nor the scenario names one
+DEFAULT_COMPANION_CONFIG = shipped_config("companion.toml")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -179,14 +179,11 @@ def default_companion_config(scenario_path: str | os.PathLike, given: str | os.P
 
 def resolve_companion_config(sc: Scenario, given: str | os.PathLike | None = None) -> Path | None:
     """The companion TOML a run of ``sc`` uses: ``given`` (the user's option), else the scenario's
-    ``[scenario] companion_config``, else :data:`DEFAULT_COMPANION_CONFIG` if present, else None
-    (the companion's built-in defaults).  The one place this chain lives (sitl, campaign)."""
+    ``[scenario] companion_config``, else the shipped :data:`DEFAULT_COMPANION_CONFIG`.  The one
+    place this chain lives (sitl, campaign)."""
     if given is not None:
         return Path(given)
-    found = sc.companion_config_path
-    if found is None and DEFAULT_COMPANION_CONFIG.is_file():
-        found = DEFAULT_COMPANION_CONFIG
-    return found
+    return sc.companion_config_path or DEFAULT_COMPANION_CONFIG
 
 
 def set_path_key(text: str, key: str, value: str) -> tuple[str, str | None]:

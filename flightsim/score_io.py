@@ -180,12 +180,9 @@ def companion_score_params(companion_config) -> dict:
     """``sigma_k`` and ``quality_zero_rel_sigma`` of a companion config (a CompanionConfig or a TOML path)."""
     cfg = companion_config
     if isinstance(cfg, (str, Path)):
-        from companion.io.config_files import CompanionConfig, read_toml
+        from companion.io.config_files import load_companion_config
 
-        try:
-            cfg = from_mapping(CompanionConfig, read_toml(cfg), "")
-        except ConfigError as exc:
-            raise ConfigError(f"{companion_config}: {exc}") from None
+        cfg = load_companion_config(cfg)
     return {"sigma_k": float(cfg.sectors.sigma_k), "quality_zero_rel_sigma": float(cfg.outputs.quality_zero_rel_sigma)}
 
 

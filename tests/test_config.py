@@ -87,3 +87,64 @@ def test_opencv_calibration_import(tmp_path):
     bad.write_text("%YAML:1.0\n---\nfoo: 1\n")
     with pytest.raises(ConfigError, match="camera_matrix"):
         load_opencv_calibration(bad)
+
+
+# ------------------------------------------------------------------ shipped configuration, overlays
+def _fields(cfg):
+    import dataclasses
+
+    return {(t.name, f.name): getattr(getattr(cfg, t.name), f.name)
+            for t in dataclasses.fields(cfg) for f in dataclasses.fields(getattr(cfg, t.name))}
+
+
+def test_no_config_means_the_shipped_file():
+    from companion.cli import load_config
+    from companion.io.config_files import shipped_config, shipped_config_dir
+
+    assert shipped_config_dir() == ROOT / "configs"  # a source checkout: the repository's files (the wheel maps them in)
+    assert shipped_config() == ROOT / "configs" / "companion.toml"
+    shipped = load_companion_config(ROOT / "configs" / "companion.toml")
+    assert load_companion_config() == shipped
+    assert load_config(None).companion == shipped  # what `companion run/replay` use without --config
+    # the modules' own defaults are a neutral baseline, not what a command runs with
+    assert CompanionConfig() != shipped
+
+
+def test_overlay_names_only_what_it_changes(tmp_path):
+    base = load_companion_config(ROOT / "configs" / "companion.toml")
+    fw = load_companion_config(ROOT / "configs" / "companion_fixedwing.toml")
+    changed = {k for k, v in _fields(fw).items() if _fields(base)[k] != v}
+    import tomllib
+
+    data = tomllib.loads((ROOT / "configs" / "companion_fixedwing.toml").read_text())
+    named = {(t, k) for t, table in data.items() if isinstance(table, dict) for k in table}
+    assert data["extends"] == "companion.toml"
+    assert changed == named, "the overlay should name exactly the keys it changes"
+    assert fw.sectors.max_distance_m == 150.0 and fw.sectors.band_half_height_m == 5.0
+    assert fw.harris == base.harris  # everything else comes from the base
+
+
+def test_overlay_resolution_merge_loops_and_errors(tmp_path):
+    (tmp_path / "mine.toml").write_text('extends = "companion.toml"  # shipped (no such file here)\n'
+                                        "[sectors]\nmax_distance_m = 25.0  # x\n")
+    cfg = load_companion_config(tmp_path / "mine.toml")
+    shipped = load_companion_config()
+    assert cfg.sectors.max_distance_m == 25.0 and cfg.sectors.band_half_height_m == shipped.sectors.band_half_height_m
+    # a base next to the overlay wins over the shipped file of that name, and chains stack
+    (tmp_path / "companion.toml").write_text('extends = "companion.toml"  # itself: the shipped one\n'
+                                             "[harris]\nk = 0.05  # x\n")
+    cfg = load_companion_config(tmp_path / "mine.toml")
+    assert cfg.harris.k == 0.05 and cfg.sectors.max_distance_m == 25.0
+    (tmp_path / "a.toml").write_text('extends = "b.toml"\n')
+    (tmp_path / "b.toml").write_text('extends = "a.toml"\n')
+    with pytest.raises(ConfigError, match="levels of extends"):
+        load_companion_config(tmp_path / "a.toml")
+    (tmp_path / "c.toml").write_text('extends = "nowhere.toml"\n')
+    with pytest.raises(ConfigError, match="nowhere.toml"):
+        load_companion_config(tmp_path / "c.toml")
+    (tmp_path / "d.toml").write_text("extends = 3\n")
+    with pytest.raises(ConfigError, match="extends must name"):
+        load_companion_config(tmp_path / "d.toml")
+    (tmp_path / "e.toml").write_text('extends = "companion.toml"\n[sectors]\nmax_distance = 1.0\n')
+    with pytest.raises(ConfigError, match="e.toml.*max_distance"):
+        load_companion_config(tmp_path / "e.toml")

@@ -61,6 +61,59 @@ class CompanionConfig:
     pipeline: PipelineConfig = PipelineConfig()
 
 
+#: the most overlays one configuration may stack (``extends`` chains); a loop stops here with a ConfigError
+MAX_EXTENDS_DEPTH = 8
+
+
+def shipped_config_dir() -> Path:
+    """The configuration files shipped with the package (``companion.toml``, its overlays, the
+    simulator's scenarios and worlds).  In an installed wheel they are package data
+    (``companion/configs/``); in a source checkout (an editable install, the tests) they are the
+    repository's ``configs/`` — the same files: the wheel maps that directory into the package."""
+    here = Path(__file__).resolve().parents[1]  # the companion package
+    for candidate in (here / "configs", here.parent / "configs"):
+        if (candidate / "companion.toml").is_file():
+            return candidate
+    raise ConfigError(f"the shipped configuration is missing (looked in {here / 'configs'} and {here.parent / 'configs'}): "
+                      "reinstall the package")
+
+
+def shipped_config(name: str = "companion.toml") -> Path:
+    """Path of one shipped configuration file, e.g. ``companion.toml`` or ``companion_fixedwing.toml``."""
+    path = shipped_config_dir() / name
+    if not path.is_file():
+        raise ConfigError(f"no shipped configuration named {name!r} in {shipped_config_dir()}")
+    return path
+
+
+def _merge(base: dict, overlay: dict) -> dict:
+    """``overlay`` on top of ``base``: tables merge key by key, any other value replaces."""
+    out = dict(base)
+    for key, value in overlay.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def read_config_toml(path: str | os.PathLike, _depth: int = 0) -> dict:
+    """A companion TOML with its ``extends`` chain resolved: a file whose top-level ``extends``
+    names another (relative to the file, else a shipped configuration of that name) holds only what
+    it changes, merged table by table over that base.  ``configs/companion_fixedwing.toml`` is
+    ``extends = "companion.toml"`` plus the keys a fixed-wing needs."""
+    path = Path(path)
+    data = read_toml(path)
+    base_name = data.pop("extends", None)
+    if base_name is None:
+        return data
+    if not isinstance(base_name, str) or not base_name:
+        raise ConfigError(f"{path}: extends must name a TOML file, got {base_name!r}")
+    if _depth >= MAX_EXTENDS_DEPTH:
+        raise ConfigError(f"{path}: more than {MAX_EXTENDS_DEPTH} levels of extends (a loop?)")
+    base_path = path.parent / base_name
+    if not base_path.is_file() or base_path.resolve() == path.resolve():  # a file named like its base extends the shipped one
+        base_path = shipped_config(Path(base_name).name)
+    return _merge(read_config_toml(base_path, _depth + 1), data)
+
+
 def read_toml(path: str | os.PathLike, what: str = "configuration") -> dict:
     """Parse a TOML file; a missing file or a syntax error becomes a ConfigError naming the file
     (``what``: the kind of file in the message, e.g. "scenario", "world")."""
@@ -74,9 +127,14 @@ def read_toml(path: str | os.PathLike, what: str = "configuration") -> dict:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
 
 
-def load_companion_config(path: str | os.PathLike) -> CompanionConfig:
-    """Load and validate the whole companion configuration."""
-    data = read_toml(path)
+def load_companion_config(path: str | os.PathLike | None = None) -> CompanionConfig:
+    """Load and validate the whole companion configuration: ``path`` (overlays resolved, see
+    :func:`read_config_toml`), or the shipped ``companion.toml`` when None.  Every command that
+    runs the companion loads its configuration here, so "no --config" means exactly the shipped
+    file.  (The dataclasses' own defaults are each module's neutral baseline, with the optional
+    rules off, for library use and unit tests; they are not what a command runs with.)"""
+    path = shipped_config() if path is None else Path(path)
+    data = read_config_toml(path)
     try:
         return from_mapping(CompanionConfig, data, "")
     except ConfigError as exc:
