@@ -542,3 +542,29 @@ def test_released_after_a_hold_the_quad_never_flies_faster_than_the_demand():
             v_cmd_max_h = max(v_cmd_max_h, float(np.hypot(*fl.vehicle.v_cmd[:2])))
     assert v_cmd_max_h == pytest.approx(6.0, abs=0.05)
     assert v_max_h <= 1.08 * v_cmd_max_h, (v_max_h, v_cmd_max_h)
+
+
+def test_held_by_the_avoidance_the_quad_stays_where_it_stopped():
+    """Held at zero demand after flying at 6 m/s, the quad brakes and then holds its position (the
+    position controller's hold, not a creep on the velocity loop's wound-up integrator)."""
+    from flightsim.fly import Flight
+    from flightsim.scenario import load_scenario
+
+    class HoldAfter:
+        def limit(self, t, p_ned, v_ned, yaw, v_des):
+            return tuple(v_des) if t < 9.0 else (0.0, 0.0, v_des[2])
+
+    sc = load_scenario(WALL6, avoidance="ardupilot")
+    sc = dataclasses.replace(sc, meta=dataclasses.replace(sc.meta, duration_s=18.0))
+    fl = Flight(sc)
+    fl.vehicle.avoidance = HoldAfter()
+    at, far = {}, 0.0
+    while (st := fl.physics_step()) is not None:
+        far = max(far, float(st.p_ned[0]))
+        for mark in (9.0, 15.5, 18.0):
+            if mark not in at and st.time_s >= mark - 1e-9:
+                at[mark] = (np.array(st.p_ned[:2], float), float(np.hypot(st.v_ned[0], st.v_ned[1])))
+    assert at[9.0][1] > 4.0  # it was flying
+    assert far - at[9.0][0][0] < 7.0  # braking from 6 m/s at the tilt limit (overshoot included)
+    assert at[15.5][1] < 0.1 and at[18.0][1] < 0.05  # stopped ...
+    assert np.linalg.norm(at[18.0][0] - at[15.5][0]) < 0.1  # ... and stays there (no creep)

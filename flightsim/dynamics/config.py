@@ -122,6 +122,10 @@ class QuadGains:
     control_rate_hz: float = 120.0
     pos_kp: float = 1.0  #: velocity (m/s) per metre of position error
     max_pos_correction_mps: float = 3.0
+    #: on a leg flown with avoidance, while the avoidance lets the vehicle move on: the reference runs at
+    #: most this far ahead of the vehicle along the pilot's demand (so the velocity demand exceeds the
+    #: avoidance's output by at most pos_kp × this), m
+    avoid_leash_m: float = 0.3
     vel_kp_xy: float = 1.8  #: acceleration (m/s²) per m/s of horizontal velocity error
     vel_ki_xy: float = 0.4
     vel_kp_z: float = 3.0

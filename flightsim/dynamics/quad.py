@@ -95,7 +95,7 @@ class QuadSim(JSBSimVehicle):
         self.avoidance = None
         self.v_des = (0.0, 0.0, 0.0)  # the pilot's velocity demand of the last control tick (avoidance on), NED m/s
         self.v_cmd = (0.0, 0.0, 0.0)  # ... and what the avoidance let through
-        self._v_cap_h: float | None = None  # horizontal speed the controller may demand this tick (avoidance legs)
+        self._u_h: tuple[float, float] | None = None  # horizontal unit vector of the pilot's demand this tick (avoidance legs)
         if c.route.waypoints:
             self.set_route(c.route)
 
@@ -223,7 +223,7 @@ class QuadSim(JSBSimVehicle):
     def _update_reference(self, t: float, psi: float, dt: float, p_ned, v_ned) -> None:
         v_des_prev = self.v_des
         self.v_des = self.v_cmd = (0.0, 0.0, 0.0)  # no demand outside a leg flown with avoidance
-        self._v_cap_h = None
+        self._u_h = None
         if self._active is None and self._legs:
             self._start_next_leg(t, psi)
         act = self._active
@@ -279,12 +279,12 @@ class QuadSim(JSBSimVehicle):
         ends only when the waypoint is reached (at rest within 5 cm).  The reference velocity follows
         the limited demand at up to the tilt-limited acceleration (a braking demand is not softened).
 
-        The position controller works for the limited demand, not against it: its horizontal velocity
-        demand (reference velocity + position correction) never exceeds the speed the avoidance let
-        through, and the reference is kept within the controller's leash (where the correction
-        saturates) of the vehicle, as an autopilot's position controller limits its position error.
-        Without this the vehicle, released after a hold, chased a reference that had run ahead at
-        the tilt limit and flew up to 1.6x the pilot's demand.
+        While the avoidance lets the vehicle move on, the reference runs at most ``avoid_leash_m``
+        ahead of it along the pilot's horizontal demand (as an autopilot's position controller
+        limits its position error), so the velocity demand exceeds the limited one by at most
+        ``pos_kp·avoid_leash_m``.  Held, the reference stays where it stopped and the vehicle holds
+        that position.  Without the leash the vehicle, released after a hold, chased a reference
+        that had run ahead at the tilt limit and flew up to 1.6× the pilot's demand.
         """
         q = self.config.quad
         target, speed = act[1], act[3]
@@ -318,13 +318,16 @@ class QuadSim(JSBSimVehicle):
         nv = (rvn + dv[0] * k, rve + dv[1] * k, rvd + dv[2] * k)
         acc = ((nv[0] - rvn) / dt, (nv[1] - rve) / dt, (nv[2] - rvd) / dt)
         rn, re, rd = rn + nv[0] * dt, re + nv[1] * dt, rd + nv[2] * dt
-        leash = q.max_pos_correction_mps / q.pos_kp
-        en, ee = rn - p_ned[0], re - p_ned[1]
-        eh = math.hypot(en, ee)
-        if eh > leash:  # the reference never runs further ahead of (or behind) the vehicle than the leash
-            rn, re = p_ned[0] + en * leash / eh, p_ned[1] + ee * leash / eh
+        h_des = math.hypot(v_des[0], v_des[1])
+        self._u_h = (v_des[0] / h_des, v_des[1] / h_des) if h_des > 1e-6 else None
+        if self._u_h is not None:
+            un, ue = self._u_h
+            leash = q.avoid_leash_m
+            v_along = v_cmd[0] * un + v_cmd[1] * ue
+            ahead = (rn - p_ned[0]) * un + (re - p_ned[1]) * ue
+            if v_along > 0.05 and ahead > leash:  # moving on: the reference never runs further ahead than the leash
+                rn, re = rn - (ahead - leash) * un, re - (ahead - leash) * ue
         self._ref = ((rn, re, rd), nv, acc)
-        self._v_cap_h = math.hypot(v_cmd[0], v_cmd[1])
 
     # ------------------------------------------------------------------ autopilot tick
     def _control(self) -> None:
@@ -348,10 +351,6 @@ class QuadSim(JSBSimVehicle):
             cn, ce = cn * q.max_pos_correction_mps / ch, ce * q.max_pos_correction_mps / ch
         cd = clip(q.pos_kp * (rd - pd), -q.max_pos_correction_mps, q.max_pos_correction_mps)
         vcn, vce, vcd = rvn + cn, rve + ce, rvd + cd
-        if self._v_cap_h is not None:  # an avoidance leg: never faster than the limited demand
-            vh = math.hypot(vcn, vce)
-            if vh > self._v_cap_h:
-                vcn, vce = (vcn * self._v_cap_h / vh, vce * self._v_cap_h / vh) if vh > 0 else (0.0, 0.0)
         # velocity -> acceleration demand (integrators frozen while sitting on the gear)
         en, ee, ed = vcn - vn, vce - ve, vcd - vd
         an = ran + q.vel_kp_xy * en + self._i_n.update(en, q.vel_ki_xy, dt, hold=near_ground)
