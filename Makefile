@@ -25,7 +25,7 @@ test: $(VENV)
 
 # All benchmarks; rewrites docs/BENCHMARKS.md with the figures and the commands behind them.
 bench: $(VENV)
-	$(BIN)/python -m companion.bench all --runs $(RUNS) --write docs/BENCHMARKS.md
+	$(BIN)/python -m bench all --runs $(RUNS) --write docs/BENCHMARKS.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -450,7 +450,7 @@ def plot_ranges(trace: _Trace, path: Path, max_distance_m: float, t0: float,
 def write_recording(out_dir: str | Path, flight, duration_s: float, fps: float = 30.0, epoch_s: float = 1.7e9,
                     boot_s: float = 100.0, attitude_hz: float = 50.0, position_hz: float = 20.0, system_id: int = 1,
                     latency_s: float = 0.0) -> Path:
-    """Write a recording in flightsim's export format from a :class:`companion.bench.latency.SyntheticFlight`.
+    """Write a recording in flightsim's export format from a :class:`bench.latency.SyntheticFlight`.
 
     ``telemetry.tlog`` (HEARTBEAT 1 Hz, ATTITUDE, LOCAL_POSITION_NED from system ``system_id``
     component 1; ``time_boot_ms`` = ``boot_s`` + flight time; record stamp = ``epoch_s`` + flight

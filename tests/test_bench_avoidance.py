@@ -1,9 +1,9 @@
-"""The closed-loop bench's scenario variants (companion.bench.avoidance): written from the files they
+"""The closed-loop bench's scenario variants (bench.avoidance): written from the files they
 change, only the named lines changed, loadable, and a typo refused."""
 
 import pytest
 
-from companion.bench import avoidance as A
+from bench import avoidance as A
 from flightsim.scenario import load_scenario
 
 

@@ -6,7 +6,7 @@ import tomllib
 
 import pytest
 
-from companion.bench import map_tradeoff as M
+from bench import map_tradeoff as M
 from companion.io.config_files import load_companion_config
 
 

@@ -1,6 +1,6 @@
 """The SITL section of docs/BENCHMARKS.md states the loop's own wall time and CPU per frame."""
 
-from companion.bench.sitl_bench import markdown
+from bench.sitl_bench import markdown
 
 
 def test_lockstep_line_uses_the_loop_wall_and_per_frame_cpu():

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from companion.mavlink.dialect import UINT16_MAX, mavlink  # noqa: I001 (first: MAVLink 2)
-from companion.bench.latency import SyntheticFlight
+from bench.latency import SyntheticFlight
 from companion.camera_sources import CLOCK_AUTOPILOT_BOOT, SimFrameServer
 from companion.cli import build_parser, load_config, main
 from test_pipeline import CAM, LoopbackVehicle, free_port

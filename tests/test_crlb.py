@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from companion.bench.scenarios import Seed004Scenario
+from bench.scenarios import Seed004Scenario
 from companion.core.crlb import range_crlb
 from companion.errors import InputError
 

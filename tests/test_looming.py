@@ -323,11 +323,11 @@ def test_scale_config_is_validated():
 
 
 def test_benchmark_table_shows_looming_at_the_focus_of_expansion():
-    from companion.bench import looming as bench
+    from bench import looming as bench
 
     ap = bench.Approach("quad", 4.0, 20.0, 3.5, offsets_deg=(0.0, 2.0))
     off, on = (bench.run_synthetic(ap, 1, lo) for lo in (False, True))
     assert off["rows"][0]["converged"] == 0.0 and on["rows"][0]["converged"] == 1.0
     assert on["rows"][0]["mean_abs_err_m"] < 0.1 * on["rows"][0]["final_range_m"]
     text = bench.markdown({"runs": 1, "rendered_runs": 0, "cases": [off, on]})
-    assert "python -m companion.bench looming" in text and "| quad | on | 0 |" in text
+    assert "python -m bench looming" in text and "| quad | on | 0 |" in text

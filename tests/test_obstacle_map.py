@@ -320,8 +320,8 @@ def _hover_run(map_enabled: bool, yaw_turn: bool = False):
     in place): fraction of hover frames whose sectors hold the wall."""
     import dataclasses
 
-    from companion.bench.latency import feed_telemetry
-    from companion.bench.map_memory import APPROACH_S, HoverFlight
+    from bench.latency import feed_telemetry
+    from bench.map_memory import APPROACH_S, HoverFlight
     from companion.camera_sources import Frame
     from companion.core.camera import CameraConfig
     from companion.io.config_files import CompanionConfig

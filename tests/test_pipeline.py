@@ -1,7 +1,7 @@
 """The per-frame pipeline, the reporter and the live Companion against a loopback vehicle (issue 4).
 
 The vehicle is a separate pymavlink connection (its own parser) playing the autopilot of a
-:class:`~companion.bench.latency.SyntheticFlight`: HEARTBEAT at 1 Hz from component 1, ATTITUDE
+:class:`~bench.latency.SyntheticFlight`: HEARTBEAT at 1 Hz from component 1, ATTITUDE
 at 50 Hz and LOCAL_POSITION_NED at 20 Hz on its own boot clock, TIMESYNC replies, COMMAND_ACKs.
 Frames of the same flight are rendered at 30 fps and handed to the companion through an in-memory
 source.  Everything runs on one simulated clock stepped in 5 ms (loopback UDP delivers at once),
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from companion.mavlink.dialect import UINT16_MAX, mavlink, mavutil  # noqa: I001 (first: MAVLink 2)
-from companion.bench.latency import SyntheticFlight, feed_telemetry
+from bench.latency import SyntheticFlight, feed_telemetry
 from companion.camera_sources import Frame, FrameSource
 from companion.core.camera import CameraConfig
 from companion.io.config_files import CompanionConfig

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from companion.mavlink.dialect import UINT16_MAX, mavlink, mavutil  # noqa: I001 (first: MAVLink 2)
-from companion.bench.latency import SyntheticFlight
+from bench.latency import SyntheticFlight
 from companion.cli import load_config, main
 from companion.core.camera import CameraConfig
 from companion.replay import ReplayError, read_telemetry_tlog, replay, write_recording

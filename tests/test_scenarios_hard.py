@@ -295,7 +295,7 @@ def test_scenario_runs_are_reproducible_with_the_new_keys():
 
 
 def test_bench_campaigns_cover_every_flight_scenario_with_its_aircraft_class():
-    from companion.bench.sitl_bench import CAMPAIGNS
+    from bench.sitl_bench import CAMPAIGNS
 
     assert set(HARD) | {"quad_approach", "fixedwing_pass"} == set(CAMPAIGNS)
     for name, (kind, what) in CAMPAIGNS.items():
@@ -303,7 +303,7 @@ def test_bench_campaigns_cover_every_flight_scenario_with_its_aircraft_class():
 
 
 def test_bench_run_all_checks_its_arguments_before_flying():
-    from companion.bench.sitl_bench import run_all
+    from bench.sitl_bench import run_all
 
     with pytest.raises(ValueError, match="quad_nope"):
         run_all(scenarios=["quad_nope"])
@@ -312,7 +312,7 @@ def test_bench_run_all_checks_its_arguments_before_flying():
 
 
 def test_bench_markdown_lists_the_scenarios_with_unknown_and_target_thresholds():
-    from companion.bench.sitl_bench import markdown
+    from bench.sitl_bench import markdown
 
     agg = {"runs": 8, "runs_ok": 8, "cells": {"obstacle": 1000, "unknown_in_obstacle_cells": 125},
            "pooled_rates": {"detection": 0.875, "valid_range": 0.8, "too_near": 0.05, "false_obstacle_clear_cells": 0.004},

@@ -1,6 +1,6 @@
 """Per-stage timings on one core (issue targets).
 
-Front-end figures come from :mod:`companion.bench.frontend_timing`; the filter figures time one
+Front-end figures come from :mod:`bench.frontend_timing`; the filter figures time one
 frame's work for N landmarks (anchored EKF: update of every landmark; seed-000 EKF: predict +
 update of every landmark) and divide by N.  Medians over ``repeats``.
 """
@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from companion.bench import frontend_timing
+from bench import frontend_timing
 from companion.core.ekf_anchored import AnchoredEKFConfig, AnchoredInverseDepthEKF
 from companion.core.ekf_landmark import LandmarkEKFBank, LandmarkEKFConfig
 from companion.core.frames import so3_exp

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from companion.core.camera import CameraConfig
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ("seed004_straight", "quad_approach", "fixedwing_pass")
 
 

@@ -1,6 +1,6 @@
 """Memory of the local obstacle map over a long hover in front of a wall (issue 11, docs/derivations/obstacle_map.md).
 
-A synthetic feed (:class:`companion.bench.latency.SyntheticFlight`'s textured wall, exact telemetry):
+A synthetic feed (:class:`bench.latency.SyntheticFlight`'s textured wall, exact telemetry):
 the vehicle approaches the wall from 20 m to 5 m at 1.5 m/s, then hovers 5 m in front of it for
 ``minutes`` of simulated time, wandering on a 0.3 m circle every 8 s as a real hover does (enough
 parallax for new tracks to converge and enter the map all the time, the worst case for its size).
@@ -9,7 +9,7 @@ once per simulated minute: the points held by the map, the process's resident se
 whether the forward sector still holds the wall.  Pass: the map never exceeds its cap, RSS grows by
 less than ``rss_tolerance_mb`` from minute 2 to the end, and the wall stays ranged while hovering.
 
-``python -m companion.bench.map_memory --minutes 30 --fps 5``
+``python -m bench.map_memory --minutes 30 --fps 5``
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from companion.bench.latency import SyntheticFlight, _one_core, feed_telemetry
+from bench.latency import SyntheticFlight, _one_core, feed_telemetry
 from companion.core.camera import CameraConfig
 
 APPROACH_S = 10.0
@@ -129,7 +129,7 @@ def markdown(r: dict) -> str:
     lines = [
         f"Synthetic hover 5 m in front of a textured wall for {r['minutes']:g} min of simulated time (after a 10 s approach), "
         f"{r['fps']:g} frames/s through the whole pipeline, wandering on a 0.3 m circle (new tracks converge and enter the map "
-        f"all the time). Command: `python -m companion.bench.map_memory --minutes {r['minutes']:g} --fps {r['fps']:g}` "
+        f"all the time). Command: `python -m bench.map_memory --minutes {r['minutes']:g} --fps {r['fps']:g}` "
         f"({r['wall_s']:.0f} s wall).",
         "",
         f"- map points: at most {r['map_max']} (cap {r['cap']}), {r['map_final']} at the end",
@@ -148,7 +148,7 @@ def main(argv=None) -> int:
     import argparse
     import json
 
-    ap = argparse.ArgumentParser(prog="python -m companion.bench.map_memory",
+    ap = argparse.ArgumentParser(prog="python -m bench.map_memory",
                                  description="Map size and resident memory over a long hover in front of a wall (synthetic feed).")
     ap.add_argument("--minutes", type=float, default=30.0, help="simulated hover time, minutes (default 30)")
     ap.add_argument("--fps", type=float, default=5.0, help="frames per simulated second (default 5)")

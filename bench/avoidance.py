@@ -13,7 +13,7 @@ and, with ``--models``, ``px4_go_no_data`` (the same with CP_GO_NO_DATA = 1, wri
 campaign's directory: what a PX4 user of a forward camera sets so that directions the sensor never
 covered do not stall the vehicle).
 
-``python -m companion.bench avoidance --runs 20`` (in ``make bench``): the pooled table of
+``python -m bench avoidance --runs 20`` (in ``make bench``): the pooled table of
 docs/BENCHMARKS.md — collision rate with a 95 % Wilson interval per scenario × model.
 """
 
@@ -23,7 +23,7 @@ import re
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 SCEN = ROOT / "configs" / "scenarios"
 OUT = ROOT / "out" / "bench" / "avoidance"
 
@@ -201,7 +201,7 @@ def _m(d, fmt="{:.2f}") -> str:
 
 def markdown(res: dict) -> str:
     """The closed-loop section of docs/BENCHMARKS.md."""
-    L = ["Command: `python -m companion.bench avoidance --runs " + str(res["runs"]) + "` (in `make bench`); each cell is "
+    L = ["Command: `python -m bench avoidance --runs " + str(res["runs"]) + "` (in `make bench`); each cell is "
          "`flightsim campaign configs/scenarios/<scenario>.toml --avoidance <model> --runs N --mode sitl` (lockstep SITL, "
          "the companion live with configs/companion.toml, seeds from the scenario's own).  The simulated autopilot limits "
          "the pilot's velocity with the messages as they arrive (flightsim/avoidance.py: ArduPilot Copter simple "
@@ -242,7 +242,7 @@ def main(argv=None) -> int:
     import argparse
     import json
 
-    ap = argparse.ArgumentParser(prog="python -m companion.bench.avoidance", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.avoidance", description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=int, default=20, help="seeds per scenario × model (default 20)")
     ap.add_argument("--workers", type=int, default=2, help="worker processes per campaign (default 2)")
     ap.add_argument("--scenarios", default=None, help=f"comma-separated subset of: {', '.join(SCENARIOS)}")

@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from companion.bench.scenarios import Seed000Scenario
+from bench.scenarios import Seed000Scenario
 from companion.core.crlb import range_crlb
 from companion.core.ekf_anchored import AnchoredEKFConfig, AnchoredInverseDepthEKF
 from companion.core.ekf_landmark import LandmarkEKFBank, LandmarkEKFConfig

@@ -229,7 +229,7 @@ def markdown(res: dict) -> str:
         "Frame-to-OBSTACLE_DISTANCE latency of the whole pipeline (pose interpolation, Harris + NCC tracking guided by "
         "telemetry, triangulation, EKF, sectors, yaw rotation, MAVLink encoding) on one core "
         "(`cv2.setNumThreads(1)`), synthetic flight past a textured wall at 640×480 with up to 300 tracks. "
-        "Targets (issue 4): p99 ≤ 30 ms, ≥ 30 frames/s. Standalone: `python -m companion.bench.latency [--filter landmark]`.",
+        "Targets (issue 4): p99 ≤ 30 ms, ≥ 30 frames/s. Standalone: `python -m bench.latency [--filter landmark]`.",
         "",
         "| filter | frames | mean tracks | mean converged | p50 ms | p99 ms | max ms | sustained frames/s | p99 ≤ 30 | ≥ 30 fps |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -247,7 +247,7 @@ def main(argv=None) -> int:
     import argparse
     import json
 
-    ap = argparse.ArgumentParser(prog="python -m companion.bench.latency",
+    ap = argparse.ArgumentParser(prog="python -m bench.latency",
                                  description="Frame-to-OBSTACLE_DISTANCE latency of the companion pipeline on one core.")
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)

@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from companion.bench.scenarios import Seed004Scenario
+from bench.scenarios import Seed004Scenario
 from companion.core.crlb import range_crlb
 from companion.core.ekf_anchored import AnchoredEKFConfig, inverse_depth_state
 from companion.core.ekf_landmark import LandmarkEKFConfig

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = ROOT / "configs" / "scenarios" / "seed004_straight.toml"
 CONFIG = ROOT / "configs" / "companion.toml"
 
@@ -119,7 +119,7 @@ def markdown(res: dict, reference_rms_m: float | None = None) -> str:
         "through the whole companion pipeline (rendered 320×240 frames, Harris + NCC tracks, anchored EKF, "
         "`configs/companion.toml`); range of the landmark on each target's centre corner vs truth, at frame 150 (5 s) or, "
         "for targets that leave the 45° view earlier, at the last frame they are inside it. "
-        "Standalone: `python -m companion.bench pipeline004 --runs N`.",
+        "Standalone: `python -m bench pipeline004 --runs N`.",
         "",
         "| target | frame (median) | matched runs | mean error m | mean abs error m (eq. 15) | RMS error m | NEES (1 dof) |",
         "|---|---|---|---|---|---|---|",

@@ -1,4 +1,4 @@
-"""``python -m companion.bench``: the reproducible benchmarks (the source papers' scenarios and more).
+"""``python -m bench``: the reproducible benchmarks (the source papers' scenarios and more).
 
 Subcommands:
   seed004   seed-004 scenario, Monte Carlo over pixel noise (and the gyro model)
@@ -17,7 +17,7 @@ import os
 import sys
 import time
 
-from companion.bench import report
+from bench import report
 
 
 def _progress(total: int, label: str, quiet: bool):
@@ -48,7 +48,7 @@ def _progress(total: int, label: str, quiet: bool):
 
 
 def cmd_seed004(args) -> dict:
-    from companion.bench import seed004
+    from bench import seed004
 
     total = args.runs * sum(len(c) for c in seed004.CASES.values())
     t0 = time.perf_counter()
@@ -59,16 +59,16 @@ def cmd_seed004(args) -> dict:
 
 
 def cmd_seed000(args) -> dict:
-    from companion.bench import seed000
+    from bench import seed000
 
-    from companion.bench.seed000 import PIXEL_SIGMAS
+    from bench.seed000 import PIXEL_SIGMAS
 
     with _progress(args.runs * len(PIXEL_SIGMAS), "seed-000 Monte Carlo", args.json) as tick:
         return seed000.run(args.runs, progress=tick)
 
 
 def cmd_pipeline004(args, runs: int) -> dict:
-    from companion.bench import pipeline_seed004
+    from bench import pipeline_seed004
 
     import logging
 
@@ -81,7 +81,7 @@ def cmd_pipeline004(args, runs: int) -> dict:
 
 
 def cmd_sitl(args) -> dict:
-    from companion.bench import sitl_bench
+    from bench import sitl_bench
 
     import logging
 
@@ -93,7 +93,7 @@ def cmd_sitl(args) -> dict:
 
 
 def cmd_looming(args, runs: int, rendered_runs: int) -> dict:
-    from companion.bench import looming
+    from bench import looming
 
     n = 2 * len(looming.SYNTHETIC) * runs + 2 * rendered_runs
     with _progress(n, "looming approaches", args.json) as tick:
@@ -101,14 +101,14 @@ def cmd_looming(args, runs: int, rendered_runs: int) -> dict:
 
 
 def cmd_map_memory(minutes: float, fps: float, quiet: bool) -> dict:
-    from companion.bench import map_memory
+    from bench import map_memory
 
     with _progress(int(minutes), "map memory (simulated minutes)", quiet) as tick:
         return map_memory.run(minutes, fps, progress=lambda _s: tick(1))
 
 
 def cmd_map_tradeoff(quiet: bool) -> dict:
-    from companion.bench import map_tradeoff
+    from bench import map_tradeoff
 
     n = len(map_tradeoff.SCENARIOS) * len(map_tradeoff.VARIANTS) * len(map_tradeoff.SEEDS)
     with _progress(n, "map trade-off flights", quiet) as tick:
@@ -116,20 +116,20 @@ def cmd_map_tradeoff(quiet: bool) -> dict:
 
 
 def cmd_timing(args) -> dict:
-    from companion.bench import timing
+    from bench import timing
 
     return timing.run_all(repeats=args.repeats)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m companion.bench",
+        prog="python -m bench",
         description="Benchmarks of the estimation core against the source papers' scenarios (seeds 000 and 004).",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="Examples:\n  python -m companion.bench seed004 --runs 100\n"
-               "  python -m companion.bench timing --json\n"
-               "  python -m companion.bench looming --runs 20\n"
-               "  python -m companion.bench all --runs 200 --write docs/BENCHMARKS.md",
+        epilog="Examples:\n  python -m bench seed004 --runs 100\n"
+               "  python -m bench timing --json\n"
+               "  python -m bench looming --runs 20\n"
+               "  python -m bench all --runs 200 --write docs/BENCHMARKS.md",
     )
     sub = ap.add_subparsers(dest="cmd", required=True)
     workers_default = min(2, os.cpu_count() or 1)
@@ -190,7 +190,7 @@ def main(argv=None) -> int:
         res = cmd_seed000(args)
         print(json.dumps(res) if args.json else report.seed000_markdown(res))
     elif args.cmd == "pipeline004":
-        from companion.bench import pipeline_seed004
+        from bench import pipeline_seed004
 
         res = cmd_pipeline004(args, args.runs)
         print(json.dumps(res) if args.json else pipeline_seed004.markdown(res))
@@ -198,24 +198,24 @@ def main(argv=None) -> int:
         res = cmd_sitl(args)
         print(json.dumps(res, default=str) if args.json else report.sitl_markdown(res))
     elif args.cmd == "looming":
-        from companion.bench import looming
+        from bench import looming
 
         if args.rendered_runs < 0:
             ap.error("--rendered-runs must be >= 0")
         res = cmd_looming(args, args.runs, args.rendered_runs)
         print(json.dumps(res) if args.json else looming.markdown(res))
     elif args.cmd == "map_memory":
-        from companion.bench import map_memory
+        from bench import map_memory
 
         res = cmd_map_memory(args.minutes, args.fps, args.json)
         print(json.dumps(res) if args.json else map_memory.markdown(res))
     elif args.cmd == "map_tradeoff":
-        from companion.bench import map_tradeoff
+        from bench import map_tradeoff
 
         res = cmd_map_tradeoff(args.json)
         print(json.dumps(res) if args.json else map_tradeoff.markdown(res))
     elif args.cmd == "avoidance":
-        from companion.bench import avoidance
+        from bench import avoidance
 
         res = avoidance.run_all(args.runs)
         print(json.dumps(res, default=str) if args.json else avoidance.markdown(res))
@@ -223,7 +223,7 @@ def main(argv=None) -> int:
         res = cmd_timing(args)
         print(json.dumps(report.timing_json(res)) if args.json else report.timing_markdown(res))
     else:
-        from companion.bench import avoidance, flightsim_bench, latency
+        from bench import avoidance, flightsim_bench, latency
 
         res = {"seed004": cmd_seed004(args), "seed000": cmd_seed000(args), "timing": cmd_timing(args),
                "latency": latency.run_all(), "pipeline004": cmd_pipeline004(args, max(5, args.runs // 10)),
@@ -234,7 +234,7 @@ def main(argv=None) -> int:
         if args.json:
             print(json.dumps(res))
         else:
-            from companion.bench import looming, map_memory, map_tradeoff
+            from bench import looming, map_memory, map_tradeoff
 
             text = (report.full_markdown(res, args.runs, args.repeats).rstrip("\n") + "\n\n" + looming.markdown(res["looming"])
                     + "\n\n## Local obstacle map: memory over a long hover (issue 11)\n\n" + map_memory.markdown(res["map_memory"])

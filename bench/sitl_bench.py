@@ -14,7 +14,7 @@
 
 Seeds: :func:`run_all` runs ``quad_runs`` seeds of each quad scenario and ``fixedwing_runs`` of
 each fixed-wing one (8 each by default, issue 11 asks ≥ 8 per scenario); fewer, or a subset of
-the scenarios, from Python or ``python -m companion.bench.sitl_bench --runs 2 --scenarios quad_slalom``.
+the scenarios, from Python or ``python -m bench.sitl_bench --runs 2 --scenarios quad_slalom``.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 SCEN = ROOT / "configs" / "scenarios"
 OUT = ROOT / "out" / "bench"
 
@@ -258,7 +258,7 @@ def markdown(res: dict) -> str:
 def main(argv=None) -> int:
     import argparse
 
-    ap = argparse.ArgumentParser(prog="python -m companion.bench.sitl_bench",
+    ap = argparse.ArgumentParser(prog="python -m bench.sitl_bench",
                                  description="Lockstep SITL speed and the SITL campaigns of make bench (fewer seeds or scenarios for a quick look).")
     ap.add_argument("--runs", type=int, default=8, help="seeds per quad scenario (default 8)")
     ap.add_argument("--fixedwing-runs", type=int, default=None, help="seeds per fixed-wing scenario (default: --runs)")

@@ -1,6 +1,6 @@
 """Timing of the image front end: Harris, NCC per track and a full TrackManager step (issue 2 targets).
 
-Pure functions that return numbers (no printing); ``companion.bench`` formats them.  Every
+Pure functions that return numbers (no printing); ``bench`` formats them.  Every
 measurement runs on one core (``cv2.setNumThreads(1)``, restored afterwards), on a synthetic
 textured scene that moves by about one pixel per frame, and reports the median over ``repeats``
 of ``time.perf_counter`` differences.  Target (issue 2): Harris + NCC ≤ 5 ms per 640×480 frame

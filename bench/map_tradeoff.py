@@ -29,7 +29,7 @@ import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 SCEN = ROOT / "configs" / "scenarios"
 BASE_CONFIG = ROOT / "configs" / "companion.toml"
 
@@ -103,7 +103,7 @@ def _pc(num_n) -> str:
 
 def markdown(res: dict) -> str:
     seeds = ", ".join(str(s) for s in res["seeds"])
-    L = [f"Command: `python -m companion.bench map_tradeoff` (lockstep SITL, seeds {seeds} per scenario, "
+    L = [f"Command: `python -m bench map_tradeoff` (lockstep SITL, seeds {seeds} per scenario, "
          "each variant = configs/companion.toml with one key changed; scorer cells after the 2 s warm-up).", "",
          "| scenario | variant | remembered within tolerance | false obstacles, share of scored clear cells | messages without a false obstacle | detection in view |",
          "|---|---|---|---|---|---|"]

@@ -1,6 +1,6 @@
 """Looming benchmark (docs/derivations/looming.md, issue 11 item 2): range on the direction of travel.
 
-``python -m companion.bench looming [--runs N] [--json]``
+``python -m bench looming [--runs N] [--json]``
 
 Head-on approaches, where bearing-only ranging cannot converge (the focus of expansion, FOE):
 
@@ -36,8 +36,8 @@ from companion.core.camera import CameraConfig, CameraModel
 from companion.core.ekf_anchored import inverse_depth_state
 from companion.core.estimator import RangeEstimator
 
-ROOT = Path(__file__).resolve().parents[2]
-COMMAND = "python -m companion.bench looming"
+ROOT = Path(__file__).resolve().parents[1]
+COMMAND = "python -m bench looming"
 
 
 @dataclasses.dataclass(frozen=True)

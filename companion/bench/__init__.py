@@ -1,1 +1,0 @@
-"""Reproducible benchmarks (the source papers' scenarios, seeds 000 and 004): ``python -m companion.bench --help``."""
