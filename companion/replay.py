@@ -11,7 +11,10 @@ STATUSTEXT, HEARTBEAT) from the vehicle's system id and component 196, each stam
 recording's clock at the moment it would have left: the frame's capture time, plus any wait for
 the ATTITUDE sample that brackets the exposure (telemetry is fed in record-time order, so the
 pipeline only knows what had arrived), plus the measured processing time.  Output and input
-therefore line up on one clock.  Optionally a plot of the ranges over time.
+therefore line up on one clock.  Optionally a plot of the ranges over time.  Both appear only
+when the replay is complete (:mod:`companion.io.atomic`); interrupted or failed, the messages
+written so far are kept as ``ranges.tlog.partial``.  A tlog cut while being written, or whose
+telemetry ends before the frames, is replayed with a warning (:attr:`ReplaySummary.warnings`).
 
 Timeline.  The replay runs the live loop's rules on the recording clock with one core: a frame
 arriving while the previous one is still being processed waits; when the core is free only the

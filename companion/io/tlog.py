@@ -20,6 +20,7 @@ import collections
 import dataclasses
 import logging
 import math
+import mmap
 import os
 from pathlib import Path
 
@@ -54,7 +55,7 @@ class TlogEnd:
         return self.size - self.complete_bytes if self.framed else 0
 
 
-def _frame_length(data: bytes | memoryview, at: int) -> int | None:
+def _frame_length(data, at: int) -> int | None:
     """Length of the MAVLink frame starting at ``at`` (None: not a frame start; -1: its header is cut off)."""
     stx = data[at]
     if stx not in (_V2_STX, _V1_STX):
@@ -68,8 +69,9 @@ def _frame_length(data: bytes | memoryview, at: int) -> int | None:
     return _V2_HEADER + payload + _CRC + (_SIGNATURE if signed else 0)
 
 
-def scan_tlog_end(data: bytes | memoryview) -> TlogEnd:
-    """Walk the records of a tlog's bytes from the start: how many are whole and where the last ends."""
+def scan_tlog_end(data) -> TlogEnd:
+    """Walk the records of a tlog's bytes (``bytes`` or an ``mmap``) from the start: how many are
+    whole and where the last ends."""
     n, at, records = len(data), 0, 0
     while at < n:
         if n - at <= _STAMP:  # the file ends inside a timestamp
@@ -113,8 +115,8 @@ def read_tlog(path: str | os.PathLike, what: str = "tlog") -> TlogContents:
     """
     p = check_input_file(path, what, error=TlogError)
     try:
-        with p.open("rb") as fh:
-            end = scan_tlog_end(fh.read())
+        with p.open("rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            end = scan_tlog_end(data)
         conn = mavutil.mavlogfile(str(p), robust_parsing=True)  # sequential reader (not the mmap index)
     except OSError as exc:
         raise TlogError(f"{p}: cannot be read ({exc.strerror or exc})") from None
