@@ -74,6 +74,7 @@ import abc
 import collections
 import csv
 import dataclasses
+import io
 import logging
 import math
 import os
@@ -91,10 +92,12 @@ import numpy as np
 
 from companion.config import require, require_finite
 from companion.errors import ConfigError
+from companion.io.inputs import check_input_file, read_input_text
 
 log = logging.getLogger(__name__)
 
 # MAV_SEVERITY values (kept numeric here so this module does not import pymavlink)
+_SEV_ERROR = 3
 _SEV_WARNING = 4
 _SEV_NOTICE = 5
 _SEV_INFO = 6
@@ -244,6 +247,7 @@ class FrameSource(abc.ABC):
         self._events: collections.deque[tuple[int, str]] = collections.deque(maxlen=32)
         self._was_connected = False
         self._rlog = _RateLog()
+        self._size_error: str | None = None
 
     # -- for subclasses --------------------------------------------------------------------------
     def _reject(self, reason: str, detail: str = "") -> None:
@@ -253,14 +257,31 @@ class FrameSource(abc.ABC):
                 self._error = f"{reason}: {detail}"
         self._rlog.warn("reject_" + reason, "camera %s: frame rejected (%s)%s", self.name, reason, f": {detail}" if detail else "")
 
+    def _wrong_size(self, width: int, height: int) -> None:
+        """Reject a frame of another size than configured.  If no good frame came before, the
+        configuration does not fit the camera: :attr:`size_error` says so once (a STATUSTEXT event
+        too) and the caller stops; later (the camera changed mode in flight) each is rejected and
+        logged at most every 10 s, like any bad frame."""
+        with self._cv:
+            first = self._frames == 0 and self._size_error is None
+            if first:
+                self._size_error = (f"camera {self.name} delivers {width}×{height} frames but the [camera] table says "
+                                    f"{self.width}×{self.height}: configure the camera's own resolution and intrinsics "
+                                    "(--config, --camera-config or --calibration)")
+                self._events.append((_SEV_ERROR, f"Camera {width}x{height}, config {self.width}x{self.height}"))
+                self._rejected["wrong_size"] += 1
+                self._cv.notify_all()
+        if not first:
+            self._reject("wrong_size", f"got {width}×{height}, configured {self.width}×{self.height}")
+
     def _accept(self, index: int, t: float, img: Any) -> Frame | None:
         """Validate an image; returns the frame (counted) or None (rejected, counted)."""
         gray, why = check_gray(img, self.width, self.height)
         if gray is None:
-            detail = ""
-            if why == "wrong_size" and isinstance(img, np.ndarray):
-                detail = f"got {img.shape[1]}×{img.shape[0]}, configured {self.width}×{self.height}"
-            self._reject(why, detail)
+            if why == "wrong_size":
+                self._wrong_size(img.shape[1], img.shape[0])
+            else:
+                self._reject(why)
             return None
         if not math.isfinite(t):
             self._reject("bad_time")
@@ -373,6 +394,12 @@ class FrameSource(abc.ABC):
     def last_frame_t(self) -> float | None:
         return self._last_frame_t
 
+    @property
+    def size_error(self) -> str | None:
+        """Set when the source's first frame had another size than configured (a configuration
+        error: the intrinsics do not apply); None otherwise."""
+        return self._size_error
+
     def status(self) -> SourceStatus:
         with self._cv:
             return SourceStatus(self.name, self.kind, self._connected, self._ended, self._frames, self._delivered,
@@ -423,6 +450,8 @@ def parse_camera_spec(spec: str) -> tuple[str, Any]:
     if re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", s):
         return "url", s
     p = Path(s)
+    if p.is_dir():
+        raise SourceError(f"camera source {s!r}: is a directory, not a video file")
     if not p.is_file():
         raise SourceError(f"camera source {s!r}: no such video file (or give a device index, /dev/videoN, a URL or sim://HOST:PORT)")
     return "file", p
@@ -660,26 +689,27 @@ class OpenCVSource(FrameSource):
 def read_frames_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """``(index, t_s)`` arrays of a ``frames.csv`` (header ``index,t_s``); ConfigError naming the problem."""
     p = Path(path)
-    if not p.is_file():
-        raise SourceError(f"{p}: no such frames file")
+    text = read_input_text(p, "frames file", error=SourceError)
     idx: list[int] = []
     ts: list[float] = []
-    with p.open(newline="") as fh:
-        reader = csv.reader(fh)
-        header = next(reader, None)
-        if header is None or [h.strip() for h in header[:2]] != ["index", "t_s"]:
-            raise SourceError(f"{p}: first line must be the header 'index,t_s', got {header!r}")
-        for line_no, row in enumerate(reader, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            try:
-                i, t = int(row[0]), float(row[1])
-            except (ValueError, IndexError):
-                raise SourceError(f"{p}:{line_no}: expected 'index,t_s', got {row!r}") from None
-            if not math.isfinite(t):
-                raise SourceError(f"{p}:{line_no}: capture time is not finite")
-            idx.append(i)
-            ts.append(t)
+    try:
+        rows = list(csv.reader(io.StringIO(text, newline="")))
+    except csv.Error as exc:
+        raise SourceError(f"{p}: not a frames file ({exc})") from None
+    header = rows[0] if rows else None
+    if header is None or [h.strip() for h in header[:2]] != ["index", "t_s"]:
+        raise SourceError(f"{p}: first line must be the header 'index,t_s', got {header!r}")
+    for line_no, row in enumerate(rows[1:], start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        try:
+            i, t = int(row[0]), float(row[1])
+        except (ValueError, IndexError):
+            raise SourceError(f"{p}:{line_no}: expected 'index,t_s', got {row!r}") from None
+        if not math.isfinite(t):
+            raise SourceError(f"{p}:{line_no}: capture time is not finite")
+        idx.append(i)
+        ts.append(t)
     if not idx:
         raise SourceError(f"{p}: no frames listed")
     return np.asarray(idx, np.int64), np.asarray(ts, float)
@@ -697,9 +727,7 @@ class RecordedSource(FrameSource):
 
     def __init__(self, video: str | os.PathLike, frames_csv: str | os.PathLike, width: int, height: int,
                  capture_factory: Callable | None = None):
-        vp = Path(video)
-        if not vp.is_file():
-            raise SourceError(f"{vp}: no such video file")
+        vp = check_input_file(video, "video file", error=SourceError)
         super().__init__(str(vp), width, height, clock=time.monotonic)
         self.index, self.t = read_frames_csv(frames_csv)
         self._cap = (capture_factory or _default_capture)("file", vp, CameraSourceConfig())
@@ -924,8 +952,12 @@ class SimFrameSource(FrameSource):
                 self._reject("corrupt", f"pixel format {fmt}")
                 self._ack_code(index, ACK_REJECTED)
                 continue
-            if (w, h) != (self.width, self.height) or n == 0:
-                self._reject("wrong_size" if n else "empty", f"got {w}×{h}, configured {self.width}×{self.height}")
+            if n == 0:
+                self._reject("empty", f"got {w}×{h}, configured {self.width}×{self.height}")
+                self._ack_code(index, ACK_REJECTED)
+                continue
+            if (w, h) != (self.width, self.height):
+                self._wrong_size(w, h)
                 self._ack_code(index, ACK_REJECTED)
                 continue
             if self._last_index is not None and index <= self._last_index:

@@ -1,8 +1,10 @@
 """``companion`` command line: ``run`` (the live process), ``replay`` (a recorded flight offline) and
 ``monitor`` (a ground-station view of a running companion, :mod:`companion.monitor`).
 
-Exit codes: 0 = done (including a clean stop by Ctrl-C / SIGTERM), 2 = usage or configuration
-error (the message names the argument, file, table or key), 1 = runtime failure.
+Exit codes (:mod:`companion.errors`): 0 = done (``run`` and ``monitor``: also a clean stop by
+Ctrl-C / SIGTERM), 2 = usage, configuration or input-file error (the message names the argument,
+file, table or key), 1 = runtime failure; ``replay`` interrupted: 130 (Ctrl-C) or 143 (SIGTERM),
+with nothing at the output path (the ranges so far in ``OUT.partial``).
 """
 
 from __future__ import annotations
@@ -17,11 +19,13 @@ import threading
 import time
 from pathlib import Path
 
-from companion.errors import CompanionError, ConfigError
+from companion.errors import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, CompanionError, ConfigError, Terminated
+from companion.interrupts import interrupt_exit_code, interrupt_name, raise_on_sigterm
 
 log = logging.getLogger("companion")
 
-EXIT_OK, EXIT_RUNTIME, EXIT_USAGE = 0, 1, 2
+#: commands for which Ctrl-C / SIGTERM is the normal way to stop (exit 0); the others exit 130 / 143
+_SIGNAL_STOPS_CLEANLY = ("run", "monitor")
 
 _DESCRIPTION = """\
 Monocular obstacle ranging for a drone companion computer.
@@ -119,7 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--tlog", required=True, help="the flight's telemetry.tlog (MAVLink 2)")
     q.add_argument("--video", required=True, help="the flight's video (e.g. video.avi, MJPG)")
     q.add_argument("--frames", required=True, help="frames.csv: 'index,t_s' per frame, capture time on the tlog's clock")
-    q.add_argument("--out", required=True, help="output tlog (ranges.tlog)")
+    q.add_argument("--out", required=True, help="output tlog (ranges.tlog); written when the replay is complete "
+                                                "(interrupted: nothing there, the ranges so far in OUT.partial)")
     _common(q)
     q.add_argument("--camera-config", metavar="TOML",
                    help="a TOML whose [camera] table replaces the config's (default: camera.toml next to the video, if present)")
@@ -279,6 +284,8 @@ def cmd_run(args) -> int:
             log.info("lockstep clock (--clock sim): simulation time, %s per processed frame",
                      "measured processing time" if sim_clock.processing_s is None else f"{sim_clock.processing_s * 1000:g} ms")
         companion.run(stop, duration=args.duration, lockstep=sim_clock is not None)
+        if source.size_error:
+            raise ConfigError(source.size_error)
         log.info("stopped: %s", dict(companion.counters))
         if sim_clock is not None:
             ts = link.timesync
@@ -340,14 +347,20 @@ class _Progress:
 
 
 def cmd_replay(args) -> int:
+    from companion.io.atomic import partial_path
+    from companion.io.inputs import check_input_file
     from companion.replay import replay
 
-    for name in ("tlog", "video", "frames"):
-        if not Path(getattr(args, name)).is_file():
-            raise ConfigError(f"--{name} {getattr(args, name)}: no such file")
+    for name, what in (("tlog", "tlog"), ("video", "video file"), ("frames", "frames file")):
+        try:
+            check_input_file(getattr(args, name), what)
+        except ConfigError as exc:
+            raise ConfigError(f"--{name} {exc}") from None
     out = Path(args.out)
-    if not out.parent.exists():
+    if not out.parent.is_dir():
         raise ConfigError(f"--out {out}: directory {out.parent} does not exist")
+    if out.is_dir():
+        raise ConfigError(f"--out {out}: is a directory; give the file to write (e.g. {out / 'ranges.tlog'})")
     if args.fixed_processing_ms is not None and not (math.isfinite(args.fixed_processing_ms) and args.fixed_processing_ms >= 0):
         raise ConfigError(f"--fixed-processing-ms must be >= 0, got {args.fixed_processing_ms}")
     if not (math.isfinite(args.telemetry_latency_ms) and 0 <= args.telemetry_latency_ms < 1000):
@@ -378,10 +391,16 @@ def cmd_replay(args) -> int:
     log.info("replaying %s with a %d×%d camera (fx %.1f), %s EKF", args.video, cam.width, cam.height, cam.fx,
              rc.companion.estimator.filter)
     show = not args.quiet and sys.stderr.isatty()
-    with _Progress(show, "replay") as bar:
-        s = replay(args.tlog, args.video, args.frames, out, rc.companion, camera=cam, pipeline=rc.pipeline, plot=args.plot,
-                   fixed_processing_s=None if args.fixed_processing_ms is None else args.fixed_processing_ms / 1000.0,
-                   telemetry_latency_s=args.telemetry_latency_ms / 1000.0, progress=bar, truth=truth)
+    try:
+        with _Progress(show, "replay") as bar:
+            s = replay(args.tlog, args.video, args.frames, out, rc.companion, camera=cam, pipeline=rc.pipeline,
+                       plot=args.plot, telemetry_latency_s=args.telemetry_latency_ms / 1000.0, progress=bar, truth=truth,
+                       fixed_processing_s=None if args.fixed_processing_ms is None else args.fixed_processing_ms / 1000.0)
+    except BaseException as exc:
+        if interrupt_exit_code(exc) is not None:
+            part = partial_path(out)
+            log.warning("%s not written%s", out, f"; the ranges so far are in {part}" if part.is_file() else "")
+        raise
     fails = ", ".join(f"{k}: {v}" for k, v in sorted(s.failed.items())) or "none"
     print(f"replayed {s.frames} frames ({s.recording_s:.1f} s of flight) in {s.wall_s:.1f} s: {s.processed} with valid sectors, "
           f"{s.stale} stale, {s.superseded} superseded; without ranges: {fails}")
@@ -412,13 +431,17 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)  # exits 2 on usage errors
     _setup_logging(args.log_level)
     try:
-        return args.func(args)
+        with raise_on_sigterm():  # SIGTERM unwinds like Ctrl-C (run and monitor install their own handlers)
+            return args.func(args)
     except ConfigError as exc:
         print(f"companion {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        log.info("interrupted")
-        return EXIT_OK
+    except (KeyboardInterrupt, Terminated) as exc:
+        if args.command in _SIGNAL_STOPS_CLEANLY:
+            log.info("interrupted")
+            return EXIT_OK
+        print(f"companion {args.command}: {interrupt_name(exc)}", file=sys.stderr)
+        return interrupt_exit_code(exc)
     except CompanionError as exc:
         log.error("%s", exc)
         return EXIT_RUNTIME

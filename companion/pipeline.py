@@ -723,7 +723,8 @@ class Companion:
 
     ``step()`` is one non-blocking iteration (tests drive it with a simulated clock); ``run()``
     loops it until ``stop`` is set.  Nothing that comes from the wire, the camera or the pipeline
-    ends the loop: errors are logged, counted and the pipeline restarts.
+    ends the loop: errors are logged, counted and the pipeline restarts — except a camera whose
+    first frame does not have the configured size (a configuration error, see :meth:`run`).
     """
 
     def __init__(self, config, source: FrameSource, link, gcs=None, pipeline: PipelineConfig = PipelineConfig(),
@@ -911,7 +912,9 @@ class Companion:
         """Loop until ``stop`` is set (or ``duration`` seconds passed on ``clock``).
 
         ``lockstep``: run :meth:`step_lockstep` rounds (``clock`` a SimClock); ``duration`` then
-        counts simulation time from the first frame.
+        counts simulation time from the first frame.  The loop also ends when the camera's first
+        frame has another size than configured (``source.size_error``, after one STATUSTEXT): a
+        configuration error the caller reports.
         """
         stop = stop or threading.Event()
         t_end = None if duration is None or lockstep else self.clock() + duration
@@ -924,6 +927,9 @@ class Companion:
             else:
                 self.step(wait=wait)
             if t_end is not None and self.clock() >= t_end:
+                break
+            if self.source.size_error:  # the configuration does not fit the camera: say so once and stop
+                self._tick(self.clock())
                 break
             if self.source.ended:
                 log.info("camera source %s ended", self.source.name)

@@ -11,7 +11,10 @@ STATUSTEXT, HEARTBEAT) from the vehicle's system id and component 196, each stam
 recording's clock at the moment it would have left: the frame's capture time, plus any wait for
 the ATTITUDE sample that brackets the exposure (telemetry is fed in record-time order, so the
 pipeline only knows what had arrived), plus the measured processing time.  Output and input
-therefore line up on one clock.  Optionally a plot of the ranges over time.
+therefore line up on one clock.  Optionally a plot of the ranges over time.  Both appear only
+when the replay is complete (:mod:`companion.io.atomic`); interrupted or failed, the messages
+written so far are kept as ``ranges.tlog.partial``.  A tlog cut while being written, or whose
+telemetry ends before the frames, is replayed with a warning (:attr:`ReplaySummary.warnings`).
 
 Timeline.  The replay runs the live loop's rules on the recording clock with one core: a frame
 arriving while the previous one is still being processed waits; when the core is free only the
@@ -38,10 +41,12 @@ from typing import Callable
 
 import numpy as np
 
-from companion.mavlink.dialect import mavlink, mavutil  # first: MAVLink 2 + ardupilotmega
+from companion.mavlink.dialect import mavlink  # first: MAVLink 2 + ardupilotmega
 from companion.camera_sources import RecordedSource
 from companion.core.camera import CameraConfig
-from companion.errors import CompanionError, ConfigError
+from companion.errors import ConfigError
+from companion.io.atomic import StagedFiles, atomic_path
+from companion.io.tlog import TlogError, read_tlog
 from companion.pipeline import Pipeline, PipelineConfig, Reporter
 from companion.telemetry import TelemetryBuffer
 
@@ -52,8 +57,8 @@ _NOT_VEHICLE_TYPES = {mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
                       mavlink.MAV_TYPE_CAMERA, mavlink.MAV_TYPE_ADSB}
 
 
-class ReplayError(CompanionError):
-    """The recording cannot be replayed (no telemetry, unreadable files)."""
+class ReplayError(ConfigError):
+    """The recording cannot be replayed (no telemetry, unreadable files): bad input, exit code 2."""
 
 
 # ---------------------------------------------------------------------- reading the tlog --------
@@ -71,6 +76,7 @@ class TlogTelemetry:
     system_id: int
     counters: dict[str, int]
     segments: list[tuple[float, float]]  # (record time where a boot segment starts, its boot→record offset)
+    truncation: str | None = None  # the file was cut while being written: a warning naming it (TlogContents.truncation)
 
     def offset_at(self, t: float) -> float:
         off = self.segments[0][1]
@@ -84,48 +90,27 @@ def read_telemetry_tlog(path: str | Path, telemetry_latency_s: float = 0.0, rese
     """Vehicle ATTITUDE / LOCAL_POSITION_NED of a tlog, in record order, and the clock mapping.
 
     The vehicle is the first component 1 whose HEARTBEAT names a real autopilot (else the system
-    sending the most ATTITUDE).  Corrupt records are skipped and counted.
+    sending the most ATTITUDE).  Corrupt records are skipped and counted; a file cut while being
+    written is read up to its last whole record (:attr:`TlogTelemetry.truncation` says so).  A
+    missing, empty or non-MAVLink file, or one without the vehicle's telemetry, is a
+    :class:`ReplayError` (a ConfigError: exit code 2).
     """
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"{p}: no such tlog")
-    counters: collections.Counter[str] = collections.Counter()
+    try:
+        contents = read_tlog(path)
+    except TlogError as exc:
+        raise ReplayError(str(exc)) from None
+    p = contents.path
+    counters: collections.Counter[str] = collections.Counter(contents.counters)
     raw: list[tuple[float, int, int, str, object]] = []
     vehicle: int | None = None
-    try:
-        conn = mavutil.mavlogfile(str(p), robust_parsing=True)  # sequential reader (not the mmap index)
-    except Exception as exc:
-        raise ConfigError(f"{p}: cannot read as a tlog: {exc}") from None
-    try:
-        while True:
-            try:
-                m = conn.recv_msg()
-            except Exception as exc:  # a parser exception on garbage: count and stop at this point
-                counters["parser_errors"] += 1
-                log.warning("%s: parser error %r; reading stops here", p, exc)
-                break
-            if m is None:
-                break
-            typ = m.get_type()
-            if typ == "BAD_DATA" or typ.startswith("UNKNOWN"):
-                counters["bad_records"] += 1
-                continue
-            counters["messages"] += 1
-            src, comp = m.get_srcSystem(), m.get_srcComponent()
-            if typ == "HEARTBEAT" and vehicle is None and comp == 1 and m.autopilot != mavlink.MAV_AUTOPILOT_INVALID \
-                    and m.type not in _NOT_VEHICLE_TYPES:
-                vehicle = src
-            if typ in _TELEMETRY:
-                t = float(getattr(m, "_timestamp", math.nan))
-                if not math.isfinite(t):
-                    counters["bad_timestamps"] += 1
-                    continue
-                raw.append((t, src, comp, typ, m))
-    finally:
-        try:
-            conn.close()
-        except Exception:
-            pass
+    for m in contents.messages:
+        typ = m.get_type()
+        src, comp = m.get_srcSystem(), m.get_srcComponent()
+        if typ == "HEARTBEAT" and vehicle is None and comp == 1 and m.autopilot != mavlink.MAV_AUTOPILOT_INVALID \
+                and m.type not in _NOT_VEHICLE_TYPES:
+            vehicle = src
+        if typ in _TELEMETRY:
+            raw.append((float(m._timestamp), src, comp, typ, m))
     if not raw:
         raise ReplayError(f"{p}: no ATTITUDE / LOCAL_POSITION_NED in the log")
     if vehicle is None:
@@ -156,7 +141,7 @@ def read_telemetry_tlog(path: str | Path, telemetry_latency_s: float = 0.0, rese
         seg_min = min(seg_min, r.t - r.time_boot_ms * 1e-3)
     segments.append((seg_start, seg_min - telemetry_latency_s))
     counters["telemetry"] = len(recs)
-    return TlogTelemetry(recs, vehicle, dict(counters), segments)
+    return TlogTelemetry(recs, vehicle, dict(counters), segments, contents.truncation)
 
 
 # ---------------------------------------------------------------------- writing -----------------
@@ -201,6 +186,7 @@ class ReplaySummary:
     system_id: int
     out: Path
     plot: Path | None
+    warnings: list[str] = dataclasses.field(default_factory=list)  # a truncated tlog, telemetry ending before the frames
 
 
 @dataclasses.dataclass
@@ -229,19 +215,17 @@ def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str
     """
     wall0 = time.perf_counter()
     cam = camera or config.camera
+    out = Path(out)
     tel_log = read_telemetry_tlog(tlog, telemetry_latency_s, config.telemetry.reset_threshold_s)
-    source = RecordedSource(video, frames_csv, cam.width, cam.height)
-    vw, vh = source.video_size
-    if (vw, vh) != (cam.width, cam.height) and vw > 0:
-        source.close()
-        raise ConfigError(f"{video} is {vw}×{vh} but the [camera] table says {cam.width}×{cam.height}: give the camera "
-                          "the video was recorded with (--config, --camera-config or --calibration)")
+    source = open_recording(video, frames_csv, cam)
+    warnings = recording_warnings(tel_log, source, tlog, config.telemetry.max_age_s)
+    for w in warnings:
+        log.warning("%s", w)
     total = len(source)
     tel = TelemetryBuffer(config.telemetry)
     pipe = Pipeline(cam, config, pipeline, tel)
     first_frame_t = float(source.t[0])
     rep = Reporter(config, pipeline, outputs=("autopilot",), start=first_frame_t, heartbeat=True)
-    writer = TlogOut(out, tel_log.system_id, config.link.component_id)
     trace = _Trace()
     recs = tel_log.records
     ri = 0
@@ -300,7 +284,11 @@ def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str
     feed(now)
     nxt = source.read()
     done = 0
+    staged = StagedFiles(out.parent, keep_partial=(out.name,))  # ranges.tlog appears complete or as ranges.tlog.partial
+    writer = TlogOut(staged.path(out.name), tel_log.system_id, config.link.component_id)
     try:
+        if nxt is None:
+            raise ReplayError(_no_frames(video, source))
         while nxt is not None:
             if nxt.t > now:
                 tick_until(now, nxt.t)
@@ -354,25 +342,65 @@ def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str
                 progress(done, total)
         # let the last result age out like a camera that stopped: a final second of periodic duties
         tick_until(now, now + 1.0)
-    finally:
         writer.close()
+        plot_path = None if plot is None else Path(plot)
+        if plot_path is not None:
+            plot_path.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(plot_path) as tmp:
+                plot_ranges(trace, tmp, config.sectors.max_distance_m, first_frame_t,
+                            load_truth(truth) if truth is not None else None)
+        staged.commit()
+    except BaseException:
+        writer.close()
+        staged.abort()
+        raise
+    finally:
         source.close()
     st = source.status()
     lat = np.asarray(latencies) * 1000 if latencies else np.asarray([math.nan])
-    plot_path = None
-    if plot is not None:
-        plot_path = Path(plot)
-        plot_ranges(trace, plot_path, config.sectors.max_distance_m, first_frame_t,
-                    load_truth(truth) if truth is not None else None)
     summary = ReplaySummary(
         frames=done, processed=counts["processed"], failed=dict(failed), stale=counts["stale"],
         superseded=counts["superseded"], rejected=st.rejected, messages=dict(writer.counts),
         recording_s=float(source.t[min(done, len(source.t)) - 1] - first_frame_t) if done else 0.0,
         wall_s=time.perf_counter() - wall0, latency_p50_ms=float(np.percentile(lat, 50)),
         latency_p99_ms=float(np.percentile(lat, 99)), first_valid_s=None if first_valid is None else first_valid - first_frame_t,
-        system_id=tel_log.system_id, out=Path(out), plot=plot_path,
+        system_id=tel_log.system_id, out=out, plot=plot_path, warnings=warnings,
     )
     return summary
+
+
+def open_recording(video: str | Path, frames_csv: str | Path, cam: CameraConfig) -> RecordedSource:
+    """The recorded frames, checked against the camera: a video of another size is a ConfigError
+    (the intrinsics would not apply)."""
+    source = RecordedSource(video, frames_csv, cam.width, cam.height)
+    vw, vh = source.video_size
+    if (vw, vh) != (cam.width, cam.height) and vw > 0:
+        source.close()
+        raise ConfigError(f"{video} is {vw}×{vh} but the [camera] table says {cam.width}×{cam.height}: give the camera "
+                          "the video was recorded with (--config, --camera-config or --calibration)")
+    return source
+
+
+def recording_warnings(tel_log: TlogTelemetry, source: RecordedSource, tlog: str | Path, max_age_s: float) -> list[str]:
+    """What is wrong with a recording that can still be replayed: a tlog cut while being written, or
+    one whose telemetry ends (more than ``max_age_s``, the staleness limit) before the frames do."""
+    warnings = [tel_log.truncation] if tel_log.truncation else []
+    t_end = float(tel_log.records[-1].t)
+    t0, t1 = float(source.t[0]), float(source.t[len(source) - 1])
+    if t1 - t_end > max_age_s:
+        warnings.append(f"{tlog}: the telemetry ends {t1 - t_end:.2f} s before the last frame ({max(t_end - t0, 0.0):.2f} s "
+                        f"into {t1 - t0:.2f} s of video): the tlog looks cut mid-flight; frames after its end are "
+                        "replayed without telemetry (their sectors are unknown)")
+    return warnings
+
+
+def _no_frames(video: str | Path, source: RecordedSource) -> str:
+    """Why a recording gave no frame at all (its rejections by reason, if any)."""
+    if source.size_error:
+        return f"{video}: {source.size_error}"
+    st = source.status()
+    why = ", ".join(f"{k} {v}" for k, v in sorted(st.rejected.items()))
+    return f"{video}: no frame could be read" + (f" (rejected: {why})" if why else "")
 
 
 # ---------------------------------------------------------------------- plot -------------------
@@ -496,5 +524,5 @@ def write_recording(out_dir: str | Path, flight, duration_s: float, fps: float =
     return out
 
 
-__all__ = ["replay", "ReplaySummary", "read_telemetry_tlog", "TlogTelemetry", "TelemetryRecord", "TlogOut",
+__all__ = ["replay", "ReplaySummary", "open_recording", "recording_warnings", "read_telemetry_tlog", "TlogTelemetry", "TelemetryRecord", "TlogOut",
            "plot_ranges", "load_truth", "write_recording", "ReplayError"]

@@ -17,7 +17,12 @@ else the scenario's ``[scenario] companion_config``, else ``configs/companion.to
 
 A run that raises is recorded (``status = "failed"``, the error, ``error.txt`` with the traceback)
 and the campaign goes on; each run logs into its own ``run.log``.  Afterwards the runs are pooled
-(:func:`aggregate`) into ``out/campaign.json`` and ``out/report/`` (:mod:`flightsim.report`).
+(:func:`aggregate`) into ``out/campaign.json`` and ``out/report/`` (:mod:`flightsim.report`), each
+appearing whole (:mod:`companion.io.atomic`).  A campaign starting in ``out`` first removes the
+``campaign.json`` and ``report/`` of an earlier one there (their runs are about to be replaced).
+Interrupted (Ctrl-C, SIGTERM), it stops the workers (SIGTERM: each run unwinds and leaves none of
+its outputs), pools the runs that finished into ``campaign.json.partial`` and ``report.partial/``
+— names that say what they hold — and re-raises.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ import math
 import multiprocessing
 import os
 import shutil
+import signal
 import time
 import traceback
 from pathlib import Path
@@ -38,7 +44,8 @@ from typing import Callable
 
 import numpy as np
 
-from companion.errors import ConfigError
+from companion.errors import EXIT_TERMINATED, ConfigError, Terminated
+from companion.io.atomic import atomic_dir, partial_path, prepare_output_dir, write_text_atomic
 from flightsim.score import ScoreConfig, _jsonable, mark, nees_stats
 
 log = logging.getLogger(__name__)
@@ -410,8 +417,9 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
             raise ConfigError(f"--companion-config {companion_config}: no such file")
         companion_score_params(companion_config)  # validates the file before the runs
     cfg = score_config or ScoreConfig()
-    out = Path(out)
-    (out / "runs").mkdir(parents=True, exist_ok=True)
+    out = prepare_output_dir(out)
+    (out / "runs").mkdir(exist_ok=True)
+    _remove_stale_results(out)
     jobs = [RunJob(str(scenario), base + i, str(out / "runs" / f"seed_{base + i:04d}"), mode,
                    None if companion_config is None else str(companion_config), cfg, float(fixed_processing_ms), keep_video,
                    avoidance)
@@ -421,7 +429,8 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     wall0 = time.perf_counter()
     results: dict[int, dict] = {}
     failed = 0
-    interrupted = False
+    interrupted: BaseException | None = None  # the KeyboardInterrupt / Terminated that stopped the campaign
+
     def record(job: RunJob, res: dict) -> None:
         nonlocal failed
         results[job.seed] = res
@@ -438,27 +447,13 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
 
         try:
             run_jobs(jobs, scenario, companion_config, address, record, None if run_fn is run_one else run_fn)
-        except KeyboardInterrupt:
-            interrupted = True
+        except (KeyboardInterrupt, Terminated) as exc:
+            interrupted = exc
             log.warning("interrupted: %d of %d runs done; writing what there is", len(results), runs)
     else:
-        ex = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
-        try:
-            futs = {ex.submit(run_fn, job): job for job in jobs}
-            for fut in cf.as_completed(futs):
-                job = futs[fut]
-                try:
-                    res = fut.result()
-                except Exception as exc:  # the worker process died (BrokenProcessPool) or run_fn raised
-                    res = {"seed": job.seed, "dir": job.run_dir, "status": "failed", "error": f"{type(exc).__name__}: {exc}",
-                           "wall_s": None, "score": None}
-                record(job, res)
-        except KeyboardInterrupt:
-            interrupted = True
-            ex.shutdown(wait=False, cancel_futures=True)
+        interrupted = _run_in_processes(jobs, workers, run_fn, record)
+        if interrupted is not None:
             log.warning("interrupted: %d of %d runs done; writing what there is", len(results), runs)
-        finally:
-            ex.shutdown(wait=not interrupted, cancel_futures=True)
     ordered = [results[j.seed] for j in jobs if j.seed in results]
     series = {}
     for r in ordered:
@@ -471,18 +466,98 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
         "avoidance": sc.avoidance.model,
         "workers": workers, "backend": backend, "fixed_processing_ms": fixed_processing_ms,
         "companion_config": None if companion_config is None else str(companion_config),
-        "score_config": dataclasses.asdict(cfg), "wall_s": round(time.perf_counter() - wall0, 2), "interrupted": interrupted,
+        "score_config": dataclasses.asdict(cfg), "wall_s": round(time.perf_counter() - wall0, 2), "interrupted": interrupted is not None,
         "runs": [{k: v for k, v in r.items() if k != "score"} | ({"key_figures": run_key_figures(r["score"])} if r["score"] else {})
                  for r in ordered],
         "aggregate": agg,
     }
     campaign = _jsonable(campaign)
-    report_files = write_report(out / "report", campaign, series, obstacle=obstacle, times=times)
-    campaign["report"] = {k: str(v) for k, v in report_files.items()}
-    (out / "campaign.json").write_text(json.dumps(campaign, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
-    if interrupted:
-        raise KeyboardInterrupt
+    report_dir = out / "report" if interrupted is None else partial_path(out / "report")
+    with atomic_dir(report_dir) as tmp:
+        report_files = write_report(tmp, campaign, series, obstacle=obstacle, times=times)
+    campaign["report"] = {k: str(report_dir / Path(v).name) for k, v in report_files.items()}
+    summary = out / "campaign.json" if interrupted is None else partial_path(out / "campaign.json")
+    write_text_atomic(summary, json.dumps(campaign, indent=2, ensure_ascii=False) + "\n")
+    if interrupted is not None:
+        raise interrupted
     return campaign
+
+
+def _remove_stale_results(out: Path) -> None:
+    """Remove an earlier campaign's pooled results in ``out``: its runs are about to be replaced."""
+    for name in ("campaign.json", partial_path("campaign.json").name):
+        (out / name).unlink(missing_ok=True)
+    for name in ("report", partial_path("report").name):
+        if (out / name).is_dir():
+            shutil.rmtree(out / name)
+
+
+_JOB_RUNNING = False  # in a worker process: a run is in progress (SIGTERM unwinds it) or not (SIGTERM ends the worker)
+
+
+def _worker_init() -> None:
+    """Worker processes leave Ctrl-C to the campaign, which stops them with SIGTERM (:func:`_stop_workers`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _worker_sigterm)
+
+
+def _worker_sigterm(signum, _frame) -> None:
+    """A running run unwinds (:class:`Terminated`: its temporary outputs removed, its companion stopped,
+    then the worker exits in :func:`_run_job`); an idle worker exits at once."""
+    if _JOB_RUNNING:
+        raise Terminated(f"{signal.Signals(signum).name} received")
+    os._exit(EXIT_TERMINATED)
+
+
+def _run_job(run_fn: Callable[[RunJob], dict], job: RunJob) -> dict:
+    """``run_fn(job)`` in a worker process; stopped by SIGTERM, the worker exits once the run has unwound."""
+    global _JOB_RUNNING
+    _JOB_RUNNING = True
+    try:
+        return run_fn(job)
+    except Terminated:
+        os._exit(EXIT_TERMINATED)  # no further queued run: the campaign is stopping
+    finally:
+        _JOB_RUNNING = False
+
+
+def _stop_workers(procs: list, timeout_s: float = 60.0) -> None:
+    """SIGTERM to the worker processes ``procs``; wait for their runs to unwind (SIGKILL after ``timeout_s``)."""
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+    deadline = time.monotonic() + timeout_s
+    for proc in procs:
+        proc.join(max(0.0, deadline - time.monotonic()))
+        if proc.is_alive():
+            log.warning("worker process %d did not stop within %.0f s of SIGTERM: killing it", proc.pid, timeout_s)
+            proc.kill()
+            proc.join()
+
+
+def _run_in_processes(jobs: list[RunJob], workers: int, run_fn: Callable[[RunJob], dict],
+                      record: Callable[[RunJob, dict], None]) -> BaseException | None:
+    """Run ``jobs`` in a process pool, ``record``-ing each result as it comes; returns the
+    KeyboardInterrupt / Terminated that stopped it early (the workers stopped first), else None."""
+    ex = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                                initializer=_worker_init)
+    try:
+        futs = {ex.submit(_run_job, run_fn, job): job for job in jobs}
+        for fut in cf.as_completed(futs):
+            job = futs[fut]
+            try:
+                res = fut.result()
+            except Exception as exc:  # the worker process died (BrokenProcessPool) or run_fn raised
+                res = {"seed": job.seed, "dir": job.run_dir, "status": "failed", "error": f"{type(exc).__name__}: {exc}",
+                       "wall_s": None, "score": None}
+            record(job, res)
+    except (KeyboardInterrupt, Terminated) as exc:
+        procs = list((getattr(ex, "_processes", None) or {}).values())  # shutdown() forgets them
+        ex.shutdown(wait=False, cancel_futures=True)
+        _stop_workers(procs)
+        return exc
+    ex.shutdown(wait=True)
+    return None
 
 
 def _progress_bar(label: str):

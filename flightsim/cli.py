@@ -5,8 +5,12 @@
   flightsim score DIR | --ranges R.tlog --truth truth.npz [--out DIR]
   flightsim campaign configs/scenarios/X.toml --runs N --workers W --out DIR [--mode auto|replay|sitl]
 
-Exit codes: 0 done, 2 a bad scenario/world/argument or a busy port (the message names it), 1 a
-failure in flight or of the companion (the message names its log).
+Exit codes (:mod:`companion.errors`): 0 done, 2 a bad scenario/world/argument/input file or a busy
+port (the message names it), 1 a failure in flight or of the companion (the message names its log),
+130 interrupted by Ctrl-C, 143 by SIGTERM.  Outputs appear when complete (temporary names until
+then, :mod:`companion.io.atomic`): an interrupted command leaves nothing at their names; the tlogs
+of an interrupted ``sitl`` are kept as ``*.tlog.partial``, an interrupted campaign's pooled results
+as ``campaign.json.partial`` and ``report.partial/``.
 """
 
 from __future__ import annotations
@@ -18,7 +22,8 @@ import sys
 
 from pathlib import Path
 
-from companion.errors import CompanionError, ConfigError
+from companion.errors import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, CompanionError, ConfigError, Terminated
+from companion.interrupts import interrupt_exit_code, interrupt_name, raise_on_sigterm
 from flightsim.avoidance import MODELS as AVOIDANCE_MODELS
 
 log = logging.getLogger("flightsim")
@@ -64,7 +69,7 @@ def cmd_fly(args) -> int:
             plot_run_outcome(Path(args.out), sc.world, o, title=sc.meta.name)
         print(f"avoidance {o['model']} (no companion, so no obstacle data): {outcome_verdict(o)}; min clearance "
               f"{o['min_clearance_m']:.2f} m, progress {100 * o['progress']:.0f} % of the route")
-    return 0
+    return EXIT_OK
 
 
 def cmd_sitl(args) -> int:
@@ -125,12 +130,12 @@ def cmd_sitl(args) -> int:
               f"{o['min_clearance_m']:.2f} m, progress {100 * o['progress']:.0f} % of the route; plot {Path(args.out) / 'avoidance.png'}")
     if s["score_failed"]:
         print(f"flightsim: error: {s['score_note']}", file=sys.stderr)
-        return 1
+        return EXIT_RUNTIME
     if s["companion"] is not None and s["companion_exit_code"] not in (0, None):
         print(f"flightsim: error: the companion exited with code {s['companion_exit_code']} (see {s['companion']['log']})",
               file=sys.stderr)
-        return 1
-    return 0
+        return EXIT_RUNTIME
+    return EXIT_OK
 
 
 def _run_record(run_dir: Path | None) -> dict:
@@ -199,8 +204,9 @@ def _world_for_names(scenario: str | None, run_dir: Path | None, rec: dict | Non
 
 
 def cmd_score(args) -> int:
+    from companion.io.atomic import StagedFiles, prepare_output_dir
     from flightsim.score import mark
-    from flightsim.score_io import load_score_config, score_run, write_score
+    from flightsim.score_io import load_score_config, score_run, stage_score
 
     run_dir = Path(args.dir) if args.dir else None
     if run_dir is not None and not run_dir.is_dir():
@@ -215,15 +221,17 @@ def cmd_score(args) -> int:
     truth = Path(args.truth) if args.truth else (run_dir / "truth.npz" if run_dir else None)
     if truth is None:
         raise ConfigError("--truth is required without a run directory")
-    out = Path(args.out) if args.out else (run_dir or ranges.parent)
+    out = prepare_output_dir(args.out) if args.out else (run_dir or ranges.parent)
     cfg = load_score_config(args.config)
     rec = _run_record(run_dir)
     companion_config = _score_companion_config(args.companion_config, args.scenario, rec)
     world = _world_for_names(args.scenario, run_dir, rec)
     log.info("scoring %s against %s", ranges, truth)
-    score = score_run(ranges, truth, config=cfg, companion_config=companion_config, world=world,
-                      series_out=None if args.no_series else out / "score_series.npz")
-    write_score(out, score)
+    # score.json, score.md and score_series.npz appear together (a previous series goes with --no-series)
+    with StagedFiles(out, obsolete=("score_series.npz",)) as staged:
+        score = score_run(ranges, truth, config=cfg, companion_config=companion_config, world=world,
+                          series_out=None if args.no_series else staged.path("score_series.npz"))
+        stage_score(staged, score)
     r = score["rates"]
 
     def pc(v):
@@ -242,7 +250,7 @@ def cmd_score(args) -> int:
         print(f"  NEES {ne['mean']:.2f} (n = {ne['n']}, {100 * ne['confidence']:g} % band "
               f"[{ne['band'][0]:.2f}, {ne['band'][1]:.2f}])")
     print(f"wrote {out / 'score.json'} and {out / 'score.md'}")
-    return 0
+    return EXIT_OK
 
 
 def cmd_campaign(args) -> int:
@@ -387,26 +395,21 @@ def main(argv=None) -> int:
     if missing:
         print(f"flightsim: the simulator needs the 'sim' extra ({', '.join(missing)} not installed): "
               "pip install 'monorange[sim]'", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
+    commands = {"fly": cmd_fly, "sitl": cmd_sitl, "score": cmd_score, "campaign": cmd_campaign}
     try:
-        if args.cmd == "fly":
-            return cmd_fly(args)
-        if args.cmd == "sitl":
-            return cmd_sitl(args)
-        if args.cmd == "score":
-            return cmd_score(args)
-        if args.cmd == "campaign":
-            return cmd_campaign(args)
+        with raise_on_sigterm():  # SIGTERM unwinds like Ctrl-C: temporary outputs removed, the companion stopped
+            return commands[args.cmd](args)
     except ConfigError as exc:
         print(f"flightsim: error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     except CompanionError as exc:  # a failure in flight or of the companion (SitlError names its log)
         print(f"flightsim: error: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("flightsim: interrupted", file=sys.stderr)
-        return 130
-    return 0
+        return EXIT_RUNTIME
+    except (KeyboardInterrupt, Terminated) as exc:
+        print(f"flightsim {args.cmd}: {interrupt_name(exc)}; nothing written under the output names (partial data, if any, "
+              "in *.partial)", file=sys.stderr)
+        return interrupt_exit_code(exc)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,10 @@ Files written to ``out_dir``:
 * ``summary.png`` — track, altitude, attitude and speed, with the obstacles;
 * ``flight.json`` — what was flown and how fast.
 
-The same scenario and seed give byte-identical tlog, video, frames.csv and truth.npz.
+The same scenario and seed give byte-identical tlog, video, frames.csv and truth.npz.  The files
+are written under temporary names and renamed onto theirs together when the flight is complete
+(:class:`companion.io.atomic.StagedFiles`): an interrupted ``fly`` leaves none of them behind
+(and a previous flight's set in ``out_dir`` untouched).
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ import cv2
 import numpy as np
 
 from companion.core.camera import CameraModel
+from companion.io.atomic import StagedFiles, prepare_output_dir
 from companion.mavlink.dialect import mavlink
 from flightsim.avoidance import F450_RADIUS_M, body_to_ned, make_avoidance
 from flightsim.dynamics import LocalNED, make_vehicle
@@ -354,15 +358,16 @@ class Flight:
         arrays["braking_delay_s"] = np.array(delay)
         return arrays
 
-    def write_common(self, out: Path) -> dict[str, np.ndarray]:
-        """Write frames.csv, truth.npz, trajectory.npz and camera.toml (the files fly and sitl share); returns the truth."""
+    def write_common(self, staged: StagedFiles) -> dict[str, np.ndarray]:
+        """Write frames.csv, truth.npz, trajectory.npz and camera.toml (the files fly and sitl share)
+        to their staged paths; returns the truth."""
         epoch = self.sc.meta.epoch_s
         rows = ["index,t_s"] + [f"{i},{epoch + t:.6f}" for i, t in enumerate(self.frame_times)]
-        (out / "frames.csv").write_text("\n".join(rows) + "\n")
+        staged.path("frames.csv").write_text("\n".join(rows) + "\n")
         arrays = self.truth_arrays()
-        save_npz_deterministic(out / "truth.npz", arrays)
-        save_npz_deterministic(out / "trajectory.npz", self.trajectory_arrays())
-        (out / "camera.toml").write_text(camera_toml(self.sc.camera))
+        save_npz_deterministic(staged.path("truth.npz"), arrays)
+        save_npz_deterministic(staged.path("trajectory.npz"), self.trajectory_arrays())
+        staged.path("camera.toml").write_text(camera_toml(self.sc.camera))
         return arrays
 
 
@@ -393,15 +398,40 @@ class FlightResult:
 
 def fly(sc: Scenario, out_dir: str | Path, progress: Callable[[int, int], None] | None = None,
         plot: bool = True) -> FlightResult:
-    """Fly ``sc`` and write the export files into ``out_dir`` (created if missing)."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    """Fly ``sc`` and write the export files into ``out_dir`` (created if missing), all of them
+    at once when the flight is complete (module docstring)."""
+    out = prepare_output_dir(out_dir)
     wall0 = time.perf_counter()
     meta = sc.meta
-    flight = Flight(sc)
+    # summary.png / avoidance.png of a previous flight in out_dir would no longer match: removed with the commit
+    with StagedFiles(out, obsolete=("summary.png", "avoidance.png")) as staged:
+        flight = Flight(sc)
+        queue = _fly_loop(flight, staged, progress)
+        with TlogWriter(staged.path("telemetry.tlog"), meta.epoch_s) as w:
+            for t_emit, _, msg in queue:
+                w.write(t_emit, msg, sysid=sc.telemetry.system_id, compid=1)
+        arrays = flight.write_common(staged)
+        wall = time.perf_counter() - wall0
+        result = FlightResult(out, flight.next_frame, len(queue), meta.duration_s, wall)
+        staged.path("flight.json").write_text(json.dumps({
+            "scenario": meta.name, "scenario_file": str(sc.path), "seed": meta.seed, "aircraft": sc.vehicle.aircraft,
+            "duration_s": meta.duration_s, "frames": result.frames, "messages": result.messages,
+            "wall_time_s": round(wall, 3), "realtime_factor": round(result.realtime_factor, 2),
+            "truth_fields": TRUTH_FIELDS,
+        }, indent=2) + "\n")
+        if plot:
+            from flightsim.plots import flight_summary_plot
+
+            flight_summary_plot(sc, arrays, staged.path("summary.png"))
+    return result
+
+
+def _fly_loop(flight: Flight, staged: StagedFiles, progress: Callable[[int, int], None] | None) -> list:
+    """Step the whole flight, writing the frames to the staged video.avi; returns the autopilot's
+    messages as ``(t_emit, order, message)``, sorted by time (the order they leave)."""
     streams = flight.scenario_streams()
     queue: list[tuple[float, int, object]] = []
-    video = open_video(out / "video.avi", sc)
+    video = open_video(staged.path("video.avi"), flight.sc)
     try:
         while (state := flight.step()) is not None:
             for t_emit, _name, msg in streams.due(state):
@@ -414,20 +444,4 @@ def fly(sc: Scenario, out_dir: str | Path, progress: Callable[[int, int], None] 
     finally:
         video.release()
     queue.sort(key=lambda item: (item[0], item[1]))
-    with TlogWriter(out / "telemetry.tlog", meta.epoch_s) as w:
-        for t_emit, _, msg in queue:
-            w.write(t_emit, msg, sysid=sc.telemetry.system_id, compid=1)
-    arrays = flight.write_common(out)
-    wall = time.perf_counter() - wall0
-    result = FlightResult(out, flight.next_frame, len(queue), meta.duration_s, wall)
-    (out / "flight.json").write_text(json.dumps({
-        "scenario": meta.name, "scenario_file": str(sc.path), "seed": meta.seed, "aircraft": sc.vehicle.aircraft,
-        "duration_s": meta.duration_s, "frames": result.frames, "messages": result.messages,
-        "wall_time_s": round(wall, 3), "realtime_factor": round(result.realtime_factor, 2),
-        "truth_fields": TRUTH_FIELDS,
-    }, indent=2) + "\n")
-    if plot:
-        from flightsim.plots import flight_summary_plot
-
-        flight_summary_plot(sc, arrays, out / "summary.png")
-    return result
+    return queue

@@ -107,9 +107,12 @@ def plot_run_outcome(run_dir: Path, world, outcome: dict, title: str = "") -> Pa
 
     from flightsim.outcome import read_trajectory
 
+    from companion.io.atomic import atomic_path
+
     path = Path(run_dir) / "avoidance.png"
     try:
-        avoidance_plot(world, read_trajectory(Path(run_dir) / "trajectory.npz"), outcome, path, title=title)
+        with atomic_path(path) as tmp:
+            avoidance_plot(world, read_trajectory(Path(run_dir) / "trajectory.npz"), outcome, tmp, title=title)
     except Exception:
         logging.getLogger(__name__).exception("avoidance plot of %s failed", run_dir)
         return None

@@ -13,15 +13,18 @@ import collections
 import dataclasses
 import json
 import logging
-import math
-import sys
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from companion.mavlink.dialect import mavlink, mavutil  # first: MAVLink 2 + ardupilotmega
+from companion.mavlink.dialect import mavlink  # first: MAVLink 2 + ardupilotmega
 from companion.config import from_mapping
 from companion.errors import ConfigError, InputError
+from companion.io.atomic import StagedFiles, atomic_path
+from companion.io.config_files import read_toml
+from companion.io.inputs import check_input_file
+from companion.io.tlog import read_tlog
 from flightsim.score import (
     N_SECTORS,
     RangeMessages,
@@ -34,11 +37,6 @@ from flightsim.score import (
     world_namer,
 )
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
-
 log = logging.getLogger(__name__)
 
 COMPANION_COMPONENT = 196  # MAV_COMP_ID_OBSTACLE_AVOIDANCE (docs/derivations/sectors.md)
@@ -50,41 +48,16 @@ def read_ranges_tlog(path: str | Path, component_id: int = COMPANION_COMPONENT, 
 
     The sender is component ``component_id`` of ``system_id`` (default: the system that sent the
     most OBSTACLE_DISTANCE from that component).  Records of other senders are counted as
-    ``foreign``; unreadable ones as ``bad_records``.
+    ``foreign``; unreadable ones as ``bad_records``.  A missing, empty or non-MAVLink file is a
+    ConfigError; a file cut while being written is read up to its last whole record, with a warning.
     """
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"{p}: no such tlog")
-    counters: collections.Counter[str] = collections.Counter()
-    rows: list[tuple[float, int, int, object]] = []
-    try:
-        conn = mavutil.mavlogfile(str(p), robust_parsing=True)
-    except Exception as exc:
-        raise ConfigError(f"{p}: cannot read as a tlog: {exc}") from None
-    try:
-        while True:
-            try:
-                m = conn.recv_msg()
-            except Exception as exc:  # garbage the parser cannot step over: stop here, keep what was read
-                counters["parser_errors"] += 1
-                log.warning("%s: parser error %r; reading stops here", p, exc)
-                break
-            if m is None:
-                break
-            typ = m.get_type()
-            if typ == "BAD_DATA" or typ.startswith("UNKNOWN"):
-                counters["bad_records"] += 1
-                continue
-            t = float(getattr(m, "_timestamp", math.nan))
-            if not math.isfinite(t):
-                counters["bad_timestamps"] += 1
-                continue
-            rows.append((t, m.get_srcSystem(), m.get_srcComponent(), m))
-    finally:
-        try:
-            conn.close()
-        except Exception:
-            pass
+    contents = read_tlog(path)  # TlogError (a ConfigError) for a missing, empty or non-MAVLink file
+    p = contents.path
+    if contents.truncation:
+        log.warning("%s", contents.truncation)
+    counters: collections.Counter[str] = collections.Counter(contents.counters)
+    rows: list[tuple[float, int, int, object]] = [
+        (float(m._timestamp), m.get_srcSystem(), m.get_srcComponent(), m) for m in contents.messages]
     comp_rows = [r for r in rows if r[2] == component_id]
     if system_id is None and comp_rows:
         od_senders = collections.Counter(r[1] for r in comp_rows if r[3].get_type() == "OBSTACLE_DISTANCE")
@@ -132,9 +105,9 @@ def read_truth_npz(path: str | Path) -> SectorTruth:
     not) and ``in_view`` (F, 72): then the score uses them; an older file has only ``sector_m``
     (NaN out of view) and out-of-view claims stay unscored.
     """
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"{p}: no such truth file")
+    p = check_input_file(path, "truth file")
+    if not zipfile.is_zipfile(p):
+        raise ConfigError(f"{p}: not a truth.npz (not a NumPy .npz archive)")
     try:
         with np.load(p, allow_pickle=False) as z:
             missing = [k for k in ("t_s", "sector_m", "p_ned", "rpy", "sector_max_m") if k not in z.files]
@@ -161,12 +134,7 @@ def load_score_config(path: str | Path | None) -> ScoreConfig:
     if path is None:
         return ScoreConfig()
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: no such file") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    data = read_toml(p, "score configuration")
     unknown = sorted(set(data) - {"score"})
     if unknown:
         raise ConfigError(f"{p}: unknown table(s) {', '.join(map(repr, unknown))}; expected [score]")
@@ -218,17 +186,25 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
 
 
 def write_score(out_dir, score: dict) -> None:
-    """``score.json`` and ``score.md`` into ``out_dir``."""
+    """``score.json`` and ``score.md`` into ``out_dir``, both at once (:func:`stage_score`)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "score.json").write_text(json.dumps(score, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
-    (out / "score.md").write_text(markdown(score, f"Score of {out.name}"), encoding="utf-8")
+    with StagedFiles(out) as staged:
+        stage_score(staged, score)
+
+
+def stage_score(staged: StagedFiles, score: dict) -> None:
+    """Write ``score.json`` and ``score.md`` to their staged paths (they appear when ``staged`` commits)."""
+    staged.path("score.json").write_text(json.dumps(score, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+    staged.path("score.md").write_text(markdown(score, f"Score of {staged.directory.name}"), encoding="utf-8")
 
 
 def save_series(path, arrays: dict) -> None:
+    """``score_series.npz`` (compressed), written atomically."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(p, **arrays)
+    with atomic_path(p) as tmp:
+        np.savez_compressed(tmp, **arrays)
 
 
 def load_series(path) -> dict[str, np.ndarray]:

@@ -54,7 +54,10 @@ sent) and, with ``video``, ``video.avi`` — plus ``received.tlog`` (every MAVLi
 from the companion, stamped with its arrival on the recording clock of truth.npz ``t_s`` and
 frames.csv), ``companion.log`` and ``sitl.json`` (the summary).  When :mod:`flightsim.score`
 provides ``score_run`` / ``write_score`` the received ranges are scored against the truth
-(``score.json``, ``score.md``).
+(``score.json``, ``score.md``).  Everything but ``camera.toml`` (the companion reads it at start)
+and ``companion.log`` is written under a temporary name and appears when the flight is complete
+(:class:`companion.io.atomic.StagedFiles`); a run that fails or is interrupted leaves the two tlogs
+as ``telemetry.tlog.partial`` and ``received.tlog.partial`` and nothing at the other names.
 """
 
 from __future__ import annotations
@@ -82,6 +85,8 @@ from companion.mavlink.dialect import mavlink  # first: MAVLink 2 + ardupilotmeg
 from companion.camera_sources import ACK_DROPPED, ACK_PROCESSED, ACK_REJECTED, SimFrameServer
 from companion.config import require, require_finite
 from companion.errors import CompanionError, ConfigError
+from companion.io.atomic import StagedFiles, prepare_output_dir, write_text_atomic
+from companion.io.config_files import load_companion_config
 from flightsim.autopilot import AutopilotLogic, PortBusyError, UdpEndpoint
 from flightsim.fly import EPS_T, Flight, StreamSchedule, camera_toml, open_video
 from flightsim.scenario import Scenario, load_scenario, resolve_companion_config
@@ -236,9 +241,9 @@ class _Received:
 class _Run:
     """One SITL run (see the module docstring); :func:`run_sitl` is the entry point."""
 
-    def __init__(self, sc: Scenario, out: Path, clock: str, cfg: SitlConfig, companion_config: Path | None,
+    def __init__(self, sc: Scenario, staged: StagedFiles, clock: str, cfg: SitlConfig, companion_config: Path | None,
                  attach: bool, video: bool, progress, mavlink_port: int, camera_port: int):
-        self.sc, self.out, self.clock, self.cfg = sc, out, clock, cfg
+        self.sc, self.staged, self.out, self.clock, self.cfg = sc, staged, staged.directory, clock, cfg
         self.lockstep = clock == "lockstep"
         self.companion_config = companion_config
         self.attach, self.want_video, self.progress = attach, video, progress
@@ -339,8 +344,7 @@ class _Run:
     # -- setup ----------------------------------------------------------------------------------------
     def setup(self) -> None:
         out = self.out
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "camera.toml").write_text(camera_toml(self.sc.camera))  # the companion needs it at start
+        write_text_atomic(out / "camera.toml", camera_toml(self.sc.camera))  # the companion needs it at start
         self.endpoint = UdpEndpoint(self.mavlink_port, self.tel.system_id)
         try:
             self.server = SimFrameServer("127.0.0.1", self.camera_port)
@@ -369,10 +373,10 @@ class _Run:
         defaults = {"ATTITUDE": 1.0 / self.tel.attitude_rate_hz, "LOCAL_POSITION_NED": 1.0 / self.tel.position_rate_hz,
                     "GLOBAL_POSITION_INT": 1.0 / self.tel.global_rate_hz, "SYSTEM_TIME": 1.0}
         self.logic = AutopilotLogic(self.tel.system_id, self._set_period, defaults, self.boot_s)
-        self.tx_log = TlogWriter(out / "telemetry.tlog", self.epoch)
-        self.rx_log = TlogWriter(out / "received.tlog", self.epoch)
+        self.tx_log = TlogWriter(self.staged.path("telemetry.tlog"), self.epoch)
+        self.rx_log = TlogWriter(self.staged.path("received.tlog"), self.epoch)
         if self.want_video:
-            self.video = open_video(out / "video.avi", self.sc)
+            self.video = open_video(self.staged.path("video.avi"), self.sc)
         self._wait_for_companion()
 
     def _set_period(self, name: str, period: float | None, t: float) -> None:
@@ -629,6 +633,27 @@ def _score(out: Path, companion_config: Path | None, world) -> tuple[dict | None
     return score, "scored"
 
 
+def _fly_against_companion(run: _Run) -> None:
+    """Set the run up, fly it, and stop the companion and close the sockets and files whatever happened."""
+    failure: BaseException | None = None
+    # OpenCV on one thread in the simulator for the run (as the companion is started with): its
+    # worker threads split each warp of the renderer across both cores and then preempt the
+    # companion's process; the results are the same row by row
+    cv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        run.setup()
+        run.loop()
+    except BaseException as exc:  # stop the companion whatever happened, then re-raise
+        failure = exc
+        raise
+    finally:
+        run.close()
+        cv2.setNumThreads(cv_threads)
+        if failure is not None and run.companion is not None:
+            log.info("companion log: %s", run.companion.log_path)
+
+
 def _free_or(port: int | None) -> int:
     return 0 if port is None else int(port)
 
@@ -665,32 +690,24 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
     companion_config = resolve_companion_config(sc, companion_config)
     if companion_config is not None:
         companion_config = Path(companion_config).resolve()
-        if not companion_config.is_file():
-            raise ConfigError(f"companion config {companion_config}: no such file")
-    out = Path(out_dir)
-    run = _Run(sc, out, clock, cfg, companion_config, attach, video, progress, _free_or(mavlink_port), _free_or(camera_port))
+        load_companion_config(companion_config)  # a bad file stops here, not in the companion's log
+    out = prepare_output_dir(out_dir)
+    # the names a previous run here may have left that this one writes after the commit (or not at all)
+    staged = StagedFiles(out, keep_partial=("telemetry.tlog", "received.tlog"),
+                         obsolete=("video.avi", "avoidance.png", "score.json", "score.md", "score_series.npz", "sitl.json"))
+    run = _Run(sc, staged, clock, cfg, companion_config, attach, video, progress, _free_or(mavlink_port),
+               _free_or(camera_port))
     wall0 = time.perf_counter()
-    failure: BaseException | None = None
-    # OpenCV on one thread in the simulator for the run (as the companion is started with): its
-    # worker threads split each warp of the renderer across both cores and then preempt the
-    # companion's process; the results are the same row by row
-    cv_threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
     try:
-        run.setup()
-        run.loop()
-    except BaseException as exc:  # stop the companion whatever happened, then re-raise
-        failure = exc
+        _fly_against_companion(run)
+        wall = time.perf_counter() - wall0
+        w0 = time.perf_counter()
+        run.flight.write_common(staged)
+        staged.commit()
+        write_s = time.perf_counter() - w0
+    except BaseException:
+        staged.abort()
         raise
-    finally:
-        run.close()
-        cv2.setNumThreads(cv_threads)
-        if failure is not None and run.companion is not None:
-            log.info("companion log: %s", run.companion.log_path)
-    wall = time.perf_counter() - wall0
-    w0 = time.perf_counter()
-    run.flight.write_common(out)
-    write_s = time.perf_counter() - w0
     sc_result, note, score_failed = None, "not requested", False
     if score:
         try:
@@ -739,7 +756,7 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
                                                      "score.json", "score.md") if (out / name).exists() or name == "sitl.json"},
         "score": sc_result, "score_note": note, "score_failed": score_failed,
     }
-    (out / "sitl.json").write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
+    write_text_atomic(out / "sitl.json", json.dumps(summary, indent=2, default=_json_default) + "\n")
     if not run.counts_rx.get("HEARTBEAT"):
         what = (f"the companion never spoke MAVLink to the simulated autopilot (UDP 127.0.0.1:{run.endpoint.port}): "
                 "no HEARTBEAT received")

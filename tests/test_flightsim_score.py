@@ -342,7 +342,7 @@ def test_bad_inputs_are_named(tmp_path):
         read_ranges_tlog(tmp_path / "nope.tlog")
     bad = tmp_path / "t.npz"
     bad.write_bytes(b"not a zip")
-    with pytest.raises(ConfigError, match="cannot read as truth.npz"):
+    with pytest.raises(ConfigError, match="not a truth.npz"):
         read_truth_npz(bad)
     np.savez(bad, t_s=np.arange(3.0))
     with pytest.raises(ConfigError, match="missing sector_m"):
@@ -355,9 +355,18 @@ def test_bad_inputs_are_named(tmp_path):
     with pytest.raises(ConfigError, match="unknown key"):
         load_score_config(cfg)
     assert load_score_config(ROOT / "configs" / "score.toml") == S.ScoreConfig()
-    # an empty tlog scores to zero counts, never crashes
+    # an empty tlog, or one that is not MAVLink, is bad input (exit 2), not a run without ranges
     (tmp_path / "empty.tlog").write_bytes(b"")
-    msgs = read_ranges_tlog(tmp_path / "empty.tlog")
+    with pytest.raises(ConfigError, match="empty"):
+        read_ranges_tlog(tmp_path / "empty.tlog")
+    (tmp_path / "junk.tlog").write_bytes(bytes(range(256)) * 8)
+    with pytest.raises(ConfigError, match="not a MAVLink tlog"):
+        read_ranges_tlog(tmp_path / "junk.tlog")
+    # a tlog without a message from the companion scores to zero counts, never crashes
+    w = TlogOut(tmp_path / "autopilot.tlog", system_id=1, component_id=1)
+    w.write(1000.0, mavlink.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3))
+    w.close()
+    msgs = read_ranges_tlog(tmp_path / "autopilot.tlog")
     s = S.summarize(S.evaluate(msgs, truth_of([{0: 20.0}] * 3), NOWARM))
     assert s["cells"]["obstacle"] == 0 and s["targets"][0]["met"] is None
 

@@ -180,17 +180,28 @@ def test_realtime_clock(tmp_path):
     assert s["timesync_answered"] >= 2 and s["acks"] == {}  # nobody waits for acknowledgements
 
 
-def test_companion_that_cannot_start_is_a_clear_error(tmp_path, capsys):
+def test_a_bad_companion_config_stops_before_the_companion_starts(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text("[harris]\nno_such_key = 1\n")
     rc = flightsim_main(["sitl", str(short_scenario(tmp_path, 1.0)), "--out", str(tmp_path / "o"), "--config", str(bad),
                          "--mavlink-port", "0", "--camera-port", "0"])
     err = capsys.readouterr().err
+    assert rc == 2  # bad input, named at once (it used to surface as the companion's exit code 2 in its log: exit 1)
+    assert "no_such_key" in err and str(bad) in err and "Traceback" not in err
+    assert not (tmp_path / "o" / "companion.log").exists()
+
+
+def test_companion_that_cannot_start_is_a_clear_error(tmp_path, capsys):
+    cfg = tmp_path / "keyless.toml"  # valid TOML, but the companion cannot open its signing key when it starts
+    cfg.write_text(f'[link]\nsigning_key_file = "{(tmp_path / "no_such.key").as_posix()}"\n')
+    rc = flightsim_main(["sitl", str(short_scenario(tmp_path, 1.0)), "--out", str(tmp_path / "o"), "--config", str(cfg),
+                         "--mavlink-port", "0", "--camera-port", "0"])
+    err = capsys.readouterr().err
     assert rc == 1
     assert "exited with code 2 before connecting" in err and str(tmp_path / "o" / "companion.log") in err
-    assert "no_such_key" in err  # the tail of its log says why
+    assert "no_such.key" in err  # the tail of its log says why
     with pytest.raises(SitlError, match="companion.log"):
-        run_sitl(short_scenario(tmp_path, 1.0), tmp_path / "o2", companion_config=bad)
+        run_sitl(short_scenario(tmp_path, 1.0), tmp_path / "o2", companion_config=cfg)
 
 
 def test_busy_port_is_a_usage_error(tmp_path, capsys):

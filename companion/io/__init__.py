@@ -1,1 +1,3 @@
-"""Thin I/O around the pure core: configuration files and camera calibration files."""
+"""Thin I/O around the pure core: configuration and calibration files (:mod:`.config_files`),
+input-file checks (:mod:`.inputs`), tlog reading with truncation checks (:mod:`.tlog`) and outputs
+that appear complete or not at all (:mod:`.atomic`)."""

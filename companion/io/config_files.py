@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -32,6 +33,7 @@ from companion.mavlink.messages import OutputConfig
 from companion.pipeline import PipelineConfig
 from companion.telemetry import TelemetryConfig
 from companion.errors import ConfigError
+from companion.io.inputs import check_input_file, read_input_text
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -115,14 +117,12 @@ def read_config_toml(path: str | os.PathLike, _depth: int = 0) -> dict:
 
 
 def read_toml(path: str | os.PathLike, what: str = "configuration") -> dict:
-    """Parse a TOML file; a missing file or a syntax error becomes a ConfigError naming the file
-    (``what``: the kind of file in the message, e.g. "scenario", "world")."""
+    """Parse a TOML file; a missing, unreadable or non-text file or a syntax error becomes a
+    ConfigError naming the file (``what``: the kind of file in the message, e.g. "scenario", "world")."""
     path = Path(path)
+    text = read_input_text(path, f"{what} file", allow_empty=True)
     try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such {what} file") from None
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
 
@@ -145,29 +145,12 @@ def load_opencv_calibration(path: str | os.PathLike, base: CameraConfig | None =
     """Camera intrinsics from an OpenCV calibration file (YAML/XML written by ``cv2.FileStorage``).
 
     Reads ``camera_matrix`` and ``distortion_coefficients`` (and ``image_width`` /
-    ``image_height`` when present); the mount and anything missing come from ``base``.
+    ``image_height`` when present); the mount and anything missing come from ``base``.  A file
+    OpenCV cannot parse, or whose nodes are not what a calibration holds, is a ConfigError naming
+    the file, the node and (for a syntax error) the line.
     """
-    import cv2
-
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such calibration file")
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    try:
-        if not fs.isOpened():
-            raise ConfigError(f"{path}: OpenCV cannot read this calibration file")
-        K = fs.getNode("camera_matrix").mat()
-        D = fs.getNode("distortion_coefficients").mat()
-        w_node, h_node = fs.getNode("image_width"), fs.getNode("image_height")
-        width = int(w_node.real()) if not w_node.empty() else None
-        height = int(h_node.real()) if not h_node.empty() else None
-    finally:
-        fs.release()
-    if K is None or np.shape(K) != (3, 3):
-        raise ConfigError(f"{path}: camera_matrix missing or not 3×3")
-    if D is None:
-        raise ConfigError(f"{path}: distortion_coefficients missing")
-    D = np.asarray(D, float).reshape(-1)
+    path = check_input_file(path, "calibration file")
+    K, D, width, height = _read_calibration_nodes(path)
     base = base or CameraConfig()
     kw = dict(
         fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
@@ -181,3 +164,64 @@ def load_opencv_calibration(path: str | os.PathLike, base: CameraConfig | None =
         return dataclasses.replace(base, **kw)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+
+
+def _read_calibration_nodes(path: Path) -> tuple[np.ndarray, np.ndarray, int | None, int | None]:
+    """``(K, D, width or None, height or None)`` of a calibration file, checked for shape and finiteness."""
+    import cv2
+
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:  # a parse error surfaces as SystemError wrapping cv2.error
+        raise ConfigError(f"{path}: not a calibration file OpenCV can read ({_opencv_reason(exc)})") from None
+    try:
+        if not fs.isOpened():
+            raise ConfigError(f"{path}: OpenCV cannot read this calibration file")
+        K = _calibration_matrix(fs, path, "camera_matrix")
+        D = _calibration_matrix(fs, path, "distortion_coefficients")
+        width, height = (_calibration_int(fs, path, n) for n in ("image_width", "image_height"))
+    finally:
+        fs.release()
+    if np.shape(K) != (3, 3) or not np.all(np.isfinite(K)):
+        raise ConfigError(f"{path}: camera_matrix must be a finite 3×3 matrix, got shape {np.shape(K)}")
+    D = np.asarray(D, float).reshape(-1)
+    if not np.all(np.isfinite(D)):
+        raise ConfigError(f"{path}: distortion_coefficients contain NaN or inf")
+    return K, D, width, height
+
+
+def _calibration_matrix(fs, path: Path, name: str) -> np.ndarray:
+    """Node ``name`` as an OpenCV matrix (``!!opencv-matrix``); ConfigError if missing or not a matrix."""
+    import cv2
+
+    node = fs.getNode(name)
+    if node.empty() or node.isNone():
+        raise ConfigError(f"{path}: {name} missing")
+    try:
+        m = node.mat() if node.isMap() else None
+    except cv2.error:
+        m = None
+    if m is None:
+        raise ConfigError(f"{path}: {name} is not an OpenCV matrix (!!opencv-matrix with rows, cols, dt, data)")
+    return np.asarray(m, float)
+
+
+def _calibration_int(fs, path: Path, name: str) -> int | None:
+    """Optional integer node ``name`` (None when absent); ConfigError if it is not a number."""
+    node = fs.getNode(name)
+    if node.empty() or node.isNone():
+        return None
+    if not (node.isInt() or node.isReal()):
+        raise ConfigError(f"{path}: {name} must be a number")
+    return int(node.real())
+
+
+def _opencv_reason(exc: BaseException) -> str:
+    """The useful part of an OpenCV error: "line N: what" for a parse error, else its first line."""
+    cause = exc.__cause__ or exc.__context__ or exc
+    text = str(cause).strip()
+    m = re.search(r"in function '.*\((\d+)\): (.*?)'?$", text, flags=re.S)
+    if m:
+        return f"line {m.group(1)}: {m.group(2).strip()}"
+    m = re.search(r"error: \([-\d]+:[^)]*\) (.*)$", text, flags=re.S)
+    return (m.group(1) if m else text).splitlines()[0].strip()
