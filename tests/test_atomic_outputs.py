@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from companion.mavlink.dialect import mavutil  # noqa: I001 (first: MAVLink 2)
-from companion.bench.latency import SyntheticFlight
+from bench.latency import SyntheticFlight
 from companion.core.camera import CameraConfig
 from companion.errors import Terminated
 from companion.interrupts import interrupt_exit_code, raise_on_sigterm, signals_deferred

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from companion.mavlink.dialect import mavlink  # noqa: I001 (first: MAVLink 2)
-from companion.bench.latency import SyntheticFlight
+from bench.latency import SyntheticFlight
 from companion.camera_sources import CLOCK_HOST_MONOTONIC, SimFrameServer, SimFrameSource
 from companion.cli import load_config, main as companion_main
 from companion.core.camera import CameraConfig
