@@ -21,30 +21,18 @@ from bench import report
 
 
 def _progress(total: int, label: str, quiet: bool):
-    """A rich progress bar on stderr (silent with --json or when stderr is not a terminal)."""
-    if quiet or not sys.stderr.isatty():
-        class _Null:
-            def __enter__(self):
-                return lambda n: None
+    """A progress bar on stderr (silent with --json or when stderr is not a terminal); the context
+    gives a ``tick(n)`` that counts n more done."""
+    import contextlib
 
-            def __exit__(self, *a):
-                return False
+    from companion.io.progress import ProgressBar
 
-        return _Null()
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    @contextlib.contextmanager
+    def bar():
+        with ProgressBar(label, total=total, enabled=False if quiet else None) as b:
+            yield b.advance
 
-    class _Bar:
-        def __enter__(self):
-            self.p = Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True)
-            self.p.start()
-            self.task = self.p.add_task(label, total=total)
-            return lambda n: self.p.advance(self.task, n)
-
-        def __exit__(self, *a):
-            self.p.stop()
-            return False
-
-    return _Bar()
+    return bar()
 
 
 def cmd_seed004(args) -> dict:

@@ -318,33 +318,6 @@ def _installed(module: str) -> bool:
     return importlib.util.find_spec(module) is not None
 
 
-class _Progress:
-    def __init__(self, enabled: bool, label: str):
-        self.enabled = enabled
-        self.label = label
-        self._p = None
-        self._task = None
-
-    def __enter__(self):
-        if self.enabled and _installed("rich"):
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-            self._p = Progress(TextColumn(self.label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True)
-            self._p.start()
-        return self
-
-    def __call__(self, done: int, total: int) -> None:
-        if self._p is None:
-            return
-        if self._task is None:
-            self._task = self._p.add_task(self.label, total=total)
-        self._p.update(self._task, completed=done)
-
-    def __exit__(self, *exc):
-        if self._p is not None:
-            self._p.stop()
-        return False
-
 
 def cmd_replay(args) -> int:
     from companion.io.atomic import partial_path
@@ -390,11 +363,13 @@ def cmd_replay(args) -> int:
     cam = rc.companion.camera
     log.info("replaying %s with a %d×%d camera (fx %.1f), %s EKF", args.video, cam.width, cam.height, cam.fx,
              rc.companion.estimator.filter)
-    show = not args.quiet and sys.stderr.isatty()
+    from companion.io.progress import ProgressBar
+
     try:
-        with _Progress(show, "replay") as bar:
+        with ProgressBar("replay", enabled=None if not args.quiet else False) as bar:
             s = replay(args.tlog, args.video, args.frames, out, rc.companion, camera=cam, pipeline=rc.pipeline,
-                       plot=args.plot, telemetry_latency_s=args.telemetry_latency_ms / 1000.0, progress=bar, truth=truth,
+                       plot=args.plot, telemetry_latency_s=args.telemetry_latency_ms / 1000.0,
+                       progress=lambda done, total: bar.update(done, total), truth=truth,
                        fixed_processing_s=None if args.fixed_processing_ms is None else args.fixed_processing_ms / 1000.0)
     except BaseException as exc:
         if interrupt_exit_code(exc) is not None:

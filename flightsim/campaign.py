@@ -560,41 +560,22 @@ def _run_in_processes(jobs: list[RunJob], workers: int, run_fn: Callable[[RunJob
     return None
 
 
-def _progress_bar(label: str):
-    import sys
-
-    if not sys.stderr.isatty():
-        return None, None
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                   TimeRemainingColumn(), transient=False)
-    task = bar.add_task(label, total=None)
-
-    def tick(done: int, total: int, failed: int) -> None:
-        bar.update(task, completed=done, total=total, description=f"{label}" + (f" ({failed} failed)" if failed else ""))
-
-    return bar, tick
-
-
 def campaign_from_args(args) -> int:
     """``flightsim campaign`` (see flightsim/cli.py for the options)."""
     from flightsim.score_io import load_score_config
 
     times = parse_times(args.times)
     cfg = load_score_config(args.score_config)
-    bar, tick = _progress_bar("campaign")
-    if bar:
-        bar.start()
-        bar.update(bar.task_ids[0], total=args.runs)
-    try:
+    from companion.io.progress import ProgressBar
+
+    with ProgressBar("campaign", total=args.runs, transient=False, elapsed=True) as bar:
+        def tick(done: int, total: int, failed: int) -> None:
+            bar.update(done, total, "campaign" + (f" ({failed} failed)" if failed else ""))
+
         c = run_campaign(args.scenario, args.out, runs=args.runs, workers=args.workers, mode=args.mode, seed0=args.seed0,
                          companion_config=args.companion_config, score_config=cfg,
                          fixed_processing_ms=args.fixed_processing_ms, keep_video=args.keep_video, obstacle=args.obstacle,
                          times=times, progress=tick, avoidance=args.avoidance, backend=args.backend, address=args.address)
-    finally:
-        if bar:
-            bar.stop()
     a = c["aggregate"]
     print(f"{c['scenario_name']}: {a['runs_ok']} of {a['runs']} runs scored ({c['mode']} mode) in {c['wall_s']:.0f} s")
     av = a.get("avoidance")

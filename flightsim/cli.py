@@ -24,23 +24,10 @@ from pathlib import Path
 
 from companion.errors import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, CompanionError, ConfigError, Terminated
 from companion.interrupts import interrupt_exit_code, interrupt_name, raise_on_sigterm
+from companion.io.progress import ProgressBar
 from flightsim.avoidance import MODELS as AVOIDANCE_MODELS
 
 log = logging.getLogger("flightsim")
-
-
-def _progress_bar(label: str):
-    if not sys.stderr.isatty():
-        return None, None
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    bar = Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), transient=True)
-    task = bar.add_task(label, total=None)
-
-    def tick(done: int, total: int) -> None:
-        bar.update(task, completed=done, total=total)
-
-    return bar, tick
 
 
 def cmd_fly(args) -> int:
@@ -49,14 +36,8 @@ def cmd_fly(args) -> int:
 
     sc = load_scenario(args.scenario, seed=args.seed, avoidance=args.avoidance)
     log.info("flying %s (%s, %.1f s, seed %d) into %s", sc.meta.name, sc.vehicle.aircraft, sc.meta.duration_s, sc.meta.seed, args.out)
-    bar, tick = _progress_bar(f"fly {sc.meta.name}")
-    if bar:
-        bar.start()
-    try:
-        res = fly(sc, args.out, progress=tick, plot=not args.no_plot)
-    finally:
-        if bar:
-            bar.stop()
+    with ProgressBar(f"fly {sc.meta.name}") as bar:
+        res = fly(sc, args.out, progress=lambda done, total: bar.update(done, total), plot=not args.no_plot)
     print(f"{sc.meta.name}: {res.frames} frames, {res.messages} MAVLink messages, {res.duration_s:g} s flown "
           f"in {res.wall_s:.1f} s ({res.realtime_factor:.1f}× real time) → {res.out_dir}")
     if sc.avoidance.model != "none":
@@ -83,16 +64,11 @@ def cmd_sitl(args) -> int:
     companion_config = default_companion_config(args.scenario, args.config)
     log.info("SITL %s (%s clock) into %s, companion config %s", args.scenario, args.clock, args.out,
              companion_config or "configs/companion.toml")
-    bar, tick = _progress_bar(f"sitl {args.clock}")
-    if bar:
-        bar.start()
-    try:
+    with ProgressBar(f"sitl {args.clock}") as bar:
         s = run_sitl(args.scenario, args.out, seed=args.seed, clock=args.clock, companion_config=companion_config,
-                     attach=args.attach, video=args.video, progress=tick, mavlink_port=args.mavlink_port,
-                     camera_port=args.camera_port, config=cfg, score=not args.no_score, avoidance=args.avoidance)
-    finally:
-        if bar:
-            bar.stop()
+                     attach=args.attach, video=args.video, progress=lambda done, total: bar.update(done, total),
+                     mavlink_port=args.mavlink_port, camera_port=args.camera_port, config=cfg, score=not args.no_score,
+                     avoidance=args.avoidance)
     rx = s["messages_received"]
     print(f"{s['scenario']}: {s['frames']} frames to the companion ({s['clock']}"
           + (f", {s['processing_ms']:g} ms per frame" if s["processing_ms"] is not None else "") + f"), "
