@@ -167,9 +167,10 @@ def _common(sp) -> None:
 
 
 def _version() -> str:
-    from companion import __version__
+    """``companion X.Y.Z`` from the installed distribution's metadata."""
+    from companion import DISTRIBUTION, package_version
 
-    return f"companion {__version__}"
+    return f"companion {package_version()} ({DISTRIBUTION})"
 
 
 # ---------------------------------------------------------------------- configuration ----------
