@@ -52,3 +52,19 @@ def test_license_file_and_spdx_declaration():
     (setuptools_req,) = [r for r in py["build-system"]["requires"] if r.startswith("setuptools")]
     m = re.fullmatch(r"setuptools>=(\d+)(?:\.\d+)*", setuptools_req)
     assert m and int(m.group(1)) >= 77, setuptools_req
+
+
+def test_systemd_unit_runs_the_companion_as_its_own_user_and_logs_to_journald():
+    text = (ROOT / "deploy" / "companion.service").read_text()
+    lines = {ln.strip() for ln in text.splitlines()}
+    for want in ("[Unit]", "[Service]", "[Install]", "User=companion", "SupplementaryGroups=dialout video",
+                 "Restart=on-failure", "RestartPreventExitStatus=2", "StandardOutput=journal", "StandardError=journal",
+                 "WantedBy=multi-user.target"):
+        assert want in lines, want
+    exec_start = text.split("ExecStart=", 1)[1].split("\n#", 1)[0].replace("\\\n", " ")
+    assert "/bin/companion run" in exec_start and "--mavlink" in exec_start and "--config" in exec_start
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("## Running on a Raspberry Pi or Jetson", 1)[1].split("\n## ", 1)[0]
+    for want in ("SERIALn_PROTOCOL = 2", "MAV_1_CONFIG", "dialout", "video", "companion check", "journalctl -u companion",
+                 "MAVLink 2", "deploy/companion.service"):
+        assert want in section, want
