@@ -164,7 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--mavlink", required=True, metavar="CONN", help="autopilot connection (pymavlink connection string)")
     c.add_argument("--camera", required=True, metavar="SRC",
                    help="camera: device index, /dev/videoN, RTSP/HTTP URL, video file or sim://HOST:PORT")
-    c.add_argument("--config", metavar="TOML", help="companion configuration (e.g. configs/companion.toml); default: built-in values")
+    c.add_argument("--config", metavar="TOML", help="companion configuration TOML, as for 'companion run'; default: the shipped "
+                                                    "configs/companion.toml")
     c.add_argument("--calibration", metavar="YAML", help="OpenCV calibration file (camera_matrix, distortion_coefficients); "
                                                          "replaces the intrinsics of [camera]")
     c.add_argument("--camera-config", metavar="TOML",
