@@ -7,4 +7,18 @@ calibration YAML).  The benchmarks live outside the package, in the repository's
 ``bench/`` (``python -m bench``): the companion never imports the simulator.
 """
 
-__version__ = "0.1.0"
+from importlib.metadata import PackageNotFoundError as _NotInstalled, version as _dist_version
+
+DISTRIBUTION = "monorange"  # the name pyproject.toml installs both packages (companion, flightsim) under
+
+
+def package_version() -> str:
+    """The installed distribution's version (``importlib.metadata``), or ``"unknown"`` when the source
+    tree runs without being installed (``pip install -e .`` fixes that)."""
+    try:
+        return _dist_version(DISTRIBUTION)
+    except _NotInstalled:
+        return "unknown"
+
+
+__version__ = package_version()

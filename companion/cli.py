@@ -84,6 +84,29 @@ examples:
 """
 
 
+_CHECK_EPILOG = """\
+checks (one line each, PASS / WARN / FAIL with the measured numbers):
+  link                 the MAVLink connection opens
+  heartbeat            a HEARTBEAT arrives from the vehicle's autopilot component (WARN: MAVLink 1)
+  ATTITUDE             arrives at >= [link] min_rate_fraction of the rate the companion asks for
+  LOCAL_POSITION_NED   likewise (the pipeline needs both)
+  GLOBAL_POSITION_INT  likewise, but only WARN when missing (not used for the ranges)
+  timesync             the companion's TIMESYNC estimate converged and held steady
+  camera               frames of the configured size arrive at the expected rate (--fps, else
+                       [camera_source] device_fps; at least one per [pipeline] camera_timeout_s)
+  calibration          focal lengths plausible for the image size, principal point inside the image,
+                       distortion finite and invertible over the image
+
+Ends as soon as everything passed, else after --timeout seconds.
+exit codes: 0 = the companion would produce ranges (warnings allowed), 1 = a check failed,
+2 = bad arguments or input files (configuration, calibration, camera TOML).
+
+examples:
+  companion check --mavlink /dev/ttyAMA0,921600 --camera 0 --config configs/companion.toml
+  companion check --mavlink udpin:0.0.0.0:14550 --camera sim://127.0.0.1:5600 --json --timeout 5
+"""
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse that names the command in errors and exits 2 (usage)."""
 
@@ -139,6 +162,29 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.set_defaults(func=cmd_replay)
 
+    c = sub.add_parser("check", help="pre-flight check: link, heartbeat, telemetry rates, TIMESYNC, camera, calibration",
+                       description="Open the link and the camera as 'companion run' would and check, one line each, that the "
+                                   "companion would produce ranges.",
+                       epilog=_CHECK_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    c.add_argument("--mavlink", required=True, metavar="CONN", help="autopilot connection (pymavlink connection string)")
+    c.add_argument("--camera", required=True, metavar="SRC",
+                   help="camera: device index, /dev/videoN, RTSP/HTTP URL, video file or sim://HOST:PORT")
+    c.add_argument("--config", metavar="TOML", help="companion configuration TOML, as for 'companion run'; default: the shipped "
+                                                    "configs/companion.toml")
+    c.add_argument("--calibration", metavar="YAML", help="OpenCV calibration file (camera_matrix, distortion_coefficients); "
+                                                         "replaces the intrinsics of [camera]")
+    c.add_argument("--camera-config", metavar="TOML",
+                   help="a TOML whose [camera] table replaces the config's (e.g. the camera.toml flightsim writes)")
+    c.add_argument("--timeout", type=float, default=8.0, metavar="S",
+                   help="give up on what has not passed after S seconds (default 8)")
+    c.add_argument("--fps", type=float, metavar="HZ",
+                   help="the camera's expected frame rate (default: [camera_source] device_fps if set, else only the "
+                        "companion's minimum, one frame per camera_timeout_s)")
+    c.add_argument("--json", action="store_true", help="print the results as one JSON object instead of lines")
+    c.add_argument("--log-level", default="WARNING", type=str.upper, choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                   help="log verbosity on stderr (default WARNING)")
+    c.set_defaults(func=cmd_check)
+
     mo = sub.add_parser("monitor", help="ground-station view of a running companion: sectors, nearest range, health",
                         description="Listen where the companion's messages arrive and show its live sectors, nearest range, "
                                     "forward DISTANCE_SENSOR, HEARTBEAT health, diagnostics, STATUSTEXT and message rates "
@@ -172,9 +218,10 @@ def _common(sp) -> None:
 
 
 def _version() -> str:
-    from companion import __version__
+    """``companion X.Y.Z`` from the installed distribution's metadata."""
+    from companion import DISTRIBUTION, package_version
 
-    return f"companion {__version__}"
+    return f"companion {package_version()} ({DISTRIBUTION})"
 
 
 # ---------------------------------------------------------------------- configuration ----------
@@ -388,6 +435,29 @@ def cmd_replay(args) -> int:
     if s.plot:
         print(f"plot: {s.plot}")
     return EXIT_OK
+
+
+# ---------------------------------------------------------------------- check -------------------
+def cmd_check(args) -> int:
+    """``companion check``: exit 0 when the companion would produce ranges, 1 when a check failed."""
+    import json
+
+    from companion.camera_sources import parse_camera_spec
+    from companion.check import run_check
+
+    if not (math.isfinite(args.timeout) and args.timeout > 0):
+        raise ConfigError(f"--timeout must be a positive number of seconds, got {args.timeout}")
+    if args.fps is not None and not (math.isfinite(args.fps) and 0 < args.fps < 1000):
+        raise ConfigError(f"--fps must be a frame rate in (0, 1000), got {args.fps}")
+    check_connection_string("--mavlink", args.mavlink)
+    parse_camera_spec(args.camera)  # a malformed address or a missing video file is a usage error
+    if args.camera_config is not None and not Path(args.camera_config).is_file():
+        raise ConfigError(f"--camera-config {args.camera_config}: no such file")
+    cfg = load_config(args.config, args.calibration, args.camera_config).companion
+    fps = args.fps if args.fps is not None else cfg.camera_source.device_fps
+    report = run_check(args.mavlink, args.camera, cfg, timeout_s=args.timeout, expected_fps=fps)
+    print(json.dumps(report.to_json(), indent=2) if args.json else report.text(), flush=True)
+    return report.exit_code
 
 
 # ---------------------------------------------------------------------- monitor -----------------

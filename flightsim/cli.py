@@ -243,6 +243,13 @@ def missing_sim_modules() -> list[str]:
     return [m for m in ("jsbsim", "matplotlib", "rich") if importlib.util.find_spec(m) is None]
 
 
+def _version() -> str:
+    """``flightsim X.Y.Z`` from the installed distribution's metadata."""
+    from companion import DISTRIBUTION, package_version
+
+    return f"flightsim {package_version()} ({DISTRIBUTION})"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
         prog="flightsim",
@@ -252,6 +259,7 @@ def main(argv=None) -> int:
                "Output: telemetry.tlog (MAVLink 2), video.avi + frames.csv (capture times on the tlog's clock),\n"
                "truth.npz, camera.toml, summary.png, flight.json.",
     )
+    ap.add_argument("--version", action="version", version=_version())
     ap.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"], help="logging level (default INFO)")
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("fly", help="fly a scenario and export a replayable flight log",

@@ -219,6 +219,10 @@ class StreamRequester:
     def state(self, name: str) -> StreamState:
         return self._streams[name].state
 
+    def specs(self) -> list[StreamSpec]:
+        """The streams requested, with their rates (what ``companion check`` measures against)."""
+        return [st.spec for st in self._streams.values()]
+
     def states(self) -> dict[str, str]:
         return {k: v.state.value for k, v in self._streams.items()}
 
@@ -428,6 +432,8 @@ class MavLink:
         self._reopenable = conn_str.startswith("tcp:") or ":" not in conn_str
         self._mavlink1_warned = False
         self.global_position = None  # last GLOBAL_POSITION_INT from the vehicle (message object)
+        self.vehicle_heartbeat = None  # last HEARTBEAT of the vehicle's autopilot component (message object)
+        self.open_error = ""  # why the latest attempt to open the connection failed ("" after a success)
         self._conn = None
         now = self._clock()
         self._open(now, first=True)
@@ -439,18 +445,21 @@ class MavLink:
         try:
             conn = self._factory(self.conn_str, self.config.baud, src, self.config.component_id)
         except ImportError as exc:  # serial connections need pyserial: a setup error, not a flaky link
+            self.open_error = str(exc)
             if first:
                 raise ConfigError(f"MAVLink connection {self.conn_str!r} needs a missing module: {exc} "
                                   "(serial links need pyserial: pip install pyserial)") from None
             conn = None
             self.counters["open_failures"] += 1
         except ValueError as exc:  # pymavlink's verdict on a malformed connection string
+            self.open_error = str(exc)
             if first:
                 raise ConfigError(f"MAVLink connection {self.conn_str!r}: {exc}") from None
             conn = None
             self.counters["open_failures"] += 1
             self._logs.warn("open", now, "cannot open %s: %s", self.conn_str, exc)
         except Exception as exc:  # device missing, port busy, connection refused: try again later
+            self.open_error = str(exc)
             conn = None
             self.counters["open_failures"] += 1
             self._logs.warn("open", now, "cannot open %s: %s (retrying every %.1f s)", self.conn_str, exc,
@@ -464,6 +473,7 @@ class MavLink:
             conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=self._refuse_unsigned,
                                link_id=self.config.signing_link_id)
         self._conn = conn
+        self.open_error = ""
         self._reopenable = isinstance(conn, (mavutil.mavserial, mavutil.mavtcp))
         if not first:
             self.counters["reconnects"] += 1
@@ -698,6 +708,7 @@ class MavLink:
         elif src != self._sysid:
             self.counters["rx_heartbeat_other_vehicle"] += 1
             return
+        self.vehicle_heartbeat = m
         self._peer_alive(now, "vehicle")
 
     def _peer_alive(self, now: float, who: str) -> None:
@@ -850,6 +861,11 @@ class MavLink:
     @property
     def connected(self) -> bool:
         return self._connected
+
+    @property
+    def is_open(self) -> bool:
+        """The connection (serial device, socket) is open now; :attr:`open_error` says why not."""
+        return self._conn is not None
 
     @property
     def system_status(self) -> int:
