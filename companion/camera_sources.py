@@ -1,4 +1,4 @@
-"""Camera sources: grey frames with their capture time on the companion's clock (issue 4; frames: docs/derivations/frames.md).
+"""Camera sources: grey frames with their capture time on the companion's clock (frames: docs/derivations/frames.md).
 
 Every source is a :class:`FrameSource`.  It hands out :class:`Frame` tuples ``(index, t, gray)``:
 

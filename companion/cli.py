@@ -188,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     mo = sub.add_parser("monitor", help="ground-station view of a running companion: sectors, nearest range, health",
                         description="Listen where the companion's messages arrive and show its live sectors, nearest range, "
                                     "forward DISTANCE_SENSOR, HEARTBEAT health, diagnostics, STATUSTEXT and message rates "
-                                    "(issue 5). Sectors older than 0.5 s are shown STALE; no HEARTBEAT for 3 s = LINK LOST.",
+                                    "Sectors older than 0.5 s are shown STALE; no HEARTBEAT for 3 s = LINK LOST.",
                         epilog=_MONITOR_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     mo.add_argument("conn", metavar="CONN", help="pymavlink connection string, e.g. udpin:0.0.0.0:14550 (the companion's "
                                                  "--gcs udpout:HOST:14550), tcp:127.0.0.1:5760, /dev/ttyUSB0,57600")

@@ -1,4 +1,4 @@
-"""``companion monitor CONN``: a ground-station view of a running companion in the terminal (issue 5).
+"""``companion monitor CONN``: a ground-station view of a running companion in the terminal.
 
 What the messages mean is in docs/derivations/sectors.md; this module only listens and shows.
 
@@ -68,7 +68,7 @@ DIAG_LABELS = {"MR_FPS": "fps", "MR_TRACKS": "tracks", "MR_NEAR_M": "nearest m",
 # ---------------------------------------------------------------------- configuration ----------
 @dataclasses.dataclass(frozen=True)
 class MonitorConfig:
-    """What the monitor listens to and how it judges age (issue 5)."""
+    """What the monitor listens to and how it judges age."""
 
     component_id: int = 196  # component of the companion (MAV_COMP_ID_OBSTACLE_AVOIDANCE)
     system_id: int = 0  # 0 = any: follow the first system heard with that component

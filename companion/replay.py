@@ -1,4 +1,4 @@
-"""Offline replay of a recorded flight through the live pipeline (issue 4: ``companion replay``).
+"""Offline replay of a recorded flight through the live pipeline (``companion replay``).
 
 Input: ``telemetry.tlog`` (MAVLink 2 tlog: 8-byte big-endian µs timestamp + packed frame per record;
 the vehicle's ATTITUDE / LOCAL_POSITION_NED with ``time_boot_ms`` on its own clock), ``video.avi``

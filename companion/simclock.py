@@ -1,4 +1,4 @@
-"""The companion's clock in lockstep with a simulator: ``companion run --clock sim`` (issue 5).
+"""The companion's clock in lockstep with a simulator: ``companion run --clock sim``.
 
 In a lockstep software-in-the-loop run (``flightsim sitl --clock lockstep``) the simulator does
 not follow the wall clock: it runs as fast as the CPU allows and waits for the companion's

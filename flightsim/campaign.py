@@ -1,4 +1,4 @@
-"""Monte Carlo campaigns over seeds, scored and reported (issue 5: ``flightsim campaign``).
+"""Monte Carlo campaigns over seeds, scored and reported (``flightsim campaign``).
 
 ``run_campaign(scenario, out, runs=N, workers=W)`` runs seeds ``seed0 … seed0+N−1`` (``seed0`` = the
 scenario's own ``[scenario] seed`` unless given), each in a worker process
@@ -234,7 +234,7 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
             num = sum(int(s["targets"][i]["num"] or 0) for s in scores)
             n = sum(int(s["targets"][i]["n"] or 0) for s in scores)
             v = num / n if n else None
-        else:  # older scores: the first two targets of issue 5
+        else:  # older scores: their first two targets only
             key = "messages_without_false_obstacle" if i == 0 else "dangerous_clear"
             v = pooled[key]
             n = cells.get("messages_eligible_no_false" if i == 0 else "obstacle", 0)

@@ -1,4 +1,4 @@
-"""Campaign runs as Ray tasks (``flightsim campaign … --backend ray [--address ADDR]``), issue 12.
+"""Campaign runs as Ray tasks (``flightsim campaign … --backend ray [--address ADDR]``).
 
 A Ray cluster shares no file system with the driver, so a run travels as data both ways:
 

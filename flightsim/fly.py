@@ -1,4 +1,4 @@
-"""Fly a scenario and export it as a replayable flight log (issue 3).
+"""Fly a scenario and export it as a replayable flight log.
 
 ``fly(scenario, out_dir)`` steps JSBSim frame by frame and, on the simulation clock:
 
@@ -11,7 +11,7 @@
 
 The per-step loop itself — dynamics, telemetry error states, stream schedule, camera frames and
 their truth — is :class:`Flight` with :class:`StreamSchedule`, shared with the software-in-the-loop
-run (:mod:`flightsim.sitl`, issue 5), which plays the same flight to a live companion.
+run (:mod:`flightsim.sitl`), which plays the same flight to a live companion.
 
 Files written to ``out_dir``:
 

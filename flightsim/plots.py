@@ -22,7 +22,7 @@ def _obstacles(a, world, min_radius_m: float = 0.0) -> None:
 
 
 def avoidance_plot(world, traj: dict, outcome: dict, path: Path, title: str = "") -> None:
-    """Closed-loop flight (issue 12): top-down track with the obstacles, the route, what the autopilot
+    """Closed-loop flight: top-down track with the obstacles, the route, what the autopilot
     held as obstacles where it stopped (or was nearest) and the stop / collision point; clearance and
     speeds over time."""
     import matplotlib

@@ -1,4 +1,4 @@
-"""Campaign report: plots (matplotlib, Agg) and a markdown index (issue 5).
+"""Campaign report: plots (matplotlib, Agg) and a markdown index.
 
 ``write_report(report_dir, campaign, series)`` writes into ``report_dir``:
 
@@ -11,10 +11,10 @@
   of every detection and of the forward estimate, binned median and 5–95 % band; |error| in % of L;
 * ``radar.png`` — polar sector plots of one run at chosen times: truth vs published (ranges,
   "clear", unknown left blank); over 360° with the out-of-view sectors hatched when the truth
-  covers them (issue 11);
+  covers them;
 * ``latency_hist.png`` — exposure → message latency, pooled;
 * ``index.md`` — the tables of campaign.json (targets ✓/✗, pooled rates, per-run mean ± std,
-  in view / out of view (issue 11, docs/derivations/obstacle_map.md), detection and unknown by true-range bin,
+  in view / out of view (docs/derivations/obstacle_map.md), detection and unknown by true-range bin,
   remembered obstacles, range error by bin, time to the first valid range per obstacle, latency, NEES, runs) linking
   the plots and each run's score.md.
 
@@ -320,7 +320,7 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
          "Definitions (cells, tolerance, false obstacle, dangerous clear, NEES, latency): the module docstring of "
          "`flightsim/score.py`, repeated at the end of every run's score.md.", "",
          *_avoidance_lines(c),
-         f"## Targets (issues 5 and 11), pooled over runs (after a {c.get('score_config', {}).get('warmup_s', 0):g} s warm-up; "
+         f"## Targets, pooled over runs (after a {c.get('score_config', {}).get('warmup_s', 0):g} s warm-up; "
          f"{a.get('warmup_messages_excluded', 0)} messages excluded)", "",
          "| target | pooled | threshold | n | met | runs meeting it |", "|---|---|---|---|---|---|"]
     for t in a["targets"]:

@@ -1,4 +1,4 @@
-"""Scenario files: ``configs/scenarios/*.toml`` (issue 3).
+"""Scenario files: ``configs/scenarios/*.toml``.
 
 A scenario names everything a flight needs, one table per part, each filled into the frozen config
 dataclass of its module (unknown or misspelt keys stop with an error naming them):
@@ -20,7 +20,7 @@ too close to an obstacle, a quad route whose waypoints or straight legs pass wit
 obstacle (:func:`check_route_clear`), a camera that sees nothing but sky, a ``companion_config``
 that names no file.
 
-Hard flights (issue 11; docs/derivations/sectors.md: hovering and turning in place are where avoidance needs
+Hard flights (docs/derivations/sectors.md: hovering and turning in place are where avoidance needs
 ranges most) use the quad route's per-waypoint ``hold_s`` (hover) and ``turn_deg`` (turn in place,
 360 = a full turn) at ``yaw_rate_dps`` (:class:`flightsim.dynamics.RouteConfig`).
 

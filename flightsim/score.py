@@ -1,4 +1,4 @@
-"""Scoring the companion's published ranges against the simulator's truth (issue 5; docs/derivations/sectors.md).
+"""Scoring the companion's published ranges against the simulator's truth (docs/derivations/sectors.md).
 
 Pure logic: arrays in, arrays and a JSON-ready dict out.  Reading the tlog and ``truth.npz`` and
 writing ``score.json`` / ``score.md`` live in :mod:`flightsim.score_io`; :func:`score_run` and
@@ -46,7 +46,7 @@ Per message: the share of messages *with no false obstacle in a clear sector*, o
 that make at least one claim (a range or "clear" in any sector) and have at least one clear cell
 in view (an all-unknown message claims nothing and is not counted).
 
-Over 360° (issue 11 item 6; docs/derivations/sectors.md — an unknown sector means no constraint — and docs/derivations/obstacle_map.md — the
+Over 360° (docs/derivations/sectors.md — an unknown sector means no constraint — and docs/derivations/obstacle_map.md — the
 local map publishes remembered obstacles beside and behind the vehicle).  A truth.npz with
 ``sector_all_m`` and ``in_view`` knows every sector.  Cells in the camera's view are scored as
 above.  Out of view only a *claim* is scored (a range or "clear"): a range within tolerance on an
@@ -63,7 +63,7 @@ out-of-view obstacle cells), the share within tolerance, the share with any rang
 clear.  Warm-up: messages stamped within ``warmup_s`` of the first truth frame are not scored
 (cells, the forward DISTANCE_SENSOR and NEES); latency and the first claim include them.
 
-Targets (issues 5 and 11, thresholds in configs/score.toml): no false obstacle in clear sectors in
+Targets (thresholds in configs/score.toml): no false obstacle in clear sectors in
 ≥ 98 % of messages; dangerous clears ≤ 0.5 % of obstacle cells; false obstacles ≤ 1 % of clear
 cells; detection (within tolerance) ≥ 90 % of in-view obstacle cells and ≥ 95 % of those within
 ``near_range_m``; remembered ≥ 90 %.  "Detection" in the issue-11 targets and the by-range tables
@@ -267,7 +267,7 @@ class SectorTruth:
 
     ``sector_m`` is the truth of every sector known (NaN = unknown: not scored); ``in_view`` says
     which sectors the camera sees.  A 360° truth (``truth.npz`` with ``sector_all_m`` and
-    ``in_view``, issue 11; docs/derivations/obstacle_map.md) knows every sector; an older one knows only the sectors in
+    ``in_view``; docs/derivations/obstacle_map.md) knows every sector; an older one knows only the sectors in
     view (``in_view`` None: in view = known).
     """
 
@@ -583,7 +583,7 @@ def _classify_published(cm: np.ndarray, min_cm: np.ndarray, max_cm: np.ndarray) 
 def remembered_cells(truth: SectorTruth, labels: np.ndarray, view_f: np.ndarray, frame: np.ndarray, lab: np.ndarray,
                      candidates: np.ndarray, config: ScoreConfig) -> np.ndarray:
     """(N, 72) bool: the *remembered* cells among ``candidates`` (out-of-view obstacle cells of the
-    messages; issue 11 targets, docs/derivations/obstacle_map.md).
+    messages; the coverage targets, docs/derivations/obstacle_map.md).
 
     Rule (per obstacle, by the grouping of :func:`group_obstacles`): the cell's obstacle ``k``
     (``lab``) occupied an in-view finite truth cell in some truth frame at most
@@ -767,7 +767,7 @@ def evaluate(msgs: RangeMessages, truth: SectorTruth, config: ScoreConfig = Scor
 class CellMasks:
     """Boolean (N, 72) masks of the cell categories (module docstring), over all *counted* cells:
     every cell in view, and out of view the cells with a claim (a range or "clear"; unknown out of
-    view is neutral).  ``in_view`` splits them (issue 11 item 6)."""
+    view is neutral).  ``in_view`` splits them."""
 
     obstacle: np.ndarray
     clear: np.ndarray
@@ -905,7 +905,7 @@ def _bin_labels(bins_m: Sequence[float]) -> list[tuple[str, float, float]]:
 def detection_table(true_m: np.ndarray, rep: np.ndarray, valid: np.ndarray, cells: np.ndarray,
                     bins_m: Sequence[float]) -> list[dict]:
     """Per bin of the true range (lower edges ``bins_m``, the last open) over the ``cells`` mask:
-    obstacle cells, ranges, ranges within tolerance (``valid``: *detection* in issue 11's sense),
+    obstacle cells, ranges, ranges within tolerance (``valid``: *detection*),
     unknown, "clear" (dangerous) and their shares of the bin's cells; ``claimed`` = ranges + clear
     and ``valid_of_claimed`` (what matters out of view, where unknown is neutral)."""
     T = np.asarray(true_m, float)[cells]
@@ -966,7 +966,7 @@ def summarize(ev: Evaluation) -> dict:
     rates["messages_with_claims"] = _rate(int(claims.sum()), int(scored.sum()))
     n_obs, n_clear, dang, fclear = cells["obstacle"], cells["clear"], cells["dangerous_clears"], cells["false_obstacles_clear_cells"]
     n_elig, n_ok_msgs = cells["messages_eligible_no_false"], cells["messages_without_false_obstacle"]
-    # detection by true range (issue 11): in view, and out of view (every out-of-view obstacle cell, unknown included)
+    # detection by true range: in view, and out of view (every out-of-view obstacle cell, unknown included)
     det_tables = {
         "in_view": detection_table(ev.od_truth, ev.od_rep, m.valid, m.obstacle_any & m.in_view, cfg.detection_bins_m),
         "out_of_view": detection_table(ev.od_truth, ev.od_rep, m.valid, m.obstacle_any & oov, cfg.detection_bins_m),
@@ -1193,7 +1193,7 @@ def markdown(score: dict, title: str = "Score") -> str:
         from flightsim.outcome import outcome_markdown
 
         L += outcome_markdown(s["avoidance"])
-    L += ["## Targets (issues 5 and 11)", "",
+    L += ["## Targets", "",
           f"Warm-up: cells of the first {wu['s']:g} s of the run are not scored ({wu['messages_excluded']} messages).  "
           + ("Truth over 360°: out-of-view claims are scored, unknown out of view is neutral." if s.get("truth_360")
              else "Truth of the sectors in view only (an older truth.npz): out-of-view claims are not scored."), "",

@@ -1,4 +1,4 @@
-"""Readers and writers of the score (issue 5): the companion's ranges tlog, ``truth.npz``,
+"""Readers and writers of the score: the companion's ranges tlog, ``truth.npz``,
 ``score.json`` / ``score.md`` / ``score_series.npz``, and ``configs/score.toml``.
 
 The logic is in :mod:`flightsim.score`; this module only moves bytes.  A ranges tlog is a MAVLink 2
@@ -101,7 +101,7 @@ def read_ranges_tlog(path: str | Path, component_id: int = COMPANION_COMPONENT, 
 def read_truth_npz(path: str | Path) -> SectorTruth:
     """:class:`SectorTruth` from a flightsim ``truth.npz`` (``t_s``, ``sector_m``, ``p_ned``, ``rpy``, ``sector_max_m``).
 
-    A truth over 360° (issue 11; docs/derivations/obstacle_map.md) also holds ``sector_all_m`` (every sector, in view or
+    A truth over 360° (docs/derivations/obstacle_map.md) also holds ``sector_all_m`` (every sector, in view or
     not) and ``in_view`` (F, 72): then the score uses them; an older file has only ``sector_m``
     (NaN out of view) and out-of-view claims stay unscored.
     """

@@ -1,4 +1,4 @@
-"""Telemetry as an autopilot reports it (issue 3; docs/derivations/frames.md, seed 004 gyro model, docs/derivations/sectors.md).
+"""Telemetry as an autopilot reports it (docs/derivations/frames.md, seed 004 gyro model, docs/derivations/sectors.md).
 
 From the true :class:`~flightsim.dynamics.VehicleState` this builds the MAVLink messages an
 ArduPilot/PX4 vehicle streams — HEARTBEAT, ATTITUDE (with body rates), LOCAL_POSITION_NED,

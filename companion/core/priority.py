@@ -1,4 +1,4 @@
-"""Where new corners are wanted most: the detection priority region (issue 11 item 3, docs/derivations/sectors.md).
+"""Where new corners are wanted most: the detection priority region (docs/derivations/sectors.md).
 
 The tracker refills with the strongest Harris corners, which gather where the image is busiest;
 the sectors only count points in a vertical band around the flight path (``[sectors]``), and an

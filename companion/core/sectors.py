@@ -17,7 +17,7 @@ Geometry
   point's height above the vehicle, ``d`` its horizontal distance and ``γ`` the flight-path angle
   (0 when the velocity is unknown or small).
 
-Rules (docs/derivations/sectors.md, issue 4)
+Rules (docs/derivations/sectors.md)
 --------------------------------------------
 * conservative range: ``r − k·σ`` along the ray, projected on the horizontal;
 * a sector that the camera's horizontal field of view does not touch: ``UINT16_MAX`` (unknown);

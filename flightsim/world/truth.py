@@ -19,7 +19,7 @@ direction of its centre bearing, from the camera centre at the camera's own heig
 the image (through the companion's camera model, distortion and mount included).  Sectors with
 nothing within ``max_distance_m`` are ``inf``.
 
-Scoring over 360° (issue 11 item 6; docs/derivations/obstacle_map.md: the local obstacle map publishes remembered
+Scoring over 360° (docs/derivations/obstacle_map.md: the local obstacle map publishes remembered
 obstacles beside and behind the vehicle): :func:`sector_truth_360` gives the true distance of *all*
 72 sectors and the in-view mask separately, so claims outside the camera's view can be scored too.
 """
