@@ -254,7 +254,7 @@ def test_sends_are_dropped_and_counted_before_the_sysid_is_known():
 
 # ---------------------------------------------------------------------- stream fallbacks -------
 def test_vehicle_ignoring_set_message_interval_gets_request_data_stream(pair):
-    cfg = LinkConfig(command_timeout_s=0.5, command_retries=2)
+    cfg = LinkConfig(command_timeout_s=0.5, command_retries=2, stream_request_interval_s=0.1)  # (the budget: below)
     link, vehicle, clock = pair("ignore", config=cfg)
     run(link, vehicle, clock, 6.0)
     # each stream: 2 unanswered attempts, then REQUEST_DATA_STREAM for its MAV_DATA_STREAM
@@ -491,7 +491,7 @@ def test_signing_refuses_unsigned_input_and_signs_output(pair, tmp_path):
     import hashlib
 
     assert key == hashlib.sha256(b"correct horse battery staple").digest()  # MAVProxy's passphrase hash
-    cfg = LinkConfig(signing_key_file=str(keyfile))
+    cfg = LinkConfig(signing_key_file=str(keyfile), require_signing=True)
     # unsigned vehicle: nothing it says is accepted
     link, vehicle, clock = pair("accept", config=cfg)
     run(link, vehicle, clock, 2.0)
