@@ -116,12 +116,6 @@ class BootClockGuard:
     def candidate_count(self) -> int:
         return len(self._candidates)
 
-    def reset(self) -> None:
-        """Forget the clock (a new connection to possibly another autopilot); the rate limit stays."""
-        self._clock = None
-        self._candidates.clear()
-        self._last_accept = -math.inf
-
     # ------------------------------------------------------------------ input ----------------
     def heartbeat(self, now: float) -> None:
         """A HEARTBEAT of the locked autopilot arrived at ``now``."""
