@@ -542,3 +542,36 @@ def test_memory_stays_bounded_under_a_flood():
     assert c["rx_clock_rejected"] >= 4 * 750 and c["sources_evicted"] > 2_500
     assert grown < 100_000, grown  # bytes: a leak of 25 bytes per packet would show (measured: 10-25 kB of noise)
     assert len(h.link.status().sources) <= h.config.max_sources
+
+
+# ---------------------------------------------------------------------- the whole companion -----
+def test_companion_under_the_incident_stays_quiet_and_keeps_ranging():
+    """The issue-14 incident end to end (camera, pipeline, reporter, link): 340 random-time ATTITUDE
+    per second from the autopilot's ids for 3 s.  Before the fix: ~340 STATUSTEXT/s and ~230
+    COMMAND_LONG/s back to the autopilot and the ranging restarting every packet; now: a handful of
+    STATUSTEXT, no command, and the ranges keep coming."""
+    from test_pipeline import Rig, statustexts
+
+    r = Rig()
+    try:
+        r.run(1.5)
+        v = r.vehicle
+        t_start = r.t
+        spoof = mavlink.MAVLink(v.conn, srcSystem=v.sysid, srcComponent=1)
+        rng = np.random.default_rng(140)
+        for _ in range(int(3.0 / 0.005)):
+            for _ in range(rng.poisson(340 * 0.005)):
+                spoof.send(mavlink.MAVLink_attitude_message(int(rng.integers(0, 2**32)), *rng.normal(size=6)))
+            r.run(0.005)
+        texts = statustexts(v, since=t_start)
+        assert len(texts) <= 5, texts
+        assert not any("reboot" in t or "restarted" in t for t in texts), texts
+        cmds = v.received("COMMAND_LONG", since=t_start)  # (the loopback vehicle has no GLOBAL_POSITION_INT: retried)
+        assert len(cmds) <= 1 + 3.0 / 2.0 and not any(int(m.param1) in (30, 32) for m in cmds)
+        c = r.link.status().counters
+        assert c.get("vehicle_reboots", 0) == 0 and c["rx_clock_rejected"] > 900
+        assert r.companion.pipeline.counters.get("restart_autopilot_reboot", 0) == 0
+        valid = [m for m in v.received("OBSTACLE_DISTANCE", since=t_start + 1.0) if m.distances[0] != 65535]
+        assert len(valid) > 20
+    finally:
+        r.close()
