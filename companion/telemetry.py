@@ -21,6 +21,11 @@ out-of-order sample is inserted where it belongs (or dropped if older than the w
 buffer); ``time_boot_ms`` going back by more than ``reset_threshold_s`` means the autopilot
 rebooted: the buffer is cleared and the caller is told (:data:`AddResult.RESET`) so it can reset
 TIMESYNC and re-request the streams.  Every outcome is counted in :attr:`TelemetryBuffer.counters`.
+
+A live MAVLink link decides reboots itself, on consistent evidence rather than one stamp (issue 14,
+:class:`companion.mavlink.guard.BootClockGuard`): it sets :attr:`TelemetryBuffer.auto_reset` False
+and calls :meth:`TelemetryBuffer.declare_reset`, which clears the buffer and counts ``reset`` (what
+the pipeline watches to restart its tracks).
 """
 
 from __future__ import annotations
@@ -183,6 +188,9 @@ class TelemetryBuffer:
         self._pos = _Stream(6, config.capacity)
         self._offset_s: float | None = None
         self.counters: collections.Counter[str] = collections.Counter()
+        #: True: a stamp more than reset_threshold_s older than the newest clears the buffer (a reboot);
+        #: False: the feeder decides reboots (declare_reset) and such a stamp is only inserted or dropped
+        self.auto_reset = True
 
     # ------------------------------------------------------------------ clock ----------------
     def set_clock_offset(self, offset_s: float | None) -> None:
@@ -206,7 +214,15 @@ class TelemetryBuffer:
         self._att.clear()
         self._pos.clear()
 
+    def declare_reset(self, reason: str = "autopilot reboot") -> None:
+        """The feeder established that the autopilot's clock restarted: clear, count ``reset``."""
+        log.warning("telemetry buffer cleared: %s", reason)
+        self.clear()
+        self.counters["reset"] += 1
+
     def _check_reset(self, ms: int) -> bool:
+        if not self.auto_reset:
+            return False
         newest = max((int(s.ms[-1]) for s in (self._att, self._pos) if len(s)), default=None)
         if newest is not None and (newest - ms) * 1e-3 > self.config.reset_threshold_s:
             log.warning("time_boot_ms went back from %d to %d ms: autopilot reboot, telemetry buffer cleared", newest, ms)

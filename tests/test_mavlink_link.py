@@ -254,7 +254,7 @@ def test_sends_are_dropped_and_counted_before_the_sysid_is_known():
 
 # ---------------------------------------------------------------------- stream fallbacks -------
 def test_vehicle_ignoring_set_message_interval_gets_request_data_stream(pair):
-    cfg = LinkConfig(command_timeout_s=0.5, command_retries=2)
+    cfg = LinkConfig(command_timeout_s=0.5, command_retries=2, stream_request_interval_s=0.1)  # (the budget: below)
     link, vehicle, clock = pair("ignore", config=cfg)
     run(link, vehicle, clock, 6.0)
     # each stream: 2 unanswered attempts, then REQUEST_DATA_STREAM for its MAV_DATA_STREAM
@@ -491,7 +491,7 @@ def test_signing_refuses_unsigned_input_and_signs_output(pair, tmp_path):
     import hashlib
 
     assert key == hashlib.sha256(b"correct horse battery staple").digest()  # MAVProxy's passphrase hash
-    cfg = LinkConfig(signing_key_file=str(keyfile))
+    cfg = LinkConfig(signing_key_file=str(keyfile), require_signing=True)
     # unsigned vehicle: nothing it says is accepted
     link, vehicle, clock = pair("accept", config=cfg)
     run(link, vehicle, clock, 2.0)
@@ -623,3 +623,197 @@ def test_heartbeat_goes_out_under_the_vehicle_sysid_as_soon_as_it_is_learnt(pair
     assert link.system_id == VEHICLE_SYSID
     run(link, vehicle, clock, 0.1)
     assert any(m.get_srcSystem() == VEHICLE_SYSID for m in vehicle.received("HEARTBEAT"))
+
+
+# ---------------------------------------------------------------------- link hardening (issue 14) --
+def _spoofer(vehicle, sysid=VEHICLE_SYSID, comp=1):
+    """A second sender on the vehicle's socket, with its own sequence numbers (valid CRCs)."""
+    return mavlink.MAVLink(vehicle.conn, srcSystem=sysid, srcComponent=comp)
+
+
+def test_random_time_attitude_from_the_autopilot_resets_nothing(pair, caplog):
+    """The issue-14 incident: valid-CRC ATTITUDE packets with random time_boot_ms, ~340/s for 20 s,
+    from the autopilot's own system/component.  Before: each was a "reboot" (STATUSTEXT and
+    COMMAND_LONG storms, the telemetry cleared).  Now: rejected and counted, nothing resets."""
+    link, vehicle, clock = pair("accept")
+    run(link, vehicle, clock, 6.0)
+    link.drain_events()
+    st0 = link.status().counters
+    rej0 = st0.get("rx_clock_rejected", 0)
+    n_cmd, n_rds = len(vehicle.received("COMMAND_LONG")), len(vehicle.received("REQUEST_DATA_STREAM"))
+    spoof = _spoofer(vehicle)
+    rng = np.random.default_rng(14)
+    sent, events = 0, []
+    caplog.clear()
+    for k in range(int(20.0 / DT)):
+        clock.t += DT
+        vehicle.step(clock.t)
+        for _ in range(rng.poisson(340 * DT)):
+            spoof.send(mavlink.MAVLink_attitude_message(int(rng.integers(0, 2**32)), *rng.normal(size=6)))
+            sent += 1
+        link.poll()
+        events += link.drain_events()
+    c = link.status().counters
+    assert sent > 6000
+    assert c.get("vehicle_reboots", 0) == 0 and c.get("telemetry.reset", 0) == 0
+    assert c.get("timesync.resets", 0) == st0.get("timesync.resets", 0)
+    assert c["streams.restarts"] == st0["streams.restarts"]
+    assert c["rx_clock_rejected"] - rej0 >= sent - 5  # a random stamp lands within the jitter of the true clock ~2e-7 of the time
+    assert c["rx_clock_went_back"] + c["rx_clock_jumped_ahead"] == c["rx_clock_rejected"] - rej0
+    # the autopilot is asked for nothing new, the operator told once per 10 s
+    assert len(vehicle.received("COMMAND_LONG")) == n_cmd and len(vehicle.received("REQUEST_DATA_STREAM")) == n_rds
+    assert not any("reboot" in text for _, text in events)
+    assert 1 <= sum("rejected" in text for _, text in events) <= 3
+    assert len(caplog.records) <= 5  # the log: one line per 10 s with the count (it grew 2 MB in 20 s)
+    # the real telemetry kept flowing, and only it is in the buffer
+    assert link.telemetry.is_fresh(clock.t) and link.status().streams["ATTITUDE"] == "ok"
+    ms = link.telemetry._att.ms
+    assert ms.min() >= vehicle.boot_ms(clock.t) - 11_000 and ms.max() <= vehicle.boot_ms(clock.t)
+    # per source: the autopilot's own entry counts the rejections
+    assert link.status().sources[f"{VEHICLE_SYSID}/1"]["clock_rejected"] == c["rx_clock_rejected"]
+    assert link.status().counters["clock.candidates_evicted"] > 6000 - 100  # the candidate table stayed at its cap
+    assert link.guard.candidate_count <= LinkConfig().max_clock_candidates
+
+
+def test_a_reboot_seen_in_one_stream_needs_the_heartbeat_gap(pair):
+    link, vehicle, clock = pair("accept")
+    run(link, vehicle, clock, 6.0)
+    vehicle.periods = lambda: {30: 0.02}  # only ATTITUDE streams (one message type: no cross-check)
+    vehicle.next_due.clear()
+    # new clock in one stream, heartbeats going on: a lone stream that jumped is not a reboot
+    vehicle.tboot_shift = -100.0
+    run(link, vehicle, clock, 4.0)
+    c = link.status().counters
+    assert c.get("vehicle_reboots", 0) == 0 and c["rx_clock_went_back"] > 100
+    # the autopilot really reboots: silence (no heartbeat, no telemetry) for 2 s, then a new clock
+    vehicle.heartbeats = vehicle.streaming = False
+    run(link, vehicle, clock, 2.0)
+    vehicle.boot, vehicle.tboot_shift = clock.t, 0.0
+    vehicle.heartbeats = vehicle.streaming = True
+    vehicle.next_hb = -math.inf
+    vehicle.next_due.clear()
+    run(link, vehicle, clock, 2.0)
+    c = link.status().counters
+    assert c["vehicle_reboots"] == 1 and c["telemetry.reset"] == 1
+    assert link.guard.history[-1][1] == "reboot"
+    assert link.telemetry.attitude_count > 20  # the new clock's samples arrive again
+
+
+def test_a_consistent_fake_clock_is_no_reboot_while_the_real_one_runs(pair):
+    """Spoofed ATTITUDE and LOCAL_POSITION_NED on a consistent clock of their own (the cross-check
+    passes) interleaved with the autopilot's: the old clock is alive, so no reboot is declared."""
+    link, vehicle, clock = pair("accept")
+    run(link, vehicle, clock, 6.0)
+    spoof = _spoofer(vehicle)
+    for k in range(int(10.0 / DT)):
+        clock.t += DT
+        vehicle.step(clock.t)
+        ms = int((clock.t - 1000.0) * 1000) + 5_000  # a clock of its own, 5 s ahead of... nothing
+        spoof.send(mavlink.MAVLink_attitude_message(ms, 0.5, 0.5, 0.5, 0, 0, 0))
+        spoof.send(mavlink.MAVLink_local_position_ned_message(ms, 99.0, 99.0, 99.0, 0, 0, 0))
+        link.poll()
+    c = link.status().counters
+    assert c.get("vehicle_reboots", 0) == 0 and c["clock.candidate_old_clock_alive"] > 0
+    assert c["rx_clock_rejected"] >= 2 * int(10.0 / DT) - 2
+    r = link.telemetry.pose_at(clock.t - 0.1, now=clock.t)
+    assert r.ok and r.pose.p_world[0] == pytest.approx(clock.t - 0.1, abs=0.02)  # x = t: no spoofed x = 99 in the buffer
+
+
+def test_reboots_are_declared_at_most_once_per_min_interval(pair):
+    link, vehicle, clock = pair("accept", config=LinkConfig(reboot_min_interval_s=5.0))
+    run(link, vehicle, clock, 6.0)
+    vehicle.boot = clock.t - 30.0  # reboot 1 (all streams on a new clock, 30 s in; the old one, ~106 s in, silent)
+    vehicle.next_due.clear()
+    run(link, vehicle, clock, 2.0)
+    assert link.status().counters["vehicle_reboots"] == 1
+    t1 = link.guard.history[-1][0]
+    vehicle.boot = clock.t - 0.2  # reboot 2, 2 s later
+    vehicle.next_due.clear()
+    run(link, vehicle, clock, 1.5)
+    c = link.status().counters
+    assert c["vehicle_reboots"] == 1 and c["rx_clock_reboot_rate_limited"] > 0
+    run(link, vehicle, clock, 3.0)
+    c = link.status().counters
+    assert c["vehicle_reboots"] == 2 and link.guard.history[-1][0] - t1 >= 5.0
+    assert link.telemetry.is_fresh(clock.t)
+
+
+def test_other_systems_and_components_are_counted_per_source_and_change_nothing(pair):
+    cfg = LinkConfig(max_sources=8)
+    link, vehicle, clock = pair("accept", config=cfg)
+    run(link, vehicle, clock, 6.0)
+    before = link.status()
+    n_att = link.telemetry.counters["attitude_appended"]
+    n_cmd = len(vehicle.received("COMMAND_LONG"))
+    for k in range(60):  # 60 sources: other vehicles, the vehicle's other components, ground stations
+        other = mavlink.MAVLink(vehicle.conn, srcSystem=1 + k % 250, srcComponent=1 if k % 2 else 100 + k)
+        if other.srcSystem == VEHICLE_SYSID and other.srcComponent == 1:
+            continue
+        ms = vehicle.boot_ms(clock.t)
+        other.send(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4, 3))
+        other.send(mavlink.MAVLink_attitude_message(ms + 1, 1.0, 1.0, 1.0, 0, 0, 0))
+        other.send(mavlink.MAVLink_attitude_message(5, 1.0, 1.0, 1.0, 0, 0, 0))  # "rebooted"
+        other.send(mavlink.MAVLink_local_position_ned_message(ms + 1, 99.0, 0, 0, 0, 0, 0))
+        other.send(mavlink.MAVLink_command_ack_message(511, mavlink.MAV_RESULT_DENIED, 0, 0, VEHICLE_SYSID, 196))
+        other.send(mavlink.MAVLink_timesync_message(10**12, 12345))
+        run(link, vehicle, clock, DT)
+    run(link, vehicle, clock, 2.0)
+    st = link.status()
+    c = st.counters
+    assert st.vehicle_system_id == VEHICLE_SYSID and st.system_id == VEHICLE_SYSID
+    assert c.get("vehicle_reboots", 0) == 0 and c.get("telemetry.reset", 0) == 0
+    assert c["streams.restarts"] == before.counters["streams.restarts"] and st.streams == before.streams
+    assert c["rx_foreign"] >= 5 * 59 and c["rx_heartbeat_other_vehicle"] + c["rx_heartbeat_other"] >= 59
+    assert link.telemetry.counters["attitude_appended"] > n_att  # the real stream went on
+    assert len(vehicle.received("COMMAND_LONG")) == n_cmd
+    r = link.telemetry.pose_at(clock.t - 0.1, now=clock.t)
+    assert r.ok and r.pose.p_world[0] == pytest.approx(clock.t - 0.1, abs=0.02)
+    # bounded table; the autopilot's entry is never evicted
+    assert len(st.sources) == 8 and f"{VEHICLE_SYSID}/1" in st.sources and c["sources_evicted"] > 40
+
+
+def test_stream_requests_stay_within_the_budget(pair):
+    """A vehicle that never answers SET_MESSAGE_INTERVAL and never streams: the companion keeps
+    trying, at most stream_request_burst at once and one per stream_request_interval_s after."""
+    cfg = LinkConfig()
+    link, vehicle, clock = pair("ignore", config=cfg)
+    vehicle.streaming = False
+    run(link, vehicle, clock, 30.0)
+    reqs = vehicle.received("COMMAND_LONG") + vehicle.received("REQUEST_DATA_STREAM")
+    assert len(reqs) <= cfg.stream_request_burst + 30.0 / cfg.stream_request_interval_s + 1
+    assert len(reqs) >= 10  # it does keep asking
+    assert link.status().counters["streams.rate_limited"] > 0
+
+
+def test_udpin_sends_only_to_addresses_that_spoke_valid_mavlink_of_the_vehicle(pair):
+    link, vehicle, clock = pair("accept", config=LinkConfig(max_udp_peers=2))
+    run(link, vehicle, clock, 1.0)
+    port = vehicle.conn.destination_addr[1]
+    strangers = []
+    for k in range(5):  # garbage, or valid MAVLink from another system, from five other addresses
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.setblocking(False)
+        s.bind(("127.0.0.1", 0))
+        if k % 2:
+            s.sendto(b"\xfd\x09garbage" * 3, ("127.0.0.1", port))
+        else:
+            other = mavlink.MAVLink(None, srcSystem=7, srcComponent=1)
+            s.sendto(bytes(mavlink.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3).pack(other)), ("127.0.0.1", port))
+        strangers.append(s)
+    run(link, vehicle, clock, 2.5)
+    try:
+        for s in strangers:  # none of them receives our traffic
+            with pytest.raises(BlockingIOError):
+                s.recv(4096)
+        assert {port for _, port in link._conn.clients} == {vehicle.conn.port.getsockname()[1]}
+        n = len(vehicle.received("HEARTBEAT"))
+        run(link, vehicle, clock, 1.0)
+        assert len(vehicle.received("HEARTBEAT")) > n  # the vehicle still does
+        # addresses that do send the vehicle's MAVLink (a router, a second radio) become peers, at most max_udp_peers
+        for s in strangers:
+            s.sendto(bytes(mavlink.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3).pack(_spoofer(vehicle))), ("127.0.0.1", port))
+        run(link, vehicle, clock, 0.1)
+        assert len(link._conn.clients) == 2 and link.counters["udp_peers_evicted"] >= 4
+    finally:
+        for s in strangers:
+            s.close()

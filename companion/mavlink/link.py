@@ -10,7 +10,10 @@ What it does (docs/derivations/sectors.md; each item fixes a flaw of the wiki de
 
 * MAVLink 2, ardupilotmega; own component 196 (MAV_COMP_ID_OBSTACLE_AVOIDANCE) with the
   vehicle's system id, learnt from the first HEARTBEAT of the autopilot component (1) whose type
-  is a vehicle (ground stations, gimbals, other companions and MAV_AUTOPILOT_INVALID are ignored);
+  is a vehicle (ground stations, gimbals, other companions and MAV_AUTOPILOT_INVALID are ignored),
+  or fixed by ``autopilot_system_id``; then locked: only that (system, component) feeds the
+  telemetry, the clock, TIMESYNC and the stream state; everything else is only counted, per source
+  in a bounded table (``max_sources``, :class:`~companion.mavlink.guard.SourceTable`);
 * HEARTBEAT at 1 Hz: MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, ``system_status``
   ACTIVE only after :meth:`MavLink.set_producing` (True) — the owner decides, the link never
   claims health on its own;
@@ -18,17 +21,28 @@ What it does (docs/derivations/sectors.md; each item fixes a flaw of the wiki de
   (COMMAND_LONG 511, one command in flight at a time since COMMAND_ACK carries only the command
   id), retries, falls back to REQUEST_DATA_STREAM when refused, unanswered, or accepted but the
   measured rate stays below ``min_rate_fraction`` of the request; re-requests a stream that stops
-  and everything after the link returns or the autopilot reboots;
-* TIMESYNC: sends requests, matches the replies, answers the autopilot's requests;
+  and everything after the link returns or the autopilot reboots — all of it within a request
+  budget (``stream_request_burst`` at once, then one per ``stream_request_interval_s``);
+* every ``time_boot_ms`` of the autopilot passes :class:`~companion.mavlink.guard.BootClockGuard`:
+  a stamp off the autopilot's clock (spoofed, or a noisy radio's CRC collision) is rejected and
+  counted (``rx_clock_<reason>``); a reboot (telemetry cleared, TIMESYNC and stream requests
+  restarted) is declared only on consistent evidence from several stamps and the heartbeat, at
+  most once per ``reboot_min_interval_s``;
+* TIMESYNC: sends requests, matches the replies, answers the autopilot's requests (at most
+  ``timesync_answer_max_hz``);
 * :meth:`MavLink.poll` is non-blocking, parses everything available, and never raises on what
   comes off the wire: random bytes, bad CRC, truncated packets (on UDP each datagram is parsed
-  on its own), unknown ids, foreign systems, bad signatures — each is counted in
-  :attr:`MavLink.counters` and logged (rate limited);
-* optional MAVLink 2 signing from a key file (:func:`load_signing_key`); with signing on, every
-  unsigned or wrongly signed packet is refused (counted ``rx_signing_rejected``);
+  on its own), unknown ids, foreign systems, bad signatures, non-finite payloads — each is
+  counted in :attr:`MavLink.counters` and logged (rate limited);
+* optional MAVLink 2 signing from a key file (:mod:`companion.mavlink.signing`): everything sent
+  is signed; wrongly signed and replayed packets are refused, unsigned ones too with
+  ``require_signing`` (counted ``rx_signing_rejected``, the reasons under ``signing.*``);
 * link loss = no vehicle HEARTBEAT for ``link_timeout_s``: reported through
   :meth:`MavLink.drain_events` (for STATUSTEXT), serial and TCP connections are reopened every
-  ``reconnect_interval_s`` until the vehicle is heard again.
+  ``reconnect_interval_s`` until the vehicle is heard again;
+* bounded memory: the event queue (``max_events``), rate meters, per-source table, clock
+  candidates, signing streams and — on ``udpin`` — the addresses we send to (``max_udp_peers``,
+  only senders of valid MAVLink from the vehicle; pymavlink would add every sender) all have caps.
 
 Threading: one internal lock serializes :meth:`poll`, :meth:`send` and the status accessors, so
 a pipeline thread may send while another polls (the wiki script shared state unlocked).
@@ -40,19 +54,18 @@ import collections
 import dataclasses
 import enum
 import errno
-import hashlib
 import logging
 import math
-import re
 import threading
 import time
-from pathlib import Path
 from typing import Any, Callable
 
 from companion.mavlink.dialect import mavlink, mavutil  # first: MAVLink 2 + ardupilotmega
 from companion.config import require, require_finite
 from companion.errors import ConfigError
 from companion.mavlink import messages as msgs
+from companion.mavlink.guard import BootClockGuard, RequestBudget, SourceTable
+from companion.mavlink.signing import SigningPolicy, load_signing_key
 from companion.mavlink.timesync import TimesyncConfig, TimesyncEstimator, handle_timesync, timesync_request
 from companion.telemetry import AddResult, TelemetryBuffer
 
@@ -81,9 +94,25 @@ class LinkConfig:
     fallback_repeat_s: float = 5.0  # REQUEST_DATA_STREAM is repeated this often while a fallback stream is missing
     link_timeout_s: float = 3.0  # no vehicle HEARTBEAT for this long = link lost
     reconnect_interval_s: float = 2.0  # serial / tcp reopen attempts while the link is lost or broken
+    autopilot_system_id: int = 0  # system id of the autopilot to follow; 0 = the first vehicle HEARTBEAT's (then locked until restart)
     signing_key_file: str = ""  # MAVLink 2 signing key file; "" = no signing (32 raw bytes, 64 hex digits, or a passphrase hashed with SHA-256 like MAVProxy)
-    signing_link_id: int = 1  # link id written into our signatures
+    require_signing: bool = False  # with a key: true = reject every unsigned packet; false = accept unsigned ones too (counted; wrongly signed are always rejected)
+    signing_link_id: int = 1  # link id written into our signatures (the ground-station output uses the next one)
+    max_signing_streams: int = 64  # signing timestamps remembered per (link id, system, component), oldest forgotten first
     max_messages_per_poll: int = 2000  # bound on messages handled by one poll()
+    clock_jitter_s: float = 0.5  # time_boot_ms may go back, or run ahead of our clock, by this much and still be the autopilot's clock, s
+    clock_lock_messages: int = 3  # agreeing time_boot_ms stamps needed to lock onto the autopilot's clock at start
+    reboot_confirm_messages: int = 10  # stamps on a new clock needed before a reboot is declared ...
+    reboot_confirm_s: float = 0.5  # ... spanning this long, with the old clock silent this long, s
+    reboot_heartbeat_gap_s: float = 1.5  # a HEARTBEAT silence this long that ended after the old clock stopped confirms a reboot (else two message types must agree), s
+    reboot_min_interval_s: float = 5.0  # at most one declared reboot per this long, s
+    max_clock_candidates: int = 4  # time_boot_ms clocks other than the autopilot's tracked at once (for reboot detection)
+    stream_request_interval_s: float = 2.0  # SET_MESSAGE_INTERVAL / REQUEST_DATA_STREAM: at most one per this long on average ...
+    stream_request_burst: int = 5  # ... after a burst of at most this many (one per stream and data stream at start-up)
+    timesync_answer_max_hz: float = 20.0  # answers to the autopilot's TIMESYNC requests at most this often
+    max_sources: int = 32  # (system, component) sources counted in the per-source table; least recently heard evicted first
+    max_udp_peers: int = 4  # udpin: addresses we send to (those that sent valid MAVLink from the vehicle), least recently heard evicted first
+    max_events: int = 64  # state changes (for STATUSTEXT) held between two drains; older ones are dropped and counted
     timesync: TimesyncConfig = dataclasses.field(default_factory=TimesyncConfig)  # [link.timesync]
 
     def __post_init__(self) -> None:
@@ -97,41 +126,32 @@ class LinkConfig:
         _int("component_id", 1, 255)
         _int("autopilot_component_id", 1, 255)
         _int("command_retries", 1, 100)
-        _int("signing_link_id", 0, 255)
+        _int("autopilot_system_id", 0, 255)
+        _int("signing_link_id", 0, 254)
+        _int("max_signing_streams", 1, 65536)
         _int("max_messages_per_poll", 1, 1_000_000)
+        _int("clock_lock_messages", 1, 1000)
+        _int("reboot_confirm_messages", 2, 10000)
+        _int("max_clock_candidates", 1, 64)
+        _int("stream_request_burst", 1, 100)
+        _int("max_sources", 2, 65536)
+        _int("max_udp_peers", 1, 256)
+        _int("max_events", 1, 100_000)
         for name in ("heartbeat_hz", "attitude_hz", "local_position_hz", "global_position_hz", "command_timeout_s",
-                     "rate_check_s", "rate_window_s", "fallback_repeat_s", "link_timeout_s", "reconnect_interval_s"):
+                     "rate_check_s", "rate_window_s", "fallback_repeat_s", "link_timeout_s", "reconnect_interval_s",
+                     "clock_jitter_s", "reboot_confirm_s", "reboot_heartbeat_gap_s", "reboot_min_interval_s",
+                     "stream_request_interval_s", "timesync_answer_max_hz"):
             require_finite(name, getattr(self, name), positive=True)
         require_finite("min_rate_fraction", self.min_rate_fraction, positive=True)
         require(self.min_rate_fraction <= 1.0, "min_rate_fraction must be <= 1")
+        require(self.clock_jitter_s <= 10.0, f"clock_jitter_s must be <= 10 s, got {self.clock_jitter_s}")
+        require(self.reboot_min_interval_s >= self.reboot_confirm_s,
+                "reboot_min_interval_s must be >= reboot_confirm_s")
         require(isinstance(self.signing_key_file, str), "signing_key_file must be a string")
+        require(isinstance(self.require_signing, bool), "require_signing must be true or false")
+        require(not self.require_signing or bool(self.signing_key_file.strip()),
+                "require_signing = true needs signing_key_file (a 32-byte key: raw, or 64 hex digits)")
         require(isinstance(self.timesync, TimesyncConfig), "timesync must be a [link.timesync] table")
-
-
-def load_signing_key(path: str | Path) -> bytes:
-    """The 32-byte MAVLink 2 signing secret from a key file.
-
-    * exactly 32 bytes: the raw secret;
-    * 64 hexadecimal digits (surrounding whitespace ignored): the secret in hex;
-    * anything else: a passphrase (surrounding whitespace stripped), hashed with SHA-256 — the
-      secret MAVProxy's ``signing setup <passphrase>`` derives, so both ends can share a phrase.
-    """
-    p = Path(path)
-    try:
-        data = p.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"signing key file {p}: {exc.strerror or exc}") from None
-    if len(data) == 32:
-        return data
-    try:
-        text = data.decode("utf-8").strip()
-    except UnicodeDecodeError:
-        raise ConfigError(f"signing key file {p}: neither 32 raw bytes nor text") from None
-    if not text:
-        raise ConfigError(f"signing key file {p} is empty")
-    if re.fullmatch(r"[0-9a-fA-F]{64}", text):
-        return bytes.fromhex(text)
-    return hashlib.sha256(text.encode("utf-8")).digest()
 
 
 # ---------------------------------------------------------------------- streams (pure) ---------
@@ -152,14 +172,23 @@ class StreamState(str, enum.Enum):
 
 
 class RateMeter:
-    """Arrival rates per message name over a sliding window (pure; caller's clock)."""
+    """Arrival rates per message name over a sliding window (pure; caller's clock).
 
-    def __init__(self, window_s: float = 2.0):
+    Bounded: at most ``max_names`` names (others are not measured) and ``max_per_name`` arrivals
+    per name in the window (rates above ``max_per_name / window_s`` read as that)."""
+
+    def __init__(self, window_s: float = 2.0, max_per_name: int = 4096, max_names: int = 16):
         self.window_s = window_s
+        self.max_per_name = max_per_name
+        self.max_names = max_names
         self._t: dict[str, collections.deque[float]] = {}
 
     def tick(self, name: str, now: float) -> None:
-        q = self._t.setdefault(name, collections.deque())
+        q = self._t.get(name)
+        if q is None:
+            if len(self._t) >= self.max_names:
+                return
+            q = self._t[name] = collections.deque(maxlen=self.max_per_name)
         q.append(now)
         self._trim(q, now)
 
@@ -198,6 +227,12 @@ class StreamRequester:
     ``step(now)`` returns actions ``("interval", spec, confirmation)`` or ``("data_stream",
     stream_id, rate_hz)``; ``on_ack(result, now)`` feeds the COMMAND_ACK of the one command in
     flight.  ``events`` collects (severity, text) for STATUSTEXT.
+
+    Every action spends a token of a :class:`~companion.mavlink.guard.RequestBudget`
+    (``stream_request_burst`` at once, then one per ``stream_request_interval_s``): whatever
+    restarts the requests (reboots, link losses, dropouts) the autopilot never gets more than that.
+    An action without a token waits (``rate_limited`` counts the steps that held one back); a
+    waiting REQUEST_DATA_STREAM is kept once per data stream.
     """
 
     def __init__(self, specs: list[StreamSpec], config: LinkConfig, meter: RateMeter):
@@ -206,8 +241,9 @@ class StreamRequester:
         self._streams = {s.name: _Stream(s) for s in specs}
         self._outstanding: str | None = None
         self.counters: collections.Counter[str] = collections.Counter()
-        self.events: list[tuple[int, str]] = []
-        self._pending_actions: list = []  # fallbacks decided in on_ack, emitted by the next step
+        self.events: collections.deque[tuple[int, str]] = collections.deque(maxlen=32)
+        self._pending_actions: list = []  # REQUEST_DATA_STREAMs decided but not yet sent (at most one per data stream)
+        self.budget = RequestBudget(config.stream_request_interval_s, config.stream_request_burst)
 
     def restart(self) -> None:
         """Request everything again (link regained, autopilot rebooted)."""
@@ -262,7 +298,7 @@ class StreamRequester:
 
     def step(self, now: float) -> list:
         cfg = self.config
-        actions: list = list(self._pending_actions)
+        actions: list = self._pending_actions  # REQUEST_DATA_STREAMs waiting for a token come first
         self._pending_actions = []
         if self._outstanding is not None:
             st = self._streams[self._outstanding]
@@ -301,16 +337,31 @@ class StreamRequester:
         for sid in sorted(repeat):
             self.counters["fallback_repeats"] += 1
             actions.append(("data_stream", sid, self._stream_rate(sid)))
+        out: list = []
+        waiting: set[int] = set()
+        for a in actions:  # one REQUEST_DATA_STREAM per data stream; each needs a token
+            if a[1] in waiting or any(o[1] == a[1] for o in out):
+                continue
+            if self.budget.take(now):
+                out.append(a)
+            else:
+                waiting.add(a[1])
+                self._pending_actions.append(a)
         if self._outstanding is None:
             for st in self._streams.values():
                 if st.state == StreamState.IDLE:
+                    if not self.budget.take(now):
+                        waiting.add(-1)
+                        break
                     st.state, st.sent_at = StreamState.WAIT_ACK, now
                     st.confirmation = st.attempts
                     self._outstanding = st.spec.name
                     self.counters["interval_requests"] += 1
-                    actions.append(("interval", st.spec, min(st.confirmation, 255)))
+                    out.append(("interval", st.spec, min(st.confirmation, 255)))
                     break
-        return actions
+        if waiting:
+            self.counters["rate_limited"] += 1
+        return out
 
 
 # ---------------------------------------------------------------------- status -----------------
@@ -328,6 +379,8 @@ class LinkStatus:
     signing: bool
     system_status: int  # what our HEARTBEAT says
     counters: dict[str, int]
+    vehicle_system_id: int | None = None  # the autopilot's system id we follow (locked)
+    sources: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)  # "SYS/COMP" -> message counts (bounded table)
 
 
 _NOT_A_VEHICLE = frozenset(
@@ -340,6 +393,13 @@ _NOT_A_VEHICLE = frozenset(
 )
 
 _TELEMETRY = ("ATTITUDE", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT")
+#: float fields that must be finite before a telemetry message may touch the clock or the buffer
+_TELEMETRY_FLOATS = {
+    "ATTITUDE": ("roll", "pitch", "yaw", "rollspeed", "pitchspeed", "yawspeed"),
+    "LOCAL_POSITION_NED": ("x", "y", "z", "vx", "vy", "vz"),
+}
+#: "Telemetry off the autopilot clock rejected" goes out at most this often (the counters keep the rest)
+_CLOCK_WARNING_PERIOD_S = 10.0
 
 
 class _Disconnected(Exception):
@@ -405,6 +465,7 @@ class MavLink:
         self.telemetry = telemetry if telemetry is not None else TelemetryBuffer()
         if self._fixed_offset is not None:
             self.telemetry.set_clock_offset(self._fixed_offset)
+        self.telemetry.auto_reset = False  # reboots of the autopilot are declared by the clock guard, not by one stamp
         self.timesync = TimesyncEstimator(config.timesync)
         self.meter = RateMeter(config.rate_window_s)
         self.streams = StreamRequester(
@@ -418,10 +479,32 @@ class MavLink:
             config,
             self.meter,
         )
-        self._events: collections.deque[tuple[int, str]] = collections.deque(maxlen=64)
+        self._events: collections.deque[tuple[int, str]] = collections.deque(maxlen=config.max_events)
         self._logs = _LogLimiter()
         self._signing_key = load_signing_key(config.signing_key_file) if config.signing_key_file else None
-        self._sysid: int | None = config.system_id or None
+        self.signing_policy = (SigningPolicy(self._signing_key, config.require_signing, config.max_signing_streams)
+                               if self._signing_key is not None else None)
+        # a ground-station output signs on its own link id: the same (link id, system, component) from two
+        # links with separate timestamp counters would look like replays to a receiver that hears both
+        self._signing_link_id = config.signing_link_id + (1 if role == "gcs" else 0)
+        if self._signing_key is not None and not config.require_signing:
+            log.warning("%s: MAVLink signing on (outgoing signed), but require_signing = false: unsigned packets are "
+                        "accepted (wrongly signed ones are not)", conn_str)
+        self.guard = BootClockGuard(
+            jitter_s=config.clock_jitter_s, lock_messages=config.clock_lock_messages,
+            reboot_confirm_messages=config.reboot_confirm_messages, reboot_confirm_s=config.reboot_confirm_s,
+            heartbeat_gap_s=config.reboot_heartbeat_gap_s, reboot_min_interval_s=config.reboot_min_interval_s,
+            max_candidates=config.max_clock_candidates)
+        self.sources = SourceTable(config.max_sources)
+        self._udp_peers: collections.OrderedDict[Any, float] = collections.OrderedDict()  # udpin: address -> last heard
+        self._rx_addr = None  # sender of the datagram being parsed (udpin)
+        self._rx_trusted = False  # that datagram carried a message from the vehicle (or, before the lock, any valid one)
+        self._ts_answers = msgs.RateLimiter(config.timesync_answer_max_hz)
+        self._clock_warned = -math.inf
+        # the vehicle we follow (locked from config or its first HEARTBEAT) and the system id we send with
+        self._vehicle_sysid: int | None = config.autopilot_system_id or None
+        self._vehicle_announced = False
+        self._sysid: int | None = config.system_id or self._vehicle_sysid
         self._connected = False
         self._ever_connected = False
         self._last_hb = -math.inf
@@ -469,20 +552,17 @@ class MavLink:
         conn.mav.robust_parsing = True
         conn.mav.srcSystem = src
         conn.mav.srcComponent = self.config.component_id
-        if self._signing_key is not None:
-            conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=self._refuse_unsigned,
-                               link_id=self.config.signing_link_id)
+        if self.signing_policy is not None:
+            conn.setup_signing(self._signing_key, sign_outgoing=True, link_id=self._signing_link_id)
+            self.signing_policy.install(conn.mav)
         self._conn = conn
         self.open_error = ""
+        self._udp_peers.clear()
         self._reopenable = isinstance(conn, (mavutil.mavserial, mavutil.mavtcp))
         if not first:
             self.counters["reconnects"] += 1
             log.info("reopened %s", self.conn_str)
         return True
-
-    @staticmethod
-    def _refuse_unsigned(mav, msg_id) -> bool:
-        return False  # with signing on, nothing unsigned (or wrongly signed) is accepted
 
     def _close_conn(self) -> None:
         conn, self._conn = self._conn, None
@@ -527,13 +607,37 @@ class MavLink:
                 return bytes(conn.port.read(4096))
             except Exception as exc:  # serial.SerialException when the device vanishes
                 raise _Disconnected(str(exc)) from None
+        self._rx_addr = None
         try:
-            data = conn.recv(4096)
+            if isinstance(conn, mavutil.mavudp) and conn.udp_server:
+                # read the socket ourselves: pymavlink's recv() would add every sender to the set of
+                # addresses it sends to (unbounded, and random bytes from anyone would redirect our traffic);
+                # a sender becomes a peer only through _register_peer
+                data, self._rx_addr = conn.port.recvfrom(65535)
+            else:
+                data = conn.recv(4096)
         except OSError as exc:
             if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
                 return b""
             raise _Disconnected(str(exc)) from None
         return bytes(data) if data else b""
+
+    def _register_peer(self, addr, now: float) -> None:
+        """udpin: ``addr`` sent valid MAVLink from the vehicle: send to it (at most ``max_udp_peers``)."""
+        conn = self._conn
+        if addr is None or not (isinstance(conn, mavutil.mavudp) and conn.udp_server):
+            return
+        peers = self._udp_peers
+        if addr in peers:
+            peers.move_to_end(addr)
+        peers[addr] = now
+        conn.clients.add(addr)
+        conn.clients_last_alive[addr] = time.time()
+        while len(peers) > self.config.max_udp_peers:
+            old, _ = peers.popitem(last=False)
+            conn.clients.discard(old)
+            conn.clients_last_alive.pop(old, None)
+            self.counters["udp_peers_evicted"] += 1
 
     def _reset_parser(self) -> None:
         mav = self._conn.mav
@@ -565,7 +669,7 @@ class MavLink:
         with self._lock:
             now = self._clock()
             handled = 0
-            datagram = isinstance(self._conn, mavutil.mavudp)
+            datagram = isinstance(self._conn, mavutil.mavudp) or bool(getattr(self._conn, "mavlink_datagrams", False))
             for _ in range(self.config.max_messages_per_poll):
                 if self._conn is None:
                     break
@@ -581,6 +685,7 @@ class MavLink:
                 if not data:
                     break
                 self.counters["rx_bytes"] += len(data)
+                addr, self._rx_trusted = self._rx_addr, False
                 for m in self._parse(data, datagram):
                     handled += 1
                     try:
@@ -588,6 +693,8 @@ class MavLink:
                     except Exception as exc:  # a handler must never take the process down
                         self.counters["rx_handler_errors"] += 1
                         self._logs.warn("handler", now, "error handling %s: %r", getattr(m, "get_type", lambda: "?")(), exc)
+                if self._rx_trusted and addr is not None:
+                    self._register_peer(addr, now)
                 if handled >= self.config.max_messages_per_poll:
                     self.counters["poll_budget_exhausted"] += 1
                     break
@@ -615,10 +722,16 @@ class MavLink:
         self._logs.warn(key, now, "%s: %s", key, reason[:120])
 
     def _from_vehicle(self, m) -> bool:
-        return (self._sysid is not None and m.get_srcSystem() == self._sysid
+        return (self._vehicle_sysid is not None and m.get_srcSystem() == self._vehicle_sysid
                 and m.get_srcComponent() == self.config.autopilot_component_id)
 
     def _dispatch(self, m, now: float) -> None:
+        """One parsed message: count it (per source), then act on it only if it is the autopilot's.
+
+        Only the locked autopilot (its system and ``autopilot_component_id``) feeds telemetry, the
+        clock, TIMESYNC and the stream state; every message with a ``time_boot_ms`` passes the
+        :class:`~companion.mavlink.guard.BootClockGuard` first, so a packet off the autopilot's clock is
+        rejected (counted ``rx_clock_<reason>``) and a reboot is declared only on consistent evidence."""
         t = m.get_type()
         if t == "BAD_DATA":
             self._classify_bad(m, now)
@@ -628,6 +741,11 @@ class MavLink:
             self._logs.warn("unknown", now, "message with unknown id: %s", t)
             return
         self.counters["rx_messages"] += 1
+        src = (m.get_srcSystem(), m.get_srcComponent())
+        from_vehicle = self._from_vehicle(m)
+        self.sources.count(src, "autopilot" if from_vehicle else "other")
+        if self.role == "gcs" or self._vehicle_sysid is None or src[0] == self._vehicle_sysid:
+            self._rx_trusted = True
         buf = m.get_msgbuf()
         if buf and buf[0] == mavlink.PROTOCOL_MARKER_V1:
             self.counters["rx_mavlink1"] += 1
@@ -639,12 +757,26 @@ class MavLink:
             return
         if self.role != "autopilot":
             return
-        if not self._from_vehicle(m):
+        if not from_vehicle:
             self.counters["rx_foreign"] += 1
             return
-        if self._boot_observer is not None:
-            tb = getattr(m, "time_boot_ms", None)
-            if isinstance(tb, int):
+        tb = getattr(m, "time_boot_ms", None)
+        if isinstance(tb, int):
+            if t in _TELEMETRY_FLOATS and not all(math.isfinite(getattr(m, f, math.nan)) for f in _TELEMETRY_FLOATS[t]):
+                self.counters["rx_nonfinite"] += 1  # never let a NaN sample move the clock
+                self._logs.warn("nonfinite", now, "%s with a non-finite field refused", t)
+                return
+            verdict = self.guard.check(t, tb, now)
+            if not verdict.accepted:
+                self.counters["rx_clock_rejected"] += 1
+                self.counters[f"rx_clock_{verdict.reason}"] += 1
+                self.sources.count(src, "clock_rejected")
+                if verdict.reason != "acquiring":
+                    self._clock_warning(now, t, tb, verdict.reason)
+                return
+            if verdict.reboot:
+                self._vehicle_rebooted(now)
+            if self._boot_observer is not None:
                 self._boot_observer(tb * 1e-3)
         if t == "ATTITUDE":
             self.meter.tick(t, now)
@@ -660,21 +792,35 @@ class MavLink:
         elif t == "TIMESYNC":
             reply = handle_timesync(self.timesync, m, now)
             if reply is not None:
-                self._send(reply)
+                if self._ts_answers.ready(now):
+                    self._send(reply)
+                else:
+                    self.counters["tx_timesync_answers_limited"] += 1
         elif t == "COMMAND_ACK":
             self._on_ack(m, now)
 
+    def _clock_warning(self, now: float, t: str, tb: int, reason: str) -> None:
+        newest = self.guard.newest_s
+        self._logs.warn("clock", now, "%s with time_boot_ms %d refused (%s; autopilot clock at %s ms)", t, tb, reason,
+                        "?" if newest is None else f"{newest * 1000:.0f}")
+        if now - self._clock_warned >= _CLOCK_WARNING_PERIOD_S or now < self._clock_warned:
+            self._clock_warned = now
+            self._event(mavlink.MAV_SEVERITY_WARNING, "Telemetry off the autopilot clock rejected")
+
     def _after_telemetry(self, result: AddResult, time_boot_ms: int, now: float) -> None:
         self.counters[f"telemetry_{result.value}"] += 1
-        if result == AddResult.RESET:
-            self._vehicle_rebooted(now)
         if result in (AddResult.APPENDED, AddResult.RESET):
             self.timesync.observe_stamp(time_boot_ms * 1e-3, now)
 
     def _vehicle_rebooted(self, now: float) -> None:
+        """The clock guard declared a reboot (consistent evidence, rate limited): clear the telemetry
+        (the pipeline restarts on it), restart TIMESYNC and the stream requests, tell the operator."""
         self.counters["vehicle_reboots"] += 1
         self._event(mavlink.MAV_SEVERITY_WARNING, "Autopilot reboot seen: resync, re-request")
+        log.warning("autopilot reboot declared (%s)", self.guard.history[-1][2] if self.guard.history else "")
+        self.telemetry.declare_reset("autopilot reboot")
         self.timesync.reset("autopilot reboot")
+        self.meter.clear()
         self.streams.restart()
 
     def _on_ack(self, m, now: float) -> None:
@@ -698,16 +844,24 @@ class MavLink:
         if not is_vehicle:
             self.counters["rx_heartbeat_other"] += 1
             return
+        if self._vehicle_sysid is None:
+            self._vehicle_sysid = src
+        elif src != self._vehicle_sysid:
+            self.counters["rx_heartbeat_other_vehicle"] += 1
+            return
+        if not self._vehicle_announced:
+            self._vehicle_announced = True
+            self.sources.protected = (src, comp)
+            self._event(mavlink.MAV_SEVERITY_INFO, f"Vehicle system id {src}")
+            log.info("vehicle system id %d %s", src,
+                     "(from [link] autopilot_system_id)" if self.config.autopilot_system_id else "learnt from its HEARTBEAT")
         if self._sysid is None:
             self._sysid = src
             if self._conn is not None:
                 self._conn.mav.srcSystem = src
-            self._event(mavlink.MAV_SEVERITY_INFO, f"Vehicle system id {src}")
-            log.info("vehicle system id %d learnt from its HEARTBEAT", src)
             self._hb_limiter.reset()  # announce ourselves under the vehicle's system id now, not a period later
-        elif src != self._sysid:
-            self.counters["rx_heartbeat_other_vehicle"] += 1
-            return
+        self._rx_trusted = True
+        self.guard.heartbeat(now)
         self.vehicle_heartbeat = m
         self._peer_alive(now, "vehicle")
 
@@ -739,7 +893,7 @@ class MavLink:
             return
         if self._hb_limiter.ready(now):
             self._send(msgs.heartbeat(self._system_status))
-        if self.role != "autopilot" or self._sysid is None or not self._connected:
+        if self.role != "autopilot" or self._vehicle_sysid is None or self._sysid is None or not self._connected:
             self.telemetry.set_clock_offset(self._clock_offset())
             return
         if self.timesync.request_due(now):
@@ -747,11 +901,11 @@ class MavLink:
         for action in self.streams.step(now):
             if action[0] == "interval":
                 _, spec, conf = action
-                self._send(msgs.set_message_interval(self._sysid, cfg.autopilot_component_id, spec.msg_id, spec.rate_hz, conf))
+                self._send(msgs.set_message_interval(self._vehicle_sysid, cfg.autopilot_component_id, spec.msg_id, spec.rate_hz, conf))
             else:
                 _, sid, rate = action
                 self.counters["tx_request_data_stream"] += 1
-                self._send(msgs.request_data_stream(self._sysid, cfg.autopilot_component_id, sid, rate))
+                self._send(msgs.request_data_stream(self._vehicle_sysid, cfg.autopilot_component_id, sid, rate))
         for ev in self.streams.events:
             self._event(*ev)
         self.streams.events.clear()
@@ -762,6 +916,8 @@ class MavLink:
         return self._fixed_offset if self._fixed_offset is not None else self.timesync.offset_s
 
     def _event(self, severity: int, text: str) -> None:
+        if len(self._events) == self._events.maxlen:
+            self.counters["events_dropped"] += 1  # the oldest goes: nobody drained for a long time
         self._events.append((severity, text))
 
     # ------------------------------------------------------------------ sending --------------
@@ -856,7 +1012,13 @@ class MavLink:
     # ------------------------------------------------------------------ state ----------------
     @property
     def system_id(self) -> int | None:
+        """The system id we send with (the vehicle's, once learnt, unless ``[link] system_id`` is set)."""
         return self._sysid
+
+    @property
+    def vehicle_system_id(self) -> int | None:
+        """The autopilot's system id we follow (locked from config or its first HEARTBEAT)."""
+        return self._vehicle_sysid
 
     @property
     def connected(self) -> bool:
@@ -895,11 +1057,15 @@ class MavLink:
         with self._lock:
             now = self._clock()
             counters = dict(self.counters)
-            for prefix, c in (("telemetry.", self.telemetry.counters), ("timesync.", self.timesync.counters),
-                              ("streams.", self.streams.counters)):
+            groups = [("telemetry.", self.telemetry.counters), ("timesync.", self.timesync.counters),
+                      ("streams.", self.streams.counters), ("clock.", self.guard.counters)]
+            if self.signing_policy is not None:
+                groups.append(("signing.", self.signing_policy.counters))
+                counters["rx_bad_signature"] = self.signing_policy.counters.get("bad_signature", 0)
+            for prefix, c in groups:
                 counters.update({prefix + k: v for k, v in c.items()})
-            if self._conn is not None and self._signing_key is not None:
-                counters["rx_bad_signature"] = self._conn.mav.signing.badsig_count
+            counters["sources_tracked"] = len(self.sources)
+            counters["sources_evicted"] = self.sources.evicted
             return LinkStatus(
                 connected=self._connected,
                 system_id=self._sysid,
@@ -913,4 +1079,6 @@ class MavLink:
                 signing=self._signing_key is not None,
                 system_status=self._system_status,
                 counters=counters,
+                vehicle_system_id=self._vehicle_sysid,
+                sources=self.sources.snapshot(),
             )

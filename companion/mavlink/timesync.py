@@ -41,6 +41,8 @@ from companion.config import require, require_finite
 log = logging.getLogger(__name__)
 
 NS = 1_000_000_000
+#: bound on the arrival-envelope deque (it is also trimmed to arrival_window_s)
+MAX_ARRIVALS = 4096
 
 
 @dataclasses.dataclass(frozen=True)
@@ -253,8 +255,8 @@ class TimesyncEstimator:
         while env and env[-1][1] >= v:  # never the minimum again while v is in the window
             env.pop()
         env.append((arrival, v))
-        while arrival - env[0][0] > self.config.arrival_window_s:
-            env.popleft()
+        while arrival - env[0][0] > self.config.arrival_window_s or len(env) > MAX_ARRIVALS:
+            env.popleft()  # (the length cap only bites on a flood of stamps: the envelope then spans less time)
 
 
 # ---------------------------------------------------------------------- message glue -------------
