@@ -1,4 +1,4 @@
-"""The per-frame ranging pipeline and the live companion process (issue 4; docs/derivations/frames.md, docs/derivations/sectors.md).
+"""The per-frame ranging pipeline and the live companion process (docs/derivations/frames.md, docs/derivations/sectors.md).
 
 Three layers, each usable on its own:
 
@@ -281,7 +281,7 @@ class Pipeline:
         return depth_of
 
     def _detection_priority(self, res: FrameResult, R_wb, v_w):
-        """Where the tracker's refill looks first (issue 11 item 3): the band around the flight path,
+        """Where the tracker's refill looks first: the band around the flight path,
         in the direction of travel and in the in-view sectors without a live point in the previous
         frame (:func:`companion.core.priority.detection_priority`); None when switched off."""
         tc = self.config.tracks

@@ -16,14 +16,14 @@ Refusals are results, not exceptions: :class:`PoseResult` has ``ok`` and a ``rea
 (``empty``, ``no_clock``, ``before_buffer``, ``after_buffer``, ``gap``, ``stale``, ``bad_time``),
 prefixed ``position:`` when only the position stream failed.
 
-Robustness (issue 4): non-finite samples are refused; a duplicated stamp is ignored; an
+Robustness: non-finite samples are refused; a duplicated stamp is ignored; an
 out-of-order sample is inserted where it belongs (or dropped if older than the whole full
 buffer); ``time_boot_ms`` going back by more than ``reset_threshold_s`` means the autopilot
 rebooted: the buffer is cleared and the caller is told (:data:`AddResult.RESET`) so it can reset
 TIMESYNC and re-request the streams.  Every outcome is counted in :attr:`TelemetryBuffer.counters`.
 
-A live MAVLink link decides reboots itself, on consistent evidence rather than one stamp (issue 14,
-:class:`companion.mavlink.guard.BootClockGuard`): it sets :attr:`TelemetryBuffer.auto_reset` False
+A live MAVLink link decides reboots itself, on consistent evidence rather than one stamp
+(:class:`companion.mavlink.guard.BootClockGuard`): it sets :attr:`TelemetryBuffer.auto_reset` False
 and calls :meth:`TelemetryBuffer.declare_reset`, which clears the buffer and counts ``reset`` (what
 the pipeline watches to restart its tracks).
 """

@@ -1,4 +1,4 @@
-"""Link hardening (issue 14): the autopilot clock guard, per-source accounting, a request budget.
+"""Link hardening: the autopilot clock guard, per-source accounting, a request budget.
 
 Pure logic (no I/O, no globals, the caller's clock); :class:`companion.mavlink.link.MavLink` wires
 them in.  Everything here is bounded in memory by construction.

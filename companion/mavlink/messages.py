@@ -72,7 +72,7 @@ class OutputConfig:
         for f in dataclasses.fields(self):
             if f.name.endswith("_hz"):
                 require_finite(f.name, getattr(self, f.name), nonnegative=True)
-        require(self.named_value_hz <= 1.0, f"named_value_hz must be <= 1 (issue 4), got {self.named_value_hz}")
+        require(self.named_value_hz <= 1.0, f"named_value_hz must be <= 1, got {self.named_value_hz}")
         require(isinstance(self.sensor_type, int) and 0 <= self.sensor_type <= 255, f"sensor_type must be a uint8, got {self.sensor_type!r}")
         require(isinstance(self.distance_sensor_id, int) and 0 <= self.distance_sensor_id <= 255,
                 f"distance_sensor_id must be a uint8, got {self.distance_sensor_id!r}")

@@ -1,4 +1,4 @@
-"""MAVLink 2 message signing for the companion's links (issue 14).
+"""MAVLink 2 message signing for the companion's links.
 
 :func:`load_signing_key` reads the shared 32-byte secret; :class:`SigningPolicy` decides, for each
 incoming packet, whether it is accepted, and counts why not.  :class:`companion.mavlink.link.MavLink`
