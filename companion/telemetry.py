@@ -1,4 +1,4 @@
-"""Autopilot telemetry ring buffer interpolated to camera exposure times (docs/derivations/frames.md, docs/derivations/sectors.md).
+"""Autopilot telemetry ring buffer interpolated to camera exposure times (docs/derivations/frames.md, docs/derivations/link.md).
 
 Pure logic: no I/O, no globals.  The MAVLink link feeds it ATTITUDE (roll, pitch, yaw and body
 rates, ZYX, rad) and LOCAL_POSITION_NED (NED position and velocity) samples keyed by the
@@ -55,7 +55,7 @@ class TelemetryConfig:
 
     capacity: int = 512  # samples kept per stream (512 = 10 s of 50 Hz ATTITUDE)
     max_gap_s: float = 0.25  # two bracketing samples farther apart than this are not interpolated
-    max_age_s: float = 0.5  # newest sample older than this (vs. now) = telemetry stale (docs/derivations/sectors.md: 0.5 s)
+    max_age_s: float = 0.5  # newest sample older than this (vs. now) = telemetry stale (docs/derivations/link.md: 0.5 s)
     max_extrapolation_s: float = 0.0  # pose_at may extrapolate this far past the newest sample (rates / velocity); 0 = never
     reset_threshold_s: float = 1.0  # time_boot_ms going back by more than this = autopilot reboot: buffer cleared
 

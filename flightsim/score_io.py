@@ -39,7 +39,7 @@ from flightsim.score import (
 
 log = logging.getLogger(__name__)
 
-COMPANION_COMPONENT = 196  # MAV_COMP_ID_OBSTACLE_AVOIDANCE (docs/derivations/sectors.md)
+COMPANION_COMPONENT = 196  # MAV_COMP_ID_OBSTACLE_AVOIDANCE (docs/derivations/link.md)
 _BOOT_TYPES = ("DISTANCE_SENSOR", "NAMED_VALUE_FLOAT", "OBSTACLE_DISTANCE_3D")  # time_boot_ms = sending time
 
 

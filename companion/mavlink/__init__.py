@@ -1,1 +1,1 @@
-"""MAVLink I/O of the companion (docs/derivations/sectors.md).  Import :mod:`companion.mavlink.dialect` first."""
+"""MAVLink I/O of the companion (docs/derivations/link.md).  Import :mod:`companion.mavlink.dialect` first."""

@@ -1,4 +1,4 @@
-"""MAVLink 2 with the ``ardupilotmega`` dialect, whatever was imported before (docs/derivations/sectors.md).
+"""MAVLink 2 with the ``ardupilotmega`` dialect, whatever was imported before (docs/derivations/link.md).
 
 pymavlink picks MAVLink 1 and the ``all`` dialect unless ``MAVLINK20=1`` is set before import;
 OBSTACLE_DISTANCE (330) and OBSTACLE_DISTANCE_3D (11037) do not fit MAVLink 1.  Importing this

@@ -1,4 +1,4 @@
-"""The companion's MAVLink connection to the autopilot (or to a ground station) — docs/derivations/sectors.md.
+"""The companion's MAVLink connection to the autopilot (or to a ground station) — docs/derivations/link.md.
 
 :class:`MavLink` is a thin, single-owner I/O shell around ``mavutil.mavlink_connection``
 (serial device with baud, ``udpin:``, ``udpout:``, ``tcp:``) that delegates every decision to pure
@@ -6,7 +6,7 @@ pieces: :class:`~companion.telemetry.TelemetryBuffer` (telemetry history),
 :class:`~companion.mavlink.timesync.TimesyncEstimator` (clock mapping), :class:`StreamRequester`
 (which telemetry to ask for, how, and whether it arrives) and :class:`RateMeter`.
 
-What it does (docs/derivations/sectors.md; each item fixes a flaw of the wiki depth-camera script):
+What it does (docs/derivations/link.md; each item fixes a flaw of the wiki depth-camera script):
 
 * MAVLink 2, ardupilotmega; own component 196 (MAV_COMP_ID_OBSTACLE_AVOIDANCE) with the
   vehicle's system id, learnt from the first HEARTBEAT of the autopilot component (1) whose type
@@ -222,7 +222,7 @@ class _Stream:
 
 
 class StreamRequester:
-    """Decides the SET_MESSAGE_INTERVAL / REQUEST_DATA_STREAM traffic (pure; docs/derivations/sectors.md).
+    """Decides the SET_MESSAGE_INTERVAL / REQUEST_DATA_STREAM traffic (pure; docs/derivations/link.md).
 
     ``step(now)`` returns actions ``("interval", spec, confirmation)`` or ``("data_stream",
     stream_id, rate_hz)``; ``on_ack(result, now)`` feeds the COMMAND_ACK of the one command in

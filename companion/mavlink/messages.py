@@ -1,4 +1,4 @@
-"""Encoders for every message the companion sends, with each field set per docs/derivations/sectors.md.
+"""Encoders for every message the companion sends, with each field set per docs/derivations/link.md (the sectors: sectors.md).
 
 Each function returns a pymavlink message object (ardupilotmega dialect, MAVLink 2) that
 :meth:`companion.mavlink.link.MavLink.send` packs with the companion's system / component ids.
@@ -23,7 +23,7 @@ safe direction and logged, never sent as a value that means something else.
 * HEARTBEAT (0): MAV_TYPE_ONBOARD_CONTROLLER (18), MAV_AUTOPILOT_INVALID (8), ``system_status``
   ACTIVE only while valid ranges are produced (decided by the caller).
 
-:class:`RateLimiter` and :class:`OutputSchedule` keep each output at its own rate (docs/derivations/sectors.md: a
+:class:`RateLimiter` and :class:`OutputSchedule` keep each output at its own rate (docs/derivations/link.md: a
 57600-baud radio cannot carry OBSTACLE_DISTANCE at 10 Hz next to everything else).
 """
 

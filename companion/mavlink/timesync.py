@@ -1,4 +1,4 @@
-"""TIMESYNC: the autopilot's clock on the companion's monotonic clock (docs/derivations/sectors.md).
+"""TIMESYNC: the autopilot's clock on the companion's monotonic clock (docs/derivations/link.md).
 
 Protocol (MAVLink TIMESYNC, id 111): a request carries ``tc1 = 0`` and ``ts1`` = the sender's time
 in ns; the peer answers ``tc1`` = its own time in ns and ``ts1`` copied from the request.  ArduPilot
