@@ -10,6 +10,7 @@ increments; loopback delivery is immediate, so the tests are deterministic and f
 import math
 import socket
 
+from conftest import free_port
 import numpy as np
 import pytest
 
@@ -22,14 +23,6 @@ from companion.mavlink.timesync import NS
 DT = 0.005
 BOOT = 900.0  # the vehicle booted at companion time 900 s: t_companion = t_autopilot + 900
 VEHICLE_SYSID = 42
-
-
-def free_port(kind=socket.SOCK_DGRAM):
-    s = socket.socket(socket.AF_INET, kind)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 class Clock:

@@ -15,6 +15,7 @@ import threading
 import time
 from pathlib import Path
 
+from conftest import free_port
 import numpy as np
 import pytest
 
@@ -48,14 +49,6 @@ def sectors_msg(values: dict[int, int], min_cm: int = 50, max_cm: int = 4000):
     for i, v in values.items():
         d[i] = v
     return M.obstacle_distance(d, min_cm, max_cm)
-
-
-def free_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 # ---------------------------------------------------------------------- decoding ---------------

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import socket
 
+from conftest import free_port
 import numpy as np
 import pytest
 
@@ -34,14 +34,6 @@ BOOT = 400.0  # the vehicle booted at companion time 400 s
 T0 = 1000.0  # flight time 0 on the companion clock
 SYSID = 7
 CAM = CameraConfig.from_fov(320, 240, 60.0)
-
-
-def free_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def small_config(**over) -> CompanionConfig:
