@@ -4,7 +4,8 @@
 routers deliver noise, cut and glued packets, other systems share the link, a faulty or spoofed
 sender writes garbage into valid frames, and the telemetry itself drops out.  Two optional parts,
 both off by default and both seeded (the same seed gives the same packets at the same simulated
-instants, and the real telemetry is left byte-identical to a run without them):
+instants; the flight — physics, telemetry model, its random draws — is that of the same scenario
+seed without them):
 
 :class:`HostileInjector`
     datagrams sent to the companion *interleaved* with the real telemetry, Poisson arrivals at
@@ -28,8 +29,8 @@ instants, and the real telemetry is left byte-identical to a run without them):
     ``spoof_attitude_foreign``  the same from another system (component 1) or another component
                        of the vehicle's system.
 
-    Hostile packets are packed by a packer of their own (its own sequence numbers), never the
-    vehicle's, and are not written to ``telemetry.tlog``; :attr:`HostileInjector.counts` counts
+    Hostile packets are packed by a packer of their own (its own sequence numbers: the vehicle's
+    messages keep theirs) and are not written to ``telemetry.tlog``; :attr:`HostileInjector.counts` counts
     every datagram sent by kind and :attr:`HostileInjector.part_counts` the parts of the glued ones.
 
 :class:`Blackout`

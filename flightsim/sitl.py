@@ -51,7 +51,7 @@ which runs on its normal monotonic clock with TIMESYNC; a datagram is dated when
 Hostile link (issue 14; off by default): ``SitlConfig.hostile`` (:class:`flightsim.hostile.HostileConfig`)
 interleaves seeded hostile datagrams with the telemetry at each step they fall due (random bytes,
 bad CRC, truncated, unknown ids, NaN/inf payloads, glued packets, spoofed ATTITUDE; packed apart from
-the vehicle's own messages, which stay byte-identical, and not recorded in ``telemetry.tlog``) and
+the vehicle's own messages, whose sequence numbers they leave alone, and not recorded in ``telemetry.tlog``) and
 silences the vehicle's telemetry (optionally its HEARTBEAT and answers) in blackout windows;
 ``sitl.json`` ``hostile`` counts them by kind.  ``SitlConfig.rss_sample_s`` samples the companion's
 resident set (``/proc/PID/status`` VmRSS) into ``companion_rss_kib``.  A failed run's
