@@ -57,6 +57,7 @@ COMMAND_LONG_PER_2S = 1  # at most this many COMMAND_LONG in any 2-s window (0.5
 BLACKOUT_UNKNOWN_MAX_S = 0.5
 OD_RATE_MIN_FRACTION = 0.8
 VALID_GOOD_MIN_SHARE = 0.99
+WORKED_MIN_SHARE = 0.95  # frames the companion worked on (not dropped as stale): else the soak measured an idle process
 FULL_RUN_MIN_MINUTES = 30.0
 FULL_RUN_MIN_PACKETS = 100_000
 
@@ -310,6 +311,11 @@ def evaluate(res: dict) -> list[dict]:
 
     add("companion crashes (exited or the run failed)", res["crashes"], "= 0", res["crashes"] == 0)
     add("tracebacks in the companion's log", m["log"]["tracebacks"], "= 0", m["log"]["tracebacks"] == 0)
+    acks = (res.get("sitl") or {}).get("acks") or {}
+    n_acks = sum(acks.values())
+    worked = (n_acks - acks.get("dropped", 0)) / n_acks if n_acks else None
+    add("frames the companion worked on (processed or rejected, not dropped as stale)", worked,
+        f"≥ {WORKED_MIN_SHARE:.0%}", worked is not None and worked >= WORKED_MIN_SHARE)
     st = msg["STATUSTEXT"]["worst_1s_after_warmup"]
     add("STATUSTEXT, most in any 1 s", st, f"≤ {STATUSTEXT_PER_1S}", st <= STATUSTEXT_PER_1S)
     cl = msg["COMMAND_LONG"]["worst_2s_after_warmup"]
@@ -348,6 +354,20 @@ def _line_progress(total_s: float, stream=sys.stderr):
                   file=stream, flush=True)
 
     return tick
+
+
+def _commit() -> str | None:
+    """The checkout's commit (``+dirty`` with uncommitted changes to tracked files), None outside git."""
+    import subprocess
+
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                             timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                               text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return rev + ("+dirty" if dirty else "") if rev else None
 
 
 def run(p: Params, out: Path = OUT, *, companion_config=None, progress=None, command: str | None = None) -> dict:
@@ -393,7 +413,7 @@ def run(p: Params, out: Path = OUT, *, companion_config=None, progress=None, com
     crashes = int(crash is not None or exit_code not in (0, None) or killed)
     metrics = analyse(run_dir, p, blackouts, epoch_s=sc.meta.epoch_s, od_rate_hz=od_hz, flown_s=flown)
     metrics["rss"] = rss_stats(rss, min(120.0, flown / 2))
-    res = {"command": command, "date": datetime.date.today().isoformat(),
+    res = {"command": command, "date": datetime.date.today().isoformat(), "commit": _commit(),
            "machine": f"Python {platform.python_version()}, {platform.machine()}",
            "params": dataclasses.asdict(p) | {"kinds": list(p.kinds) or list(KINDS)},
            "scenario": str(SCENARIO.relative_to(ROOT)), "companion_config": str(cc) if cc else None,
@@ -424,7 +444,8 @@ def markdown(res: dict) -> str:
     vg = m["valid_while_good"]
     sitl = res.get("sitl") or {}
     full = p["minutes"] >= FULL_RUN_MIN_MINUTES and (h.get("packets") or 0) >= FULL_RUN_MIN_PACKETS
-    L = [f"Command: `{res.get('command') or 'python -m companion.bench.hostile'}` ({res['date']}, {res['machine']}; "
+    L = [f"Command: `{res.get('command') or 'python -m companion.bench.hostile'}` ({res['date']}, "
+         + (f"commit {res['commit']}, " if res.get("commit") else "") + f"{res['machine']}; "
          f"{res['wall_s'] / 60:.1f} min wall"
          + (f", {sitl['realtime_factor']:.2f}× real time" if sitl.get("realtime_factor") else "") + ").",
          "",
@@ -451,7 +472,7 @@ def markdown(res: dict) -> str:
     L += ["", "| target | measured | bound | |", "|---|---:|---|---|"]
     for t in res["targets"]:
         val = t["value"]
-        if isinstance(val, float) and t["name"].startswith("seconds of good"):
+        if isinstance(val, float) and (t["name"].startswith("seconds of good") or t["name"].startswith("frames the")):
             val = f"{100 * val:.2f} %"
         L.append(f"| {t['name']} | {_v(val)} | {t['bound']} | {'✓' if t['met'] else '✗'} |")
     L += ["", "Messages from the companion, per second after the warm-up (mean) and the most in any window:", "",
@@ -500,6 +521,12 @@ def markdown(res: dict) -> str:
              if sitl.get("acks") else "")
           + (f"; lockstep clock mismatches (DISTANCE_SENSOR stamps off the simulation's clock model) "
              f"{sitl.get('clock_mismatches', 0):,}" if "clock_mismatches" in sitl else "") + "."]
+    if sitl.get("clock_mismatches"):
+        L += ["", f"The companion's DISTANCE_SENSOR stamps left the lockstep clock model {sitl['clock_mismatches']:,} times. "
+              "With `--clock sim` the companion's clock is the newest autopilot time it has heard "
+              "(`companion/simclock.py`), so one ATTITUDE accepted as the vehicle's with a far-future `time_boot_ms` "
+              "moves it ahead for good: every later frame then looks stale and is dropped, and the outputs due on that "
+              "clock stop (the likely cause when `spoof_attitude_own` is among the kinds)."]
     met = sum(1 for t in res["targets"] if t["met"])
     L += ["", f"Targets met: {met} of {len(res['targets'])}. Files: `{res['out']}/run/` (received.tlog, companion.log, "
           "sitl.json), results `--json-out`."]
