@@ -199,6 +199,20 @@ class UdpEndpoint:
         self.counters["tx_messages"] += 1
         return buf
 
+    def send_raw(self, buf: bytes) -> bool:
+        """Send bytes as one datagram to the peer, as they are (hostile traffic, :mod:`flightsim.hostile`);
+        False if no peer is known yet or the send failed."""
+        if self.peer is None:
+            return False
+        try:
+            self.sock.sendto(buf, self.peer)
+        except OSError as exc:
+            self.counters["tx_raw_errors"] += 1
+            log.debug("raw send to %s failed: %s", self.peer, exc)
+            return False
+        self.counters["tx_raw_datagrams"] += 1
+        return True
+
     def wait_readable(self, timeout: float) -> bool:
         if timeout <= 0:
             return False

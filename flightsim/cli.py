@@ -59,7 +59,16 @@ def cmd_sitl(args) -> int:
     from flightsim.scenario import default_companion_config
     from flightsim.sitl import SitlConfig, run_sitl
 
-    cfg = SitlConfig(processing_ms=args.processing_ms, connect_timeout_s=args.connect_timeout)
+    from flightsim.hostile import KINDS, Blackout, HostileConfig
+
+    try:
+        kinds = tuple(k.strip() for k in args.hostile_kinds.split(",") if k.strip()) if args.hostile_kinds else KINDS
+        hostile = HostileConfig(rate_hz=args.hostile_rate, seed=args.hostile_seed, kinds=kinds,
+                                blackouts=tuple(Blackout.parse(b) for b in args.blackout or ()))
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    cfg = SitlConfig(processing_ms=args.processing_ms, connect_timeout_s=args.connect_timeout, hostile=hostile,
+                     rss_sample_s=args.rss_sample_s)
     # --config, else the scenario's [scenario] companion_config, else (None) the shipped configs/companion.toml
     companion_config = default_companion_config(args.scenario, args.config)
     log.info("SITL %s (%s clock) into %s, companion config %s", args.scenario, args.clock, args.out,
@@ -79,6 +88,12 @@ def cmd_sitl(args) -> int:
     print(f"received {sum(rx.values())} MAVLink messages: " + (", ".join(f"{k} {v}" for k, v in rx.items()) or "none"))
     print("streams: " + ", ".join(f"{k} {'off' if v is None else f'{v:g} Hz'}" for k, v in s["streams"].items())
           + f"; TIMESYNC answered {s['timesync_answered']}")
+    h = s.get("hostile")
+    if h:
+        print(f"hostile traffic: {h.get('datagrams', 0)} datagrams ({h.get('packets', 0)} packets) at {h['rate_hz']:g}/s: "
+              + (", ".join(f"{k} {v}" for k, v in (h.get("by_kind") or {}).items()) or "none")
+              + (f"; blackouts {len(h['blackouts'])}, vehicle messages dropped: "
+                 + (", ".join(f"{k} {v}" for k, v in h["blackout_dropped"].items()) or "none") if h["blackouts"] else ""))
     bad = {k: v for k, v in s["checks"].items() if k in ("obstacle_distance_bad_fields", "clock_mismatches") and v}
     if bad:
         print("checks FAILED: " + ", ".join(f"{k} {v}" for k, v in bad.items()))
@@ -308,6 +323,20 @@ def main(argv=None) -> int:
     q.add_argument("--connect-timeout", type=float, default=60.0, metavar="S",
                    help="seconds the companion has to connect (×5 with --attach; default 60)")
     q.add_argument("--no-score", action="store_true", help="do not score the received ranges")
+    q.add_argument("--hostile-rate", type=float, default=0.0, metavar="HZ",
+                   help="hostile datagrams per simulated second interleaved with the telemetry: random bytes, bad CRC, "
+                        "truncated, unknown ids, NaN/inf payloads, glued packets, spoofed ATTITUDE (flightsim/hostile.py; "
+                        "default 0 = none)")
+    q.add_argument("--hostile-seed", type=int, default=0, metavar="N", help="seed of the hostile traffic (default 0)")
+    q.add_argument("--hostile-kinds", default=None, metavar="LIST",
+                   help="comma-separated subset of the hostile kinds (default all: random_bytes, bad_crc, truncated, "
+                        "unknown_id, nan_payload, glued, spoof_attitude_own, spoof_attitude_foreign)")
+    q.add_argument("--blackout", action="append", metavar="START:DURATION[:hb]",
+                   help="telemetry blackout: no ATTITUDE / LOCAL_POSITION_NED / GLOBAL_POSITION_INT from START for "
+                        "DURATION simulated seconds; ':hb' silences the HEARTBEAT and the answers to requests too "
+                        "(repeatable)")
+    q.add_argument("--rss-sample-s", type=float, default=0.0, metavar="S",
+                   help="sample the companion's resident set (VmRSS) every S simulated seconds into sitl.json (default 0 = off)")
     q.add_argument("--avoidance", choices=AVOIDANCE_MODELS, default=None,
                    help="the simulated autopilot's obstacle avoidance fed by the companion's ranges, overriding the "
                         "scenario's [avoidance] model (quad only; docs/derivations/sectors.md): ardupilot = Copter simple avoidance, "

@@ -48,6 +48,15 @@ frame (acknowledgement) is — true of Linux loopback, where ``sendto`` delivers
 which runs on its normal monotonic clock with TIMESYNC; a datagram is dated when it is read
 (``select`` between physics steps).
 
+Hostile link (issue 14; off by default): ``SitlConfig.hostile`` (:class:`flightsim.hostile.HostileConfig`)
+interleaves seeded hostile datagrams with the telemetry at each step they fall due (random bytes,
+bad CRC, truncated, unknown ids, NaN/inf payloads, glued packets, spoofed ATTITUDE; packed apart from
+the vehicle's own messages, whose sequence numbers they leave alone, and not recorded in ``telemetry.tlog``) and
+silences the vehicle's telemetry (optionally its HEARTBEAT and answers) in blackout windows;
+``sitl.json`` ``hostile`` counts them by kind.  ``SitlConfig.rss_sample_s`` samples the companion's
+resident set (``/proc/PID/status`` VmRSS) into ``companion_rss_kib``.  A failed run's
+:class:`SitlError` carries what was measured until then (``partial``).
+
 Output in ``DIR``: the same export as ``flightsim fly`` — ``truth.npz``, ``frames.csv``,
 ``camera.toml``, ``telemetry.tlog`` (every MAVLink message the vehicle sent, stamped when it was
 sent) and, with ``video``, ``video.avi`` — plus ``received.tlog`` (every MAVLink message received
@@ -89,6 +98,7 @@ from companion.io.atomic import StagedFiles, prepare_output_dir, write_text_atom
 from companion.io.config_files import load_companion_config
 from flightsim.autopilot import AutopilotLogic, PortBusyError, UdpEndpoint
 from flightsim.fly import EPS_T, Flight, StreamSchedule, camera_toml, open_video
+from flightsim.hostile import HostileConfig, HostileInjector
 from flightsim.scenario import Scenario, load_scenario, resolve_companion_config
 from flightsim.tlog import TlogWriter
 
@@ -110,6 +120,8 @@ class SitlConfig:
     stop_timeout_s: float = 5.0  # SIGTERM, then SIGKILL after this long (wall), s
     tail_s: float = 0.5  # realtime: keep listening this long (wall) after the flight for the last messages, s
     build_ahead: bool = True  # lockstep: build the telemetry of the steps ahead while the companion works (same messages; False = step by step, for tests)
+    hostile: HostileConfig = HostileConfig()  # hostile traffic and telemetry blackouts (flightsim/hostile.py; off by default)
+    rss_sample_s: float = 0.0  # sample the companion's resident set (/proc/PID/status VmRSS) every this many simulated seconds; 0 = off
 
     def __post_init__(self) -> None:
         require_finite("processing_ms", self.processing_ms, nonnegative=True)
@@ -120,10 +132,17 @@ class SitlConfig:
         for name in ("connect_timeout_s", "ack_timeout_s", "stop_timeout_s"):
             require_finite(name, getattr(self, name), positive=True)
         require_finite("tail_s", self.tail_s, nonnegative=True)
+        require(isinstance(self.hostile, HostileConfig), "hostile must be a HostileConfig")
+        require_finite("rss_sample_s", self.rss_sample_s, nonnegative=True)
 
 
 class SitlError(CompanionError, RuntimeError):
-    """The run failed (companion crashed, never connected, stopped answering); the message names the log."""
+    """The run failed (companion crashed, never connected, stopped answering); the message names the log.
+
+    ``partial``: what the run had measured until then (set by :func:`run_sitl`: simulation time
+    reached, hostile traffic counts, the companion's RSS samples, its exit code), else None."""
+
+    partial: dict | None = None
 
 
 # ---------------------------------------------------------------------- the companion process ---
@@ -272,6 +291,11 @@ class _Run:
         self._last_rx_t = -math.inf
         self._last_tx_t = -math.inf
         self.companion: CompanionProcess | None = None
+        self.hostile_cfg = cfg.hostile
+        self.injector: HostileInjector | None = None
+        self.blackout_dropped: collections.Counter[str] = collections.Counter()  # vehicle messages not sent in blackouts
+        self.rss: list[list[float]] = []  # [simulation s, wall s since the loop started, companion VmRSS kiB]
+        self._next_rss = 0.0
         self.endpoint: UdpEndpoint | None = None
         self.server: SimFrameServer | None = None
         self.video = None
@@ -289,7 +313,36 @@ class _Run:
         self.tx_log.write_raw(self._last_tx_t, buf)
 
     def _send(self, t: float, msg) -> None:
-        self._record_tx(t, msg.get_type(), self.endpoint.send(msg))
+        name = msg.get_type()
+        if self.hostile_cfg.blackouts and self.hostile_cfg.silenced(name, t) is not None:
+            self.blackout_dropped[name] += 1
+            return
+        self._record_tx(t, name, self.endpoint.send(msg))
+
+    def _inject(self, t: float) -> None:
+        """Hostile datagrams due at ``t`` (:mod:`flightsim.hostile`), before the step's own messages."""
+        inj = self.injector
+        for kind, buf, parts in inj.due(t, self.flight.tm.time_boot_ms(t)):
+            if self.endpoint.send_raw(buf):
+                inj.record(kind, buf, parts)
+            else:
+                inj.record_unsent(kind)
+
+    def _sample_rss(self, t: float) -> None:
+        if self.companion is None or t < self._next_rss:
+            return
+        self._next_rss = t + self.cfg.rss_sample_s
+        kib = companion_rss_kib(self.companion.pid)
+        if kib is not None:
+            self.rss.append([round(t, 3), round(time.perf_counter() - self.wall0, 3), kib])
+
+    def partial(self) -> dict:
+        """What the run measured so far (for :attr:`SitlError.partial`)."""
+        return {"t_s": self.t_now, "frames": self.frames_sent,
+                "hostile": None if self.injector is None else self.injector.summary(),
+                "blackout_dropped": dict(sorted(self.blackout_dropped.items())),
+                "companion_rss_kib": list(self.rss),
+                "companion_exit_code": None if self.companion is None else self.companion.proc.poll()}
 
     def _receive(self, arrival: float) -> None:
         """Read every waiting datagram, date it ``arrival`` (simulation time), record and queue it."""
@@ -346,6 +399,8 @@ class _Run:
         out = self.out
         write_text_atomic(out / "camera.toml", camera_toml(self.sc.camera))  # the companion needs it at start
         self.endpoint = UdpEndpoint(self.mavlink_port, self.tel.system_id)
+        if self.hostile_cfg.rate_hz > 0:
+            self.injector = HostileInjector(self.hostile_cfg, self.tel.system_id)
         try:
             self.server = SimFrameServer("127.0.0.1", self.camera_port)
         except OSError as exc:
@@ -545,6 +600,8 @@ class _Run:
         if frame is not None:
             self.pending.append(frame)
         w0 = time.perf_counter()
+        if self.injector is not None:
+            self._inject(t)
         while self.outq and self.outq[0][0] <= t + EPS_T:
             _t_emit, _seq, name, state_t, msg = heapq.heappop(self.outq)
             self._send(t, msg)
@@ -575,6 +632,8 @@ class _Run:
         while self.ahead or self._physics_one():
             state, frame, spec = self.ahead.popleft()
             self._play(state, frame, spec)
+            if self.cfg.rss_sample_s > 0:
+                self._sample_rss(state.time_s)
             if not self.lockstep:
                 t = state.time_s
                 if t >= next_alive_check:
@@ -646,6 +705,11 @@ def _fly_against_companion(run: _Run) -> None:
         run.loop()
     except BaseException as exc:  # stop the companion whatever happened, then re-raise
         failure = exc
+        if isinstance(exc, SitlError):
+            try:
+                exc.partial = run.partial()  # what was measured up to the failure
+            except Exception:  # the report of a failure must not hide it
+                pass
         raise
     finally:
         run.close()
@@ -751,6 +815,10 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
         "companion_command": run.cmd, "companion_exit_code": None if run.companion is None else run.companion.exit_code,
         "ports": {"mavlink_udp": run.endpoint.port, "camera_tcp": run.server.port},
         "avoidance": {"model": sc.avoidance.model, **run.flight.avoidance.counters},
+        "hostile": ({**(run.injector.summary() if run.injector is not None else run.hostile_cfg.to_json()),
+                     "blackout_dropped": dict(sorted(run.blackout_dropped.items()))}
+                    if run.hostile_cfg.active else None),
+        "companion_rss_kib": run.rss if cfg.rss_sample_s > 0 else None,  # [simulation s, loop wall s, VmRSS kiB]
         "paths": {name: str(out / name) for name in ("truth.npz", "trajectory.npz", "avoidance.png", "frames.csv", "camera.toml", "telemetry.tlog",
                                                      "received.tlog", "companion.log", "sitl.json", "video.avi",
                                                      "score.json", "score.md") if (out / name).exists() or name == "sitl.json"},
@@ -762,6 +830,18 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
                 "no HEARTBEAT received")
         raise SitlError(f"{what}; see {run.companion.log_path}" if run.companion is not None else what)
     return summary
+
+
+def companion_rss_kib(pid: int) -> int | None:
+    """Resident set of process ``pid`` (Linux ``/proc/PID/status`` VmRSS), kiB; None if unavailable."""
+    try:
+        with open(f"/proc/{int(pid)}/status", encoding="ascii", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 def _round_or_none(v: float | None, nd: int = 3) -> float | None:
@@ -783,4 +863,4 @@ def _json_default(o):
     return repr(o)
 
 
-__all__ = ["run_sitl", "SitlConfig", "SitlError", "CompanionProcess", "companion_command", "CLOCKS"]
+__all__ = ["run_sitl", "SitlConfig", "SitlError", "CompanionProcess", "companion_command", "companion_rss_kib", "CLOCKS"]
