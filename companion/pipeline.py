@@ -86,6 +86,8 @@ class PipelineConfig:
     active_hold_s: float = 1.0  # HEARTBEAT stays ACTIVE this long after the last sector that made a claim, s
     status_debounce_s: float = 0.2  # a state must hold this long before STATUSTEXT announces it (the HEARTBEAT changes at once), s
     statustext_min_interval_s: float = 1.0  # the same STATUSTEXT is sent at most once per this interval; repeats in between are counted and the next one says how many, s
+    statustext_interval_s: float = 1.0  # all texts together: at most one STATUSTEXT per this interval (the most severe first; the rest wait in a short queue), s; 0 = no overall limit
+    statustext_queue: int = 8  # texts waiting for their turn; beyond this the least severe is dropped (counted)
     rotate_sectors: bool = True  # rotate sectors by the yaw change between exposure and sending
     depth_prediction: bool = True  # converged landmark depths narrow the NCC search windows
 
@@ -93,8 +95,11 @@ class PipelineConfig:
         for name in ("max_frame_age_s", "telemetry_wait_s", "max_frame_gap_s", "clock_jump_s", "result_max_age_s",
                      "camera_timeout_s", "active_hold_s", "startup_grace_s"):
             require_finite(name, getattr(self, name), positive=True)
-        for name in ("position_extrapolation_s", "future_tolerance_s", "status_debounce_s", "statustext_min_interval_s"):
+        for name in ("position_extrapolation_s", "future_tolerance_s", "status_debounce_s", "statustext_min_interval_s",
+                     "statustext_interval_s"):
             require_finite(name, getattr(self, name), nonnegative=True)
+        require(isinstance(self.statustext_queue, int) and not isinstance(self.statustext_queue, bool)
+                and 1 <= self.statustext_queue <= 64, f"statustext_queue must be an integer in [1, 64], got {self.statustext_queue!r}")
         require(self.telemetry_wait_s < self.max_frame_age_s, "telemetry_wait_s must be < max_frame_age_s")
         require(self.result_max_age_s <= 0.5, "result_max_age_s must be <= 0.5 s (both autopilots treat older data as stale)")
         require(isinstance(self.rotate_sectors, bool), "rotate_sectors must be true or false")
@@ -568,6 +573,7 @@ class Reporter:
 
     #: NAMED_VALUE_FLOAT diagnostics: frame rate, live tracks, nearest range, latency, points held by the
     #: obstacle map, sectors claimed from memory only (no live point), sectors inferred between two sides (docs/derivations/obstacle_map.md, sectors.md)
+    STATE_PREFIX = ("Ranging active", "Ranging:", "Ranging starting:", "Ranging invalid:")  # the texts of the ranging state (Health)
     DIAG_NAMES = ("MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER")
 
     def __init__(self, config, pipeline: PipelineConfig, outputs=("autopilot",), start: float = 0.0,
@@ -580,6 +586,9 @@ class Reporter:
         self.text_ids = M.StatusTextIds()
         self._text_last: dict[str, float] = {}  # text -> when it was last sent (bounded: see _texts)
         self._text_repeats: collections.Counter[str] = collections.Counter()  # repeats suppressed since
+        self._text_queue: list[tuple[int, int, str]] = []  # (severity, arrival order, text) waiting for the overall budget
+        self._text_seq = 0
+        self._text_next_at = -math.inf  # when the overall budget allows the next STATUSTEXT
         self._hb = M.RateLimiter(config.link.heartbeat_hz) if heartbeat else None
         self._frame_times: collections.deque[float] = collections.deque()
         self.last_latency_s = math.nan
@@ -655,14 +664,22 @@ class Reporter:
         return [M.named_value_float(name, v, time_boot_ms) for name, v in zip(self.DIAG_NAMES, vals)]
 
     def _texts(self, events, now: float) -> list:
-        """STATUSTEXT for each event, the same text at most once per ``statustext_min_interval_s`` (a fault
-        repeating every frame must not flood a 57600-baud radio or the log); the next one sent says how many
-        were held back."""
-        out = []
+        """STATUSTEXT for the events, within two limits (a fault repeating every frame, or a link
+        misbehaving, must not flood a 57600-baud radio, the operator or the log):
+
+        * the same text at most once per ``statustext_min_interval_s``; the next one sent says how
+          many were held back;
+        * all texts together at most one per ``statustext_interval_s``: texts wait in a queue of
+          ``statustext_queue`` and leave most severe first (then oldest first); when it is full the
+          least severe is dropped and counted (``statustext_dropped``); a ranging state
+          (``Ranging active`` / ``invalid: …`` / …) replaces one still waiting (it would announce a state already left).
+          Every text is logged when it arrives, sent or not.
+        """
         gap = self.pcfg.statustext_min_interval_s
+        queued = {t for _, _, t in self._text_queue}
         for sev, text in events:
             last = self._text_last.get(text)
-            if last is not None and 0.0 <= now - last < gap:
+            if text in queued or (last is not None and 0.0 <= now - last < gap):
                 self._text_repeats[text] += 1
                 self.counters["statustext_suppressed"] += 1
                 continue
@@ -671,10 +688,28 @@ class Reporter:
                     del self._text_last[k]
                     self._text_repeats.pop(k, None)
             self._text_last[text] = now
+            log.log(logging.WARNING if sev <= mavlink.MAV_SEVERITY_WARNING else logging.INFO, "STATUSTEXT: %s", text)
+            if text.startswith(self.STATE_PREFIX):  # a newer ranging state makes a waiting one obsolete
+                for e in [e for e in self._text_queue if e[2].startswith(self.STATE_PREFIX)]:
+                    self._text_queue.remove(e)
+                    queued.discard(e[2])
+                    self.counters["statustext_superseded"] += 1
+            self._text_seq += 1
+            self._text_queue.append((int(sev), self._text_seq, text))
+            queued.add(text)
+            if len(self._text_queue) > self.pcfg.statustext_queue:  # drop the least severe, the newest of those
+                worst = max(self._text_queue, key=lambda e: (e[0], e[1]))
+                self._text_queue.remove(worst)
+                queued.discard(worst[2])
+                self.counters["statustext_dropped"] += 1
+        out = []
+        while self._text_queue and now >= self._text_next_at:
+            sev, _, text = best = min(self._text_queue)
+            self._text_queue.remove(best)
+            self._text_next_at = now + self.pcfg.statustext_interval_s
             n = self._text_repeats.pop(text, 0)
             if n:
-                text = f"{text} (+{n} in {gap:g} s)"
-            log.log(logging.WARNING if sev <= mavlink.MAV_SEVERITY_WARNING else logging.INFO, "STATUSTEXT: %s", text)
+                text = f"{text} (+{n})"
             for m in self.text_ids.encode(text, sev):
                 for o in self.outputs:
                     out.append((o, m))

@@ -231,7 +231,12 @@ class SourceTable:
 
 
 class RequestBudget:
-    """Token bucket: at most ``burst`` at once, then one per ``interval_s`` on average (caller's clock)."""
+    """Start-up burst, then strictly one per ``interval_s`` (caller's clock).
+
+    The first ``burst`` requests may go at once (asking for every stream at start-up); after that
+    the bucket holds at most one token, refilled over ``interval_s``, so no window of
+    ``interval_s`` ever sees two requests again — however the link misbehaves (a blackout ending,
+    streams stopping together, a reboot)."""
 
     def __init__(self, interval_s: float, burst: int):
         self.interval_s = float(interval_s)
@@ -243,7 +248,8 @@ class RequestBudget:
         if self._t is None or now < self._t:  # first call, or the clock went back: no credit
             self._t = now
             return
-        self._tokens = min(float(self.burst), self._tokens + (now - self._t) / self.interval_s)
+        # what is left of the start-up burst is kept; refilling never goes above one token
+        self._tokens = max(self._tokens, min(1.0, self._tokens + (now - self._t) / self.interval_s))
         self._t = now
 
     def available(self, now: float) -> bool:

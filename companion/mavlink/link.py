@@ -328,7 +328,7 @@ class StreamRequester:
             elif st.state == StreamState.OK and not ok:
                 rate = self.meter.rate(st.spec.name, now)
                 self.counters["dropouts"] += 1
-                self.events.append((mavlink.MAV_SEVERITY_WARNING, f"{st.spec.name} dropped to {rate:.1f} Hz, re-requesting"))
+                self.events.append((mavlink.MAV_SEVERITY_WARNING, f"{st.spec.name} at {rate:.1f} Hz, re-requesting"))
                 log.warning("%s dropped to %.1f Hz (requested %.1f): re-requesting", st.spec.name, rate, st.spec.rate_hz)
                 st.state, st.attempts = StreamState.IDLE, 0
             elif st.state == StreamState.FALLBACK and not ok and now - st.fallback_at >= cfg.fallback_repeat_s:
