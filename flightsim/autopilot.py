@@ -1,4 +1,4 @@
-"""The simulated autopilot's side of MAVLink for the software-in-the-loop run (issue 5; docs/derivations/sectors.md).
+"""The simulated autopilot's side of MAVLink for the software-in-the-loop run (docs/derivations/link.md).
 
 ``flightsim sitl`` plays an ArduPilot-like vehicle to a live companion over UDP on 127.0.0.1.
 Two layers:

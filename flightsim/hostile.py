@@ -1,4 +1,4 @@
-"""Hostile traffic and telemetry blackouts on the simulated autopilot's MAVLink link (issue 14).
+"""Hostile traffic and telemetry blackouts on the simulated autopilot's MAVLink link.
 
 ``flightsim sitl`` plays a well-behaved autopilot.  A real link is not that clean: radios and
 routers deliver noise, cut and glued packets, other systems share the link, a faulty or spoofed

@@ -1065,7 +1065,7 @@ def summarize(ev: Evaluation) -> dict:
             "out_of_view": "cells outside the camera's view are scored only where a claim (a range or clear) is made: "
                            "a range within tolerance on an obstacle is a (remembered) detection, too near in a clear cell "
                            "a false obstacle, clear on an obstacle a dangerous clear; unknown there is neutral (not a miss)",
-            "detection_issue11": "a range within tolerance (valid range)",
+            "detection_within_tolerance": "a range within tolerance (valid range)",
             "remembered": f"out-of-view obstacle cells whose obstacle (grouped by position) occupied an in-view cell "
                           f"within the last {cfg.remember_window_s:g} s, the vehicle having moved < {cfg.remember_max_travel_m:g} m "
                           "since the latest such frame; unknown there counts as not reported",

@@ -1,4 +1,4 @@
-"""Software-in-the-loop run: the simulator plays the autopilot and the camera to a live companion (issue 5).
+"""Software-in-the-loop run: the simulator plays the autopilot and the camera to a live companion.
 
 ``flightsim sitl configs/scenarios/X.toml --out DIR`` (:func:`run_sitl`) flies the scenario with
 the same per-step loop as ``flightsim fly`` (:class:`flightsim.fly.Flight`) and, instead of
@@ -48,7 +48,7 @@ frame (acknowledgement) is — true of Linux loopback, where ``sendto`` delivers
 which runs on its normal monotonic clock with TIMESYNC; a datagram is dated when it is read
 (``select`` between physics steps).
 
-Hostile link (issue 14; off by default): ``SitlConfig.hostile`` (:class:`flightsim.hostile.HostileConfig`)
+Hostile link (off by default): ``SitlConfig.hostile`` (:class:`flightsim.hostile.HostileConfig`)
 interleaves seeded hostile datagrams with the telemetry at each step they fall due (random bytes,
 bad CRC, truncated, unknown ids, NaN/inf payloads, glued packets, spoofed ATTITUDE; packed apart from
 the vehicle's own messages, whose sequence numbers they leave alone, and not recorded in ``telemetry.tlog``) and
