@@ -1,0 +1,157 @@
+"""Property-based tests of the file readers and the configuration loader (hypothesis): random and
+mutated inputs never raise anything but the documented errors — a :class:`ConfigError` (exit 2,
+one line naming the file) — and valid inputs read back exactly.
+
+The MAVLink input path has its own property tests in tests/test_link_security.py.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from companion.camera_sources import read_frames_csv
+from companion.errors import ConfigError
+from companion.io.config_files import CompanionConfig, load_companion_config, load_opencv_calibration
+from companion.io.tlog import read_tlog
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = (ROOT / "configs" / "companion.toml").read_bytes()
+SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+def _write(tmp_path, name: str, data: bytes) -> Path:
+    p = tmp_path / name
+    p.write_bytes(data)
+    return p
+
+
+def _mutate(data: bytes, edits) -> bytes:
+    """Apply (position fraction, kind, byte) edits: flip, delete, insert, truncate."""
+    b = bytearray(data)
+    for frac, kind, val in edits:
+        if not b:
+            break
+        i = min(len(b) - 1, int(frac * len(b)))
+        if kind == 0:
+            b[i] ^= val or 1
+        elif kind == 1:
+            del b[i]
+        elif kind == 2:
+            b.insert(i, val)
+        else:
+            del b[i:]
+    return bytes(b)
+
+
+EDITS = st.lists(st.tuples(st.floats(0, 1), st.integers(0, 3), st.integers(0, 255)), min_size=1, max_size=8)
+
+
+# ---------------------------------------------------------------------- configuration ----------
+@SETTINGS
+@given(edits=EDITS)
+def test_mutated_companion_config_loads_or_names_the_problem(tmp_path, edits):
+    p = _write(tmp_path, "c.toml", _mutate(SHIPPED, edits))
+    try:
+        cfg = load_companion_config(p)
+    except ConfigError as exc:
+        assert str(p) in str(exc) and "\n" not in str(exc).strip()
+    else:
+        assert isinstance(cfg, CompanionConfig)
+
+
+@SETTINGS
+@given(table=st.sampled_from([f.name for f in __import__("dataclasses").fields(CompanionConfig)]),
+       key=st.text(st.characters(min_codepoint=97, max_codepoint=122) | st.just("_"), min_size=1, max_size=30),
+       value=st.one_of(st.integers(-10**12, 10**12), st.floats(allow_nan=True, allow_infinity=True), st.booleans(),
+                       st.text(max_size=20), st.lists(st.integers(-5, 5), max_size=4)))
+def test_any_key_and_value_in_any_table_loads_or_is_a_config_error(tmp_path, table, key, value):
+    def lit(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, float):
+            return "nan" if math.isnan(v) else ("inf" if v == math.inf else "-inf" if v == -math.inf else repr(v))
+        if isinstance(v, str):
+            return '"' + v.encode("unicode_escape").decode("ascii").replace('"', '\\"') + '"'
+        if isinstance(v, list):
+            return "[" + ", ".join(lit(x) for x in v) + "]"
+        return str(v)
+
+    p = _write(tmp_path, "c.toml", f'extends = "companion.toml"\n[{table}]\n{key} = {lit(value)}\n'.encode())
+    try:
+        tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError:
+        pass
+    try:
+        load_companion_config(p)
+    except ConfigError as exc:
+        assert str(p) in str(exc)
+
+
+# ---------------------------------------------------------------------- frames.csv -------------
+@SETTINGS
+@given(rows=st.lists(st.tuples(st.integers(0, 10**6), st.floats(-1e9, 1e9, allow_nan=False)), min_size=1, max_size=40))
+def test_valid_frames_csv_reads_back_exactly(tmp_path, rows):
+    text = "index,t_s\n" + "".join(f"{i},{t!r}\n" for i, t in rows)
+    idx, t = read_frames_csv(_write(tmp_path, "frames.csv", text.encode()))
+    assert idx.tolist() == [i for i, _ in rows] and t.tolist() == [t for _, t in rows]
+
+
+@SETTINGS
+@given(data=st.one_of(st.binary(max_size=400),
+                      st.builds(lambda edits: _mutate(b"index,t_s\n0,1.0\n1,1.033\n2,1.067\n", edits), EDITS)))
+def test_random_or_mutated_frames_csv_reads_or_is_a_config_error(tmp_path, data):
+    p = _write(tmp_path, "frames.csv", data)
+    try:
+        idx, t = read_frames_csv(p)
+    except ConfigError as exc:
+        assert str(p) in str(exc)
+    else:
+        assert len(idx) == len(t) >= 1 and np.all(np.isfinite(t))
+
+
+# ---------------------------------------------------------------------- calibration ------------
+def _calibration_yaml(fx=300.0, fy=301.0, cx=160.0, cy=120.0, d=(0.01, 0.0, 0.0, 0.0, 0.0)) -> bytes:
+    dist = ", ".join(f"{v!r}" for v in d)
+    return (f"%YAML:1.0\n---\nimage_width: 320\nimage_height: 240\n"
+            f"camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+            f"   data: [ {fx!r}, 0., {cx!r}, 0., {fy!r}, {cy!r}, 0., 0., 1. ]\n"
+            f"distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: {len(d)}\n   dt: d\n   data: [ {dist} ]\n").encode()
+
+
+def test_calibration_yaml_reads_back():
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        cam = load_opencv_calibration(_write(Path(d), "cal.yaml", _calibration_yaml()))
+    assert (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height) == (300.0, 301.0, 160.0, 120.0, 320, 240)
+    assert cam.distortion[0] == 0.01
+
+
+@SETTINGS
+@given(data=st.one_of(st.binary(max_size=300), st.builds(lambda e: _mutate(_calibration_yaml(), e), EDITS)))
+def test_random_or_mutated_calibration_reads_or_is_a_config_error(tmp_path, data):
+    p = _write(tmp_path, "cal.yaml", data)
+    try:
+        cam = load_opencv_calibration(p)
+    except ConfigError as exc:
+        assert str(p) in str(exc)
+    else:
+        assert cam.fx > 0 and cam.fy > 0 and all(math.isfinite(v) for v in cam.distortion)
+
+
+# ---------------------------------------------------------------------- tlog -------------------
+@SETTINGS
+@given(data=st.binary(max_size=600))
+def test_random_bytes_as_a_tlog_read_or_are_a_config_error(tmp_path, data):
+    p = _write(tmp_path, "x.tlog", data)
+    try:
+        read_tlog(p)
+    except ConfigError as exc:
+        assert str(p) in str(exc)
+
