@@ -1,8 +1,8 @@
 """Scoring the companion's published ranges against the simulator's truth (docs/derivations/sectors.md).
 
 Pure logic: arrays in, arrays and a JSON-ready dict out.  Reading the tlog and ``truth.npz`` and
-writing ``score.json`` / ``score.md`` live in :mod:`flightsim.score_io`; :func:`score_run` and
-:func:`write_score` at the bottom of this module are the thin entry points that use it.
+writing ``score.json`` / ``score.md`` live in :mod:`flightsim.score_io` (``score_run``,
+``write_score``), which imports this module and never the other way round.
 
 What is scored
 --------------
@@ -1312,23 +1312,3 @@ def markdown(score: dict, title: str = "Score") -> str:
 
 
 # ---------------------------------------------------------------------- entry points (I/O) -----
-def score_run(ranges_tlog: Path, truth_npz: Path, **opts) -> dict:
-    """Score one run: read the companion's tlog and the truth, evaluate, summarize (a dict).
-
-    Options: ``config`` (:class:`ScoreConfig`) or any of its fields as keywords (e.g.
-    ``sigma_k=2.0``); ``companion_config`` (a companion TOML path or CompanionConfig whose
-    ``[sectors] sigma_k`` and ``[outputs] quality_zero_rel_sigma`` are used); ``world`` (a
-    :class:`flightsim.world.World` naming the obstacles); ``component_id`` (default 196);
-    ``series_out`` (path: also save the per-message arrays there, ``score_series.npz``).
-    Thin wrapper over :mod:`flightsim.score_io`.
-    """
-    from flightsim import score_io
-
-    return score_io.score_run(ranges_tlog, truth_npz, **opts)
-
-
-def write_score(out_dir: Path, score: dict) -> None:
-    """Write ``score.json`` and ``score.md`` into ``out_dir`` (created if missing)."""
-    from flightsim import score_io
-
-    score_io.write_score(out_dir, score)

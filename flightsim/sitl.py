@@ -61,9 +61,8 @@ Output in ``DIR``: the same export as ``flightsim fly`` — ``truth.npz``, ``fra
 ``camera.toml``, ``telemetry.tlog`` (every MAVLink message the vehicle sent, stamped when it was
 sent) and, with ``video``, ``video.avi`` — plus ``received.tlog`` (every MAVLink message received
 from the companion, stamped with its arrival on the recording clock of truth.npz ``t_s`` and
-frames.csv), ``companion.log`` and ``sitl.json`` (the summary).  When :mod:`flightsim.score`
-provides ``score_run`` / ``write_score`` the received ranges are scored against the truth
-(``score.json``, ``score.md``).  Everything but ``camera.toml`` (the companion reads it at start)
+frames.csv), ``companion.log`` and ``sitl.json`` (the summary); the received ranges are scored
+against the truth (:mod:`flightsim.score_io`: ``score.json``, ``score.md``).  Everything but ``camera.toml`` (the companion reads it at start)
 and ``companion.log`` is written under a temporary name and appears when the flight is complete
 (:class:`companion.io.atomic.StagedFiles`); a run that fails or is interrupted leaves the two tlogs
 as ``telemetry.tlog.partial`` and ``received.tlog.partial`` and nothing at the other names.
@@ -74,8 +73,6 @@ from __future__ import annotations
 import collections
 import dataclasses
 import heapq
-import importlib
-import importlib.util
 import json
 import logging
 import math
@@ -672,23 +669,18 @@ class _Run:
 
 
 def _score(out: Path, companion_config: Path | None, world) -> tuple[dict | None, str]:
-    """Score received.tlog against truth.npz with :mod:`flightsim.score` if it exists: (score, note).
+    """Score received.tlog against truth.npz (:mod:`flightsim.score_io`): (score, note).
 
     The companion's own configuration (its sector σ factor) and the world (obstacle names) are
     handed to the scorer.
     """
-    if importlib.util.find_spec("flightsim.score") is None:
-        log.warning("flightsim/score.py not present: the received ranges are not scored")
-        return None, "flightsim.score not present"
-    mod = importlib.import_module("flightsim.score")
-    if not (callable(getattr(mod, "score_run", None)) and callable(getattr(mod, "write_score", None))):
-        log.warning("flightsim.score lacks score_run / write_score: the received ranges are not scored")
-        return None, "flightsim.score lacks score_run / write_score"
+    from flightsim.score_io import score_run, write_score
+
     opts = {"world": world}
     if companion_config is not None:
         opts["companion_config"] = companion_config
-    score = mod.score_run(out / "received.tlog", out / "truth.npz", **opts)
-    mod.write_score(out, score)
+    score = score_run(out / "received.tlog", out / "truth.npz", **opts)
+    write_score(out, score)
     return score, "scored"
 
 
