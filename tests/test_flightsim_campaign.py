@@ -1,4 +1,4 @@
-"""flightsim campaign (issue 5): a tiny replay campaign in worker processes, failed runs recorded,
+"""flightsim campaign: a tiny replay campaign in worker processes, failed runs recorded,
 pooling that matches the runs' own scores, and the CLI's exit codes."""
 
 import json

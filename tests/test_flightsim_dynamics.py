@@ -1,4 +1,4 @@
-"""flightsim.dynamics: JSBSim J3Cub and F450 with our autopilots (issue 3, flight dynamics)."""
+"""flightsim.dynamics: JSBSim J3Cub and F450 with our autopilots."""
 
 from __future__ import annotations
 

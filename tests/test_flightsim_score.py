@@ -1,4 +1,4 @@
-"""Scoring against truth (issue 5): hand-built messages with known answers, the tlog reader, NEES
+"""Scoring against truth: hand-built messages with known answers, the tlog reader, NEES
 of correctly scaled noise in a seeded Monte Carlo, obstacles from a real world, and one short
 fly + replay scored end to end."""
 

@@ -1,4 +1,4 @@
-"""flightsim sitl (issue 5): a real companion process against the simulated autopilot and camera.
+"""flightsim sitl: a real companion process against the simulated autopilot and camera.
 
 The loop runs in lockstep with ``python -m companion run --clock sim`` as a subprocess over real
 sockets on 127.0.0.1: messages arrive and decode (OBSTACLE_DISTANCE with the DESIGN §5 fields,

@@ -1,4 +1,4 @@
-"""flightsim.world: world TOMLs, geometry queries and per-frame truth (issue 3, world and camera)."""
+"""flightsim.world: world TOMLs, geometry queries and per-frame truth."""
 
 from __future__ import annotations
 
@@ -237,7 +237,7 @@ def test_unseen_sectors_are_nan_and_follow_the_camera_mount():
 
 
 def test_sector_truth_360_knows_every_sector_and_the_view():
-    """Issue 11 item 6: the distance of all 72 sectors (in view or not) and the in-view mask apart."""
+    """The distance of all 72 sectors (in view or not) and the in-view mask apart."""
     from flightsim.world.truth import sector_truth_360
 
     w = _wall_and_cylinder()

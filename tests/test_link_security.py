@@ -1,4 +1,4 @@
-"""Link hardening (issue 14): MAVLink 2 signing over loopback UDP, key files, and property-based
+"""Link hardening: MAVLink 2 signing over loopback UDP, key files, and property-based
 tests of the MAVLink input path (hypothesis).
 
 The property tests drive :class:`MavLink` through an in-memory connection (bytes in, bytes out, a
@@ -32,7 +32,7 @@ from companion.pipeline import PipelineConfig, Reporter
 from companion.telemetry import TelemetryBuffer, TelemetryConfig
 from test_mavlink_link import VEHICLE_SYSID, make_pair, run
 
-KEY = hashlib.sha256(b"issue 14").digest()
+KEY = hashlib.sha256(b"link security test key").digest()
 AP = (VEHICLE_SYSID, 1)
 
 

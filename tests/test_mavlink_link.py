@@ -1,4 +1,4 @@
-"""MavLink against a fake vehicle on loopback UDP/TCP (DESIGN §5, issue 4).
+"""MavLink against a fake vehicle on loopback UDP/TCP (docs/derivations/link.md).
 
 The vehicle is a separate pymavlink connection (its own parser): it sends HEARTBEATs from
 component 1, answers (or ignores, or refuses) SET_MESSAGE_INTERVAL, honours REQUEST_DATA_STREAM,
@@ -618,7 +618,7 @@ def test_heartbeat_goes_out_under_the_vehicle_sysid_as_soon_as_it_is_learnt(pair
     assert any(m.get_srcSystem() == VEHICLE_SYSID for m in vehicle.received("HEARTBEAT"))
 
 
-# ---------------------------------------------------------------------- link hardening (issue 14) --
+# ---------------------------------------------------------------------- link hardening --
 def _spoofer(vehicle, sysid=VEHICLE_SYSID, comp=1):
     """A second sender on the vehicle's socket, with its own sequence numbers (valid CRCs)."""
     return mavlink.MAVLink(vehicle.conn, srcSystem=sysid, srcComponent=comp)

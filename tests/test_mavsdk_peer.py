@@ -1,4 +1,4 @@
-"""MAVSDK 4.x as a ground station reads the DISTANCE_SENSOR the companion produced (issue 4).
+"""MAVSDK 4.x as a ground station reads the DISTANCE_SENSOR the companion produced.
 
 MAVSDK-Python 4.x is the native binding (no gRPC server): ``Mavsdk(Configuration.create_with_
 component_type(ComponentType.GROUND_STATION))``, ``add_any_connection("udpin://HOST:PORT")``,

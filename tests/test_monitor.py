@@ -1,4 +1,4 @@
-"""``companion monitor`` (issue 5): the pure view model (decoding, stale data, heartbeat timeout,
+"""``companion monitor``: the pure view model (decoding, stale data, heartbeat timeout,
 STATUSTEXT ring and chunks, rates, errors), the text renderer, and real processes listening on
 UDP loopback to a sender of OBSTACLE_DISTANCE, HEARTBEAT and garbage."""
 

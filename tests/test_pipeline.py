@@ -1,4 +1,4 @@
-"""The per-frame pipeline, the reporter and the live Companion against a loopback vehicle (issue 4).
+"""The per-frame pipeline, the reporter and the live Companion against a loopback vehicle.
 
 The vehicle is a separate pymavlink connection (its own parser) playing the autopilot of a
 :class:`~bench.latency.SyntheticFlight`: HEARTBEAT at 1 Hz from component 1, ATTITUDE
@@ -606,7 +606,7 @@ def test_sector_points_lie_on_the_rays_measured_now():
 
 
 def test_tracker_refill_gets_the_priority_region_from_the_previous_frame():
-    """Issue 11 item 3: with priority_share > 0 the pipeline hands the tracker the band around the
+    """With priority_share > 0 the pipeline hands the tracker the band around the
     flight path and the in-view sectors without a live point (from the previous frame's sectors)."""
     base = small_config()
     cfg = dataclasses.replace(base, tracks=dataclasses.replace(base.tracks, priority_share=0.5, priority_min_tracks=10))

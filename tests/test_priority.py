@@ -1,4 +1,4 @@
-"""Issue 11 item 3: new corners where they matter (priority region), and search windows close in."""
+"""New corners where they matter (priority region), and search windows close in."""
 
 import dataclasses
 import math

@@ -1,4 +1,4 @@
-"""`companion replay` on a synthetic recording in flightsim's export format (issue 4).
+"""`companion replay` on a synthetic recording in flightsim's export format.
 
 The recording (telemetry.tlog + video.avi + frames.csv + camera.toml) is written by
 :func:`companion.replay.write_recording` from a SyntheticFlight facing a textured wall; the output

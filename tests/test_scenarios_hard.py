@@ -1,4 +1,4 @@
-"""Hard-flight scenarios (issue 11) and the quad route keys they need: hover and turn in place.
+"""Hard-flight scenarios and the quad route keys they need: hover and turn in place.
 
 DESIGN.md §6–§7: avoidance needs ranges most where a single camera gains least — hovering close to
 a wall, turning in place, head-on.  The scenarios in ``configs/scenarios/`` fly exactly that; these

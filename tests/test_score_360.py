@@ -1,4 +1,4 @@
-"""Scoring over 360° (issue 11 item 6; DESIGN.md §6–§7): out-of-view claims scored against a 360°
+"""Scoring over 360° (docs/derivations/sectors.md, obstacle_map.md): out-of-view claims scored against a 360°
 truth, unknown out of view neutral, remembered obstacles, detection by true-range bin and the 2-s
 warm-up — hand-built truths and messages whose answers are known exactly."""
 
