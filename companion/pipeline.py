@@ -60,7 +60,7 @@ from companion.core.frames import R_to_euler_zyx
 from companion.core.obstacle_map import ObstacleMap, consistent_for_entry, landmark_covariance, points_on_current_rays, world_to_body
 from companion.core.prediction import make_track_predictor
 from companion.core.priority import detection_priority, live_points_per_sector
-from companion.core.sectors import SECTOR_COUNT, Sectors, compute_sectors
+from companion.core.sectors import SECTOR_COUNT, Sectors, SectorState, compute_sectors
 from companion.core.tracks import TrackManager
 from companion.errors import CompanionError
 from companion.mavlink import messages as M
@@ -574,7 +574,7 @@ class Reporter:
     #: NAMED_VALUE_FLOAT diagnostics: frame rate, live tracks, nearest range, latency, points held by the
     #: obstacle map, sectors claimed from memory only (no live point), sectors inferred between two sides (docs/derivations/obstacle_map.md, sectors.md)
     STATE_PREFIX = ("Ranging active", "Ranging:", "Ranging starting:", "Ranging invalid:")  # the texts of the ranging state (Health)
-    DIAG_NAMES = ("MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER")
+    DIAG_NAMES = ("MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER", "MR_FWD_M", "MR_FWD_SIG")
 
     def __init__(self, config, pipeline: PipelineConfig, outputs=("autopilot",), start: float = 0.0,
                  heartbeat: bool = False):
@@ -650,17 +650,21 @@ class Reporter:
 
     def _diagnostics(self, now: float, time_boot_ms: int) -> list:
         res = self._result
-        nearest = -1.0
+        nearest = fwd_m = fwd_sigma = -1.0  # -1: unknown
         tracks = n_map = mem_sec = inferred = 0.0
         if res is not None and res.ok and res.sectors is not None:
             sec = res.sectors
+            f = sec.forward  # the forward DISTANCE_SENSOR's range and its σ, in metres (the σ a uint8 covariance cannot carry)
+            if SectorState(f.state) == SectorState.OBSTACLE and math.isfinite(f.distance_m):
+                fwd_m = float(f.distance_m)
+                fwd_sigma = float(f.sigma_m) if math.isfinite(f.sigma_m) else -1.0
             tracks, n_map = float(res.n_tracks), float(res.n_map)
             n = sec.nearest_m
             nearest = float(n) if math.isfinite(n) else -1.0
             mem_only = (sec.remembered_points > 0) & (sec.remembered_points == sec.obstacle_points)
             mem_sec, inferred = float(np.count_nonzero(mem_only)), float(sec.n_inferred)
         lat = self.last_latency_s * 1000.0 if math.isfinite(self.last_latency_s) else -1.0
-        vals = (self.fps(now), tracks, nearest, lat, n_map, mem_sec, inferred)
+        vals = (self.fps(now), tracks, nearest, lat, n_map, mem_sec, inferred, fwd_m, fwd_sigma)
         return [M.named_value_float(name, v, time_boot_ms) for name, v in zip(self.DIAG_NAMES, vals)]
 
     def _texts(self, events, now: float) -> list:

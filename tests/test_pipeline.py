@@ -258,8 +258,23 @@ def test_wall_ahead_gives_forward_ranges_with_correct_fields(rig):
     # diagnostics at <= 1 Hz per name
     nv = v.received_t("NAMED_VALUE_FLOAT")
     names = {m.name for _, m in nv}
-    assert {"MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER"} <= names
+    assert {"MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER", "MR_FWD_M", "MR_FWD_SIG"} <= names
     assert max(m.value for _, m in nv if m.name == "MR_MAP") > 0  # converged wall points entered the map
+    # the forward σ in metres, where the uint8 covariance cannot carry it: it agrees with signal_quality
+    ds = {round(t, 3): m for t, m in v.received_t("DISTANCE_SENSOR")}
+    fwd = [(t, m.value) for t, m in nv if m.name == "MR_FWD_M" and m.value > 0]
+    sig = {round(t, 3): m.value for t, m in nv if m.name == "MR_FWD_SIG"}
+    assert fwd and all(sig[round(t, 3)] > 0 for t, _ in fwd)
+    # the DISTANCE_SENSOR sent just before each diagnostic describes the same result
+    ds_t = sorted(ds)
+    checked = 0
+    for t, fwd_m in fwd:
+        before = [u for u in ds_t if t - 0.1 <= u <= round(t, 3)]
+        d = ds[before[-1]] if before else None
+        if d is not None and 3 <= d.signal_quality < 100 and d.current_distance / 100 == pytest.approx(fwd_m, abs=0.011):
+            assert sig[round(t, 3)] / fwd_m == pytest.approx(0.5 * (1 - d.signal_quality / 100), abs=0.006)
+            checked += 1
+    assert checked >= 1
     for name in names:
         ts = [t for t, m in nv if m.name == name]
         assert all(b - a >= 0.9 for a, b in zip(ts, ts[1:])), (name, ts)
