@@ -228,6 +228,11 @@ def test_request_budget_and_source_table():
     assert [b.take(0.0) for _ in range(4)] == [True, True, True, False]
     assert not b.take(1.9) and b.take(2.0) and not b.take(2.1)
     assert sum(b.take(2.0 + 0.01 * k) for k in range(10_000)) <= 50  # 100 s: one per 2 s
+    # what the start-up leaves of its burst expires: 2 of 5 unused, then never two requests within 2 s
+    b5 = RequestBudget(2.0, 5)
+    assert b5.take(0.0) and b5.take(0.1) and b5.take(0.2)
+    late = [t for t in (11.0 + 0.05 * k for k in range(400)) if b5.take(t)]
+    assert late and min(y - x for x, y in zip(late, late[1:])) >= 2.0 - 1e-6
     # after the start-up burst, a long quiet spell buys no new burst: never two requests within 2 s
     taken = [t for t in (1000.0 + 0.05 * k for k in range(2_000)) if b.take(t)]
     assert taken and min(b - a for a, b in zip(taken, taken[1:])) >= 2.0 - 1e-6

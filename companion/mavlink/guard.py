@@ -233,9 +233,10 @@ class SourceTable:
 class RequestBudget:
     """Start-up burst, then strictly one per ``interval_s`` (caller's clock).
 
-    The first ``burst`` requests may go at once (asking for every stream at start-up); after that
-    the bucket holds at most one token, refilled over ``interval_s``, so no window of
-    ``interval_s`` ever sees two requests again — however the link misbehaves (a blackout ending,
+    The first ``burst`` requests may go at once (asking for every stream at start-up); what the
+    start-up leaves of the burst expires ``burst × interval_s`` after the first request.  From then
+    on the bucket holds at most one token, refilled over ``interval_s``, so no window of
+    ``interval_s`` sees two requests again — however the link misbehaves (a blackout ending,
     streams stopping together, a reboot)."""
 
     def __init__(self, interval_s: float, burst: int):
@@ -243,12 +244,15 @@ class RequestBudget:
         self.burst = int(burst)
         self._tokens = float(burst)
         self._t: float | None = None
+        self._burst_until: float | None = None  # set by the first request
 
     def _refill(self, now: float) -> None:
         if self._t is None or now < self._t:  # first call, or the clock went back: no credit
             self._t = now
             return
-        # what is left of the start-up burst is kept; refilling never goes above one token
+        # what is left of the start-up burst is kept until it expires; refilling never goes above one token
+        if self._burst_until is not None and now >= self._burst_until:
+            self._tokens = min(self._tokens, 1.0)
         self._tokens = max(self._tokens, min(1.0, self._tokens + (now - self._t) / self.interval_s))
         self._t = now
 
@@ -259,6 +263,8 @@ class RequestBudget:
     def take(self, now: float) -> bool:
         if not self.available(now):
             return False
+        if self._burst_until is None:
+            self._burst_until = now + self.burst * self.interval_s
         self._tokens -= 1.0
         return True
 
