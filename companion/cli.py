@@ -357,16 +357,11 @@ def cmd_run(args) -> int:
 
 
 # ---------------------------------------------------------------------- replay ------------------
-def _installed(module: str) -> bool:
-    """True when ``module`` can be imported: the optional extras (matplotlib, rich) are not on
-    the onboard install."""
-    import importlib.util
-
-    return importlib.util.find_spec(module) is not None
 
 
 
 def cmd_replay(args) -> int:
+    from companion.io.progress import installed
     from companion.io.atomic import partial_path
     from companion.io.inputs import check_input_file
     from companion.replay import replay
@@ -393,7 +388,7 @@ def cmd_replay(args) -> int:
             log.info("using the camera of %s (next to the video); --camera-config overrides", beside)
     if args.no_plot:
         args.plot = None
-    elif not _installed("matplotlib"):  # the onboard install has no plotting (the `sim` extra brings it)
+    elif not installed("matplotlib"):  # the onboard install has no plotting (the `sim` extra brings it)
         if args.plot is not None:
             raise ConfigError(f"--plot {args.plot}: plotting needs matplotlib (pip install 'monorange[sim]'), "
                               "or leave out --plot")
@@ -462,7 +457,9 @@ def cmd_check(args) -> int:
 
 # ---------------------------------------------------------------------- monitor -----------------
 def cmd_monitor(args) -> int:
-    if not args.json and not _installed("rich"):
+    from companion.io.progress import installed
+
+    if not args.json and not installed("rich"):
         raise ConfigError("companion monitor's view needs rich (pip install 'monorange[gcs]'); --json works without it")
     from companion.monitor import cmd_monitor as run
 

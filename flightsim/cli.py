@@ -253,9 +253,9 @@ def cmd_campaign(args) -> int:
 def missing_sim_modules() -> list[str]:
     """The simulator's own dependencies (the ``sim`` extra) that are not installed: the companion's
     onboard install ships flightsim's code but not JSBSim, matplotlib or rich."""
-    import importlib.util
+    from companion.io.progress import installed
 
-    return [m for m in ("jsbsim", "matplotlib", "rich") if importlib.util.find_spec(m) is None]
+    return [m for m in ("jsbsim", "matplotlib", "rich") if not installed(m)]
 
 
 def _version() -> str:

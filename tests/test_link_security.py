@@ -30,25 +30,10 @@ from companion.mavlink.link import LinkConfig, MavLink
 from companion.mavlink.signing import load_signing_key
 from companion.pipeline import PipelineConfig, Reporter
 from companion.telemetry import TelemetryBuffer, TelemetryConfig
-from test_mavlink_link import VEHICLE_SYSID, make_pair, run
+from test_mavlink_link import VEHICLE_SYSID, make_pair, pair, run  # noqa: F401 (pair: the fixture)
 
 KEY = hashlib.sha256(b"link security test key").digest()
 AP = (VEHICLE_SYSID, 1)
-
-
-@pytest.fixture
-def pair():
-    made = []
-
-    def factory(*a, **kw):
-        link, vehicle, clock = make_pair(*a, **kw)
-        made.append((link, vehicle))
-        return link, vehicle, clock
-
-    yield factory
-    for link, vehicle in made:
-        link.close()
-        vehicle.conn.close()
 
 
 def keyfile(tmp_path, key=KEY, name="mavlink.key"):

@@ -15,9 +15,15 @@ import importlib.util
 import sys
 
 
+def installed(module: str) -> bool:
+    """True when ``module`` can be imported: the optional extras (rich, matplotlib, jsbsim) are not on
+    the onboard install."""
+    return importlib.util.find_spec(module) is not None
+
+
 def rich_available() -> bool:
     """True when the optional ``rich`` package can be imported."""
-    return importlib.util.find_spec("rich") is not None
+    return installed("rich")
 
 
 class ProgressBar:

@@ -95,7 +95,6 @@ class QuadSim(JSBSimVehicle):
         self.avoidance = None
         self.v_des = (0.0, 0.0, 0.0)  # the pilot's velocity demand of the last control tick (avoidance on), NED m/s
         self.v_cmd = (0.0, 0.0, 0.0)  # ... and what the avoidance let through
-        self._u_h: tuple[float, float] | None = None  # horizontal unit vector of the pilot's demand this tick (avoidance legs)
         if c.route.waypoints:
             self.set_route(c.route)
 
@@ -223,7 +222,6 @@ class QuadSim(JSBSimVehicle):
     def _update_reference(self, t: float, psi: float, dt: float, p_ned, v_ned) -> None:
         v_des_prev = self.v_des
         self.v_des = self.v_cmd = (0.0, 0.0, 0.0)  # no demand outside a leg flown with avoidance
-        self._u_h = None
         if self._active is None and self._legs:
             self._start_next_leg(t, psi)
         act = self._active
@@ -319,9 +317,8 @@ class QuadSim(JSBSimVehicle):
         acc = ((nv[0] - rvn) / dt, (nv[1] - rve) / dt, (nv[2] - rvd) / dt)
         rn, re, rd = rn + nv[0] * dt, re + nv[1] * dt, rd + nv[2] * dt
         h_des = math.hypot(v_des[0], v_des[1])
-        self._u_h = (v_des[0] / h_des, v_des[1] / h_des) if h_des > 1e-6 else None
-        if self._u_h is not None:
-            un, ue = self._u_h
+        if h_des > 1e-6:
+            un, ue = v_des[0] / h_des, v_des[1] / h_des
             leash = q.avoid_leash_m
             v_along = v_cmd[0] * un + v_cmd[1] * ue
             ahead = (rn - p_ned[0]) * un + (re - p_ned[1]) * ue
