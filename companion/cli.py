@@ -425,6 +425,9 @@ def cmd_replay(args) -> int:
         print(f"rejected video frames: {s.rejected}")
     print(f"latency capture → send: p50 {s.latency_p50_ms:.1f} ms, p99 {s.latency_p99_ms:.1f} ms; first valid sector after "
           + (f"{s.first_valid_s:.2f} s" if s.first_valid_s is not None else "never"))
+    if s.processed:
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in s.stage_cpu_ms.items())
+        print(f"CPU per frame: mean {s.cpu_ms_mean:.1f} ms, p99 {s.cpu_ms_p99:.1f} ms ({stages}); {jit.describe()}")
     print(f"wrote {sum(s.messages.values())} messages to {s.out} as system {s.system_id}: "
           + ", ".join(f"{k} {v}" for k, v in sorted(s.messages.items())))
     if s.plot:

@@ -56,6 +56,7 @@ from companion.camera_sources import Frame, FrameSource, check_gray
 from companion.config import require, require_finite
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.estimator import RangeEstimator, RangeOutput
+from companion.core import jit
 from companion.core.frames import R_to_euler_zyx
 from companion.core.obstacle_map import ObstacleMap, consistent_for_entry, landmark_covariance, points_on_current_rays, world_to_body
 from companion.core.prediction import make_track_predictor
@@ -130,6 +131,8 @@ class FrameResult:
     n_remembered: int = 0  # map points no longer tracked (published from memory)
     n_looming: int = 0  # looming (patch scale) updates fused in this frame
     t_boot_capture: float | None = None  # capture time on the autopilot's boot clock (s), if mapped
+    cpu_s: float = 0.0  # CPU time this thread spent on the frame (time.thread_time), s
+    stage_cpu_s: dict[str, float] = dataclasses.field(default_factory=dict)  # of which: track, estimate, map, sectors
 
     @property
     def claims(self) -> bool:
@@ -143,7 +146,9 @@ class Pipeline:
     def __init__(self, camera: CameraConfig, config, pipeline: PipelineConfig, telemetry: TelemetryBuffer,
                  wall_clock: Callable[[], float] = time.perf_counter):
         """``config`` is a :class:`~companion.io.config_files.CompanionConfig` (its ``camera`` is
-        replaced by ``camera``, e.g. from a calibration file)."""
+        replaced by ``camera``, e.g. from a calibration file).  Compiles the numba kernels (or loads
+        them from the disk cache) so that the first frame does not pay for it."""
+        jit.warm_up()
         self.camera_config = camera
         self.camera = CameraModel(camera)
         self.config = config
@@ -303,6 +308,7 @@ class Pipeline:
     def process(self, frame: Frame, now: float) -> FrameResult:
         """Run one frame captured at ``frame.t``; ``now`` = processing start (same clock)."""
         w0 = self._wall()
+        c0 = time.thread_time()
         index, t, gray = frame
         res = FrameResult(int(index), float(t), float(now), 0.0, False, "")
         try:
@@ -325,6 +331,7 @@ class Pipeline:
             self._new_state()
             res.restart = "internal error"
         res.processing_s = self._wall() - w0
+        res.cpu_s = time.thread_time() - c0
         self.counters["frames_ok" if res.ok else "frames_failed"] += 1
         self.last_result = res
         if res.ok:
@@ -420,7 +427,11 @@ class Pipeline:
         if self._cam_prev is not None:
             depth_of = self._depth_of(self._out_prev, self._cam_prev) if cfg.depth_prediction else None
             predict = make_track_predictor(self.camera, self.config.prediction, self._cam_prev, (R_wc, p_wc), depth_of)
+        stage = res.stage_cpu_s
+        c0 = time.thread_time()
         tf = self.tracks.step(gray, t, self._k, predict, priority_mask=self._detection_priority(res, R_wb, v_w))
+        c1 = time.thread_time()
+        stage["track"] = c1 - c0
         self._k += 1
         if len(tf.dropped_ids):
             self.estimator.drop(tf.dropped_ids)
@@ -428,10 +439,14 @@ class Pipeline:
         if len(out.retired_ids):
             self.tracks.kill(out.retired_ids)
         self._t_prev, self._cam_prev, self._out_prev = t, (R_wc, p_wc), out
+        c0, c1 = c1, time.thread_time()
+        stage["estimate"] = c1 - c0
 
         rays_cam = self.camera.unproject(tf.uv) if len(tf.ids) else np.zeros((0, 3))
         p_world = points_on_current_rays(out.ids, out.p_world, out.range, tf.ids, rays_cam, R_wc, p_wc)
         rem = self._update_map(t, out, tf, p_world, R_wc, p_wc, p_wb)
+        c0, c1 = c1, time.thread_time()
+        stage["map"] = c1 - c0
         sectors = compute_sectors(
             world_to_body(p_world, R_wb, p_wb), out.range_sigma, out.converged, out.valid, self.hfov, self._R_cam_body,
             self.config.sectors, roll_pitch_rad=(res.roll, res.pitch), velocity_body=R_wb.T @ v_w, vfov_rad=self.vfov,
@@ -440,6 +455,7 @@ class Pipeline:
             remembered_tangential_sigma=None if rem is None else rem.tangential_sigma,
             ground_height_m=float(p_wb[2]),  # NED: the origin's level (take-off ground) relative to the vehicle
         )
+        stage["sectors"] = time.thread_time() - c1
         if self.map is not None:
             res.n_map, res.n_remembered = len(self.map), len(rem)
         res.sectors = sectors

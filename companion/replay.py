@@ -187,6 +187,9 @@ class ReplaySummary:
     out: Path
     plot: Path | None
     warnings: list[str] = dataclasses.field(default_factory=list)  # a truncated tlog, telemetry ending before the frames
+    cpu_ms_mean: float = math.nan  # CPU time of the pipeline per processed frame (this thread), ms
+    cpu_ms_p99: float = math.nan
+    stage_cpu_ms: dict[str, float] = dataclasses.field(default_factory=dict)  # mean per frame: track, estimate, map, sectors
 
 
 @dataclasses.dataclass
@@ -232,6 +235,8 @@ def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str
     counts: collections.Counter[str] = collections.Counter()
     failed: collections.Counter[str] = collections.Counter()
     latencies: list[float] = []
+    cpu: list[float] = []
+    stage_cpu: collections.Counter[str] = collections.Counter()
     first_valid: float | None = None
 
     def feed(until: float) -> None:
@@ -325,6 +330,8 @@ def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str
             if res.ok:
                 counts["processed"] += 1
                 latencies.append(t_send - res.t_capture)
+                cpu.append(res.cpu_s)
+                stage_cpu.update(res.stage_cpu_s)
                 s = res.sectors
                 trace.fwd_t.append(t_send)
                 trace.fwd_m.append(s.forward.distance_m if s.forward.state == 1 else math.nan)
@@ -365,6 +372,9 @@ def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str
         wall_s=time.perf_counter() - wall0, latency_p50_ms=float(np.percentile(lat, 50)),
         latency_p99_ms=float(np.percentile(lat, 99)), first_valid_s=None if first_valid is None else first_valid - first_frame_t,
         system_id=tel_log.system_id, out=out, plot=plot_path, warnings=warnings,
+        cpu_ms_mean=float(np.mean(cpu)) * 1000 if cpu else math.nan,
+        cpu_ms_p99=float(np.percentile(cpu, 99)) * 1000 if cpu else math.nan,
+        stage_cpu_ms={k: v * 1000 / len(cpu) for k, v in stage_cpu.items()} if cpu else {},
     )
     return summary
 

@@ -76,6 +76,8 @@ import cv2
 import numpy as np
 
 from companion.config import require, require_finite
+from companion.core import jit
+from companion.core import ncc_kernels as _kernels
 from companion.core.harris import as_gray_u8
 from companion.errors import InputError
 
@@ -420,12 +422,16 @@ def match_templates(
         return NCCResult(out_pts, score, np.zeros(0, bool), reason)
     reason[~valid] = OUT_OF_IMAGE
 
-    inner = templates[:, 1:-1, 1:-1].reshape(n, -1).astype(np.float32)
-    mean = inner.mean(axis=1)
-    var = np.einsum("ni,ni->n", inner, inner) / inner.shape[1] - mean * mean
+    if jit.ENABLED:
+        var, eig_ratio = _kernels.template_stats(templates)
+    else:
+        inner = templates[:, 1:-1, 1:-1].reshape(n, -1).astype(np.float32)
+        mean = inner.mean(axis=1)
+        var = np.einsum("ni,ni->n", inner, inner) / inner.shape[1] - mean * mean
+        eig_ratio = template_eigen_ratio(templates) if config.min_eigen_ratio > 0 else None
     reason[(reason == OK) & (var < max(config.min_template_std, 1e-3) ** 2)] = FLAT_TEMPLATE
     if config.min_eigen_ratio > 0:
-        reason[(reason == OK) & (template_eigen_ratio(templates) < config.min_eigen_ratio)] = EDGE_TEMPLATE
+        reason[(reason == OK) & (eig_ratio < config.min_eigen_ratio)] = EDGE_TEMPLATE
 
     # Search window of each point: template centres in [c - s, c + s], clipped to the image.
     H, W = img_cur.shape
@@ -439,27 +445,10 @@ def match_templates(
     if nr == 0:
         return NCCResult(out_pts, score, np.zeros(n, bool), reason)
 
-    # Small windows are scored for all points at once in numpy (cheaper than one OpenCV call
-    # per point below ~4 px); a batch needs its common window (its largest radius) inside the image.
-    sr = s[run]
-    cr = c[run]
-    batch = np.zeros(nr, bool)
-    sb = int(min(config.batch_search_half, sr.max()))
-    if sb >= 1:
-        unclipped = (hi[run, 0] - lo[run, 0] == 2 * sr) & (hi[run, 1] - lo[run, 1] == 2 * sr)
-        fits = (cr[:, 0] - sb >= h) & (cr[:, 0] + sb <= W - 1 - h) & (cr[:, 1] - sb >= h) & (cr[:, 1] + sb <= H - 1 - h)
-        batch = unclipped & (sr <= sb) & fits
-        if np.count_nonzero(batch) < _MIN_BATCH:
-            batch[:] = False
-    # Each group gets a score stack sized by its own largest window (a few wide windows must not
-    # make the many small ones pay for a large stack).
-    found = np.zeros((nr, 2))
-    r = np.zeros(nr, np.int8)
-    best = np.zeros(nr)
-    nbrs = np.zeros((4, nr))
-    for grp in (np.flatnonzero(batch), np.flatnonzero(~batch)):
-        if len(grp):
-            _score_group(grp, batch[grp[0]], run, templates, img_cur, c, s, lo, hi, h, config, found, r, best, nbrs)
+    if jit.ENABLED:
+        found, r, best, nbrs = _score_kernel(run, templates, img_cur, c, s, lo, hi, config)
+    else:
+        found, r, best, nbrs = _score_reference(run, templates, img_cur, c, s, lo, hi, h, config)
     reason[run] = r
     score[run] = best
     left, right, up, down = nbrs
@@ -485,6 +474,59 @@ def match_templates(
         found[g] = refined
     out_pts[run[good]] = found[good]
     return NCCResult(out_pts, score, reason == OK, reason)
+
+
+def _score_kernel(run, templates, img_cur, c, s, lo, hi, config: NCCConfig):
+    """The compiled form of :func:`_score_reference` (:func:`companion.core.ncc_kernels.score_peaks`):
+    every window scored in one pass, the verdicts judged as in :func:`_score_group`."""
+    sr, cr = s[run], c[run]
+    bi, bj, b, nbrs, ambiguous = _kernels.score_peaks(
+        img_cur.astype(np.float32), templates[run], cr, sr, lo[run], hi[run], float(config.ambiguity_margin), float(config.ambiguity_min_separation))
+    b = np.where(np.isfinite(b), b, -1.0)
+    edge_l, edge_r, edge_u, edge_d = (v <= _EMPTY + 0.5 for v in nbrs)
+    x0, y0 = lo[run, 0], lo[run, 1]
+    x1, y1 = hi[run, 0], hi[run, 1]
+    cx, cy = cr[:, 0], cr[:, 1]
+    leaving = (edge_l & (x0 > cx - sr)) | (edge_r & (x1 < cx + sr)) | (edge_u & (y0 > cy - sr)) | (edge_d & (y1 < cy + sr))
+    v = np.zeros(len(run), np.int8)
+    v[leaving] = OUT_OF_IMAGE
+    v[(v == OK) & (b < config.k_min)] = LOW_SCORE
+    v[(v == OK) & ambiguous] = AMBIGUOUS
+    v[(v == OK) & (edge_l | edge_r | edge_u | edge_d)] = PEAK_AT_EDGE
+    found = np.stack([cr[:, 0] - sr + bj, cr[:, 1] - sr + bi], 1).astype(np.float64)
+    return found, v, b, nbrs
+
+
+def _score_reference(run, templates, img_cur, c, s, lo, hi, h, config: NCCConfig):
+    """Score the windows of points ``run`` and judge each best cell (numpy and OpenCV: the reference).
+
+    Returns ``found`` (integer template centre of the best score), the verdicts, the best scores and
+    the four neighbours' scores (left, right, up, down; the sentinel where not searched).
+    """
+    H, W = img_cur.shape
+    nr = len(run)
+    # Small windows are scored for all points at once in numpy (cheaper than one OpenCV call
+    # per point below ~4 px); a batch needs its common window (its largest radius) inside the image.
+    sr = s[run]
+    cr = c[run]
+    batch = np.zeros(nr, bool)
+    sb = int(min(config.batch_search_half, sr.max()))
+    if sb >= 1:
+        unclipped = (hi[run, 0] - lo[run, 0] == 2 * sr) & (hi[run, 1] - lo[run, 1] == 2 * sr)
+        fits = (cr[:, 0] - sb >= h) & (cr[:, 0] + sb <= W - 1 - h) & (cr[:, 1] - sb >= h) & (cr[:, 1] + sb <= H - 1 - h)
+        batch = unclipped & (sr <= sb) & fits
+        if np.count_nonzero(batch) < _MIN_BATCH:
+            batch[:] = False
+    # Each group gets a score stack sized by its own largest window (a few wide windows must not
+    # make the many small ones pay for a large stack).
+    found = np.zeros((nr, 2))
+    r = np.zeros(nr, np.int8)
+    best = np.zeros(nr)
+    nbrs = np.zeros((4, nr))
+    for grp in (np.flatnonzero(batch), np.flatnonzero(~batch)):
+        if len(grp):
+            _score_group(grp, batch[grp[0]], run, templates, img_cur, c, s, lo, hi, h, config, found, r, best, nbrs)
+    return found, r, best, nbrs
 
 
 def _score_group(grp, as_batch, run, templates, img_cur, c, s, lo, hi, h, config, found, r, best, nbrs) -> None:
@@ -726,6 +768,9 @@ def estimate_scale(img_prev, img_cur, pts_prev, pts_cur, config: NCCConfig, scal
 
     ok = fits(pts_prev, mp) & fits(pts_cur, mc)
     f32 = np.float32
+    if jit.ENABLED:
+        return _kernels.scale_fit(img_prev.astype(f32), img_cur.astype(f32), pts_prev, pts_cur, s, ok, h,
+                                  config.scale_iterations, smax, config.scale_sigma_factor, config.scale_sigma_slope)
     # template with a 1-px rim at the exact sub-pixel point, its gradients, normalization
     off = np.arange(-h - 1, h + 2, dtype=f32)
     Xt = pts_prev[:, 0, None, None].astype(f32) + off[None, None, :]
