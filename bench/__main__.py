@@ -6,6 +6,7 @@ Subcommands:
   timing    per-stage timings on one core
   looming   head-on approaches at the focus of expansion: range with and without looming (docs/derivations/looming.md)
   map_memory, map_tradeoff   the local obstacle map: memory over a long hover; its publishing trade-offs in SITL
+  compute   CPU per 640×480 frame of the whole pipeline on one core (bench/compute.py)
   hostile   soak and fuzz: a long lockstep SITL hover under hostile MAVLink traffic and telemetry blackouts
             (bench/hostile.py; not part of `all`: the real run is 30 simulated minutes)
   all       all of these plus the simulator's speed; with --write FILE, rewrite docs/BENCHMARKS.md
@@ -117,6 +118,10 @@ def main(argv=None) -> int:
         from bench import hostile
 
         return hostile.main(argv[1:])
+    if argv[:1] == ["compute"]:  # its own command line (python -m bench.compute --help)
+        from bench import compute
+
+        return compute.main(argv[1:])
     ap = argparse.ArgumentParser(
         prog="python -m bench",
         description="Benchmarks of the estimation core against the source papers' scenarios (seeds 000 and 004).",
@@ -173,6 +178,8 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
     sub.add_parser("hostile", help="soak and fuzz: long lockstep SITL hover under hostile MAVLink traffic and blackouts "
                                    "(options: python -m bench hostile --help)", add_help=False)
+    sub.add_parser("compute", help="CPU per 640×480 frame of the whole pipeline on one core, compiled kernels vs the numpy "
+                                   "reference (options: python -m bench compute --help)", add_help=False)
     p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")
     p.add_argument("--repeats", type=int, default=50, help="repeats per measurement; the median is reported")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")

@@ -45,6 +45,8 @@ import sys
 import time
 from pathlib import Path
 
+from bench import report
+
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = ROOT / "configs" / "scenarios" / "quad_hostile_hover.toml"
 OUT = ROOT / "out" / "bench" / "hostile"
@@ -536,16 +538,7 @@ def markdown(res: dict) -> str:
 
 def write_section(doc: Path, text: str) -> None:
     """Replace (or append) the section :data:`SECTION` of ``doc`` with ``text``."""
-    doc = Path(doc)
-    old = doc.read_text(encoding="utf-8") if doc.is_file() else ""
-    block = f"{SECTION}\n\n{text.rstrip()}\n"
-    i = old.find(SECTION + "\n")
-    if i < 0:
-        new = old.rstrip("\n") + "\n\n\n" + block if old else block
-    else:
-        j = old.find("\n## ", i + len(SECTION))
-        new = old[:i] + block + ("\n" + old[j + 1:] if j >= 0 else "")
-    doc.write_text(new, encoding="utf-8")
+    report.write_section(doc, SECTION, text)
 
 
 def main(argv=None) -> int:

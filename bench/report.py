@@ -218,3 +218,20 @@ def flightsim_markdown(res: dict) -> str:
     from bench.flightsim_bench import markdown
 
     return markdown(res)
+
+
+def write_section(doc, heading: str, text: str) -> None:
+    """Replace (or append) the section that starts with the line ``heading`` (``## …``) in ``doc``
+    with ``heading`` and ``text``; the section ends at the next ``## `` heading."""
+    from pathlib import Path
+
+    doc = Path(doc)
+    old = doc.read_text(encoding="utf-8") if doc.is_file() else ""
+    block = f"{heading}\n\n{text.rstrip()}\n"
+    i = old.find(heading + "\n")
+    if i < 0:
+        new = old.rstrip("\n") + "\n\n\n" + block if old else block
+    else:
+        j = old.find("\n## ", i + len(heading))
+        new = old[:i] + block + ("\n" + old[j + 1:] if j >= 0 else "")
+    doc.write_text(new, encoding="utf-8")

@@ -89,7 +89,8 @@ def score_peaks(img, templates, c, s, lo, hi, margin, min_sep):
         smax = max(smax, s[k])
     mmax = 2 * smax + 1
     block = np.empty((mmax, mmax), np.float32)
-    num = np.empty(mmax, np.float32)
+    region = np.empty((mmax + t) * (mmax + t), np.float32)
+    acc = np.empty((mmax + t) * (mmax + t), np.float32)
     colsum = np.empty(mmax + t, np.float64)
     colsq = np.empty(mmax + t, np.float64)
     sep2 = min_sep * min_sep
@@ -119,17 +120,28 @@ def score_peaks(img, templates, c, s, lo, hi, margin, min_sep):
         y0, y1 = lo[k, 1], hi[k, 1]
         nx = x1 - x0 + 1
         h = t // 2
+        ny = y1 - y0 + 1
+        # numerator of every cell, Σ_ij f̂_ij · g(y + i − h, x + j − h): the window's pixels are copied
+        # into one row-major buffer of width L, where cell (r, q) starts at r·L + q, so that for each
+        # template pixel (i, j) one long contiguous loop over all cells (and the L − nx columns
+        # between rows, computed and ignored) accumulates the products — long enough to be vectorized.
+        # The masks only tell the compiler the indices are not negative (no wraparound test).
+        L = (nx + t - 1) & 0xFFFF
+        for r in range(ny + t - 1):
+            src = img[y0 - h + r, x0 - h : x0 - h + L]
+            for x in range(L):
+                region[r * L + x] = src[x]
+        P = ((ny - 1) * L + nx) & 0xFFFFFF
+        for p in range(P):
+            acc[p] = 0.0
+        for i in range(t):
+            for j in range(t):
+                fij = f[i, j]
+                off = (i * L + j) & 0xFFFFFF
+                for p in range(P):
+                    acc[p] += fij * region[p + off]
         for y in range(y0, y1 + 1):
-            # numerator of every cell in this row: Σ_ij f̂_ij · g(y + i − h, x + j − h); the inner loop
-            # runs over the row's cells (contiguous in the image: SIMD)
-            for q in range(nx):
-                num[q] = 0.0
-            for i in range(t):
-                seg = img[y + i - h, x0 - h : x0 - h + nx + t - 1]
-                for j in range(t):
-                    fij = f[i, j]
-                    for q in range(nx):
-                        num[q] += fij * seg[q + j]
+            row0 = (y - y0) * L
             # window sums Σ g, Σ g²: column sums over the template's rows (slid down one row at a
             # time: integers in float64, exact), then a running box along the row
             ncol = nx + t - 1
@@ -163,7 +175,7 @@ def score_peaks(img, templates, c, s, lo, hi, margin, min_sep):
                     s2 += colsq[q + t - 1] - colsq[q - 1]
                 var = s2 - s1 * s1 / npx
                 den = math.sqrt(var) if var > 0.0 else 0.0
-                block[bi_row, x0 + q - ox] = np.float32(num[q] / den) if den > 1e-3 else np.float32(0.0)
+                block[bi_row, x0 + q - ox] = np.float32(acc[row0 + q] / den) if den > 1e-3 else np.float32(0.0)
         # best cell (first in row-major order)
         b = block[0, 0]
         ib = 0
@@ -212,21 +224,29 @@ def score_peaks(img, templates, c, s, lo, hi, margin, min_sep):
 
 
 @njit
-def _bilinear(img, x, y):
-    """Bilinear sample of float32 ``img`` at (x, y), border replicated (cv2.remap INTER_LINEAR,
-    BORDER_REPLICATE, whose weights are not quantized for a float32 image)."""
-    H, W = img.shape
-    x0 = math.floor(x)
-    y0 = math.floor(y)
-    ax = x - x0
-    ay = y - y0
-    xa = min(max(x0, 0), W - 1)
-    xb = min(max(x0 + 1, 0), W - 1)
-    ya = min(max(y0, 0), H - 1)
-    yb = min(max(y0 + 1, 0), H - 1)
-    top = img[ya, xa] + ax * (img[ya, xb] - img[ya, xa])
-    bot = img[yb, xa] + ax * (img[yb, xb] - img[yb, xa])
-    return top + ay * (bot - top)
+def _grid_weights(c, step, n, size, idx, w):
+    """Bilinear taps of the sample coordinates c + step·(k − (n−1)/2), k = 0 … n−1, along one image axis
+    of length ``size`` (float32 coordinates as cv2.remap gets them): the lower index (clamped: border
+    replicated) and the weight of the upper one.  A grid's samples share their row and column taps."""
+    half = (n - 1) // 2
+    for k in range(n):
+        x = np.float32(c) + np.float32(step) * np.float32(k - half)
+        x0 = math.floor(x)
+        w[k] = x - x0
+        idx[k, 0] = min(max(x0, 0), size - 1)
+        idx[k, 1] = min(max(x0 + 1, 0), size - 1)
+
+
+@njit
+def _sample_grid(img, ix, wx, iy, wy, out):
+    """``out[i, j]`` = bilinear sample of ``img`` at row taps ``iy[i]`` and column taps ``ix[j]``."""
+    for i in range(out.shape[0]):
+        ya, yb, ay = iy[i, 0], iy[i, 1], wy[i]
+        for j in range(out.shape[1]):
+            xa, xb, ax = ix[j, 0], ix[j, 1], wx[j]
+            top = img[ya, xa] + ax * (img[ya, xb] - img[ya, xa])
+            bot = img[yb, xa] + ax * (img[yb, xb] - img[yb, xa])
+            out[i, j] = top + ay * (bot - top)
 
 
 @njit
@@ -244,11 +264,21 @@ def scale_fit(img_prev, img_cur, pts_prev, pts_cur, s0, ok_in, h, iterations, sm
     out_s = np.full(n, np.nan)
     out_sig = np.full(n, np.nan)
     T = np.empty((t + 2, t + 2))
+    H, W = img_cur.shape
+    ix = np.empty((t, 2), np.int64)
+    iy = np.empty((t, 2), np.int64)
+    wx = np.empty(t)
+    wy = np.empty(t)
+    ix2 = np.empty((t + 2, 2), np.int64)
+    iy2 = np.empty((t + 2, 2), np.int64)
+    wx2 = np.empty(t + 2)
+    wy2 = np.empty(t + 2)
     f = np.empty(npx)
     J = np.empty((3, npx))
     AJ = np.empty((3, npx))
     r = np.empty(npx)
-    g = np.empty(npx)
+    G = np.empty((t, t))
+    g = G.reshape(npx)  # the same memory, row-major: pixel p = i·t + j
     xx = np.empty(npx)
     yy = np.empty(npx)
     for i in range(t):
@@ -261,10 +291,9 @@ def scale_fit(img_prev, img_cur, pts_prev, pts_cur, s0, ok_in, h, iterations, sm
             continue
         ok = True
         # template with its rim at the exact sub-pixel point; gradients; normalization
-        for i in range(t + 2):
-            for j in range(t + 2):
-                T[i, j] = _bilinear(img_prev, np.float32(pts_prev[k, 0]) + np.float32(j - h - 1),
-                                    np.float32(pts_prev[k, 1]) + np.float32(i - h - 1))
+        _grid_weights(pts_prev[k, 0], 1.0, t + 2, W, ix2, wx2)
+        _grid_weights(pts_prev[k, 1], 1.0, t + 2, H, iy2, wy2)
+        _sample_grid(img_prev, ix2, wx2, iy2, wy2, T)
         mean = 0.0
         for i in range(t):
             for j in range(t):
@@ -341,12 +370,12 @@ def scale_fit(img_prev, img_cur, pts_prev, pts_cur, s0, ok_in, h, iterations, sm
                 break  # settled: the reference's two extra steps run only where not
             cx = pts_cur[k, 0] + dx
             cy = pts_cur[k, 1] + dy
+            _grid_weights(cx, s, t, W, ix, wx)
+            _grid_weights(cy, s, t, H, iy, wy)
+            _sample_grid(img_cur, ix, wx, iy, wy, G)
             gm = 0.0
             for p in range(npx):
-                v = _bilinear(img_cur, np.float32(cx) + np.float32(s) * np.float32(xx[p]),
-                              np.float32(cy) + np.float32(s) * np.float32(yy[p]))
-                g[p] = v
-                gm += v
+                gm += g[p]
             gm /= npx
             ng = 0.0
             for p in range(npx):
