@@ -104,7 +104,7 @@ def test_score_peaks_scores_equal_opencv_on_every_cell():
         c = np.array([[cu, cv_]], np.int64)
         lo = np.maximum(c - s, h)
         hi = np.minimum(c + s, [img.shape[1] - 1 - h, img.shape[0] - 1 - h])
-        bi, bj, best, nbrs, amb = K.score_peaks(img.astype(np.float32), tpl, c, np.array([s], np.int64), lo, hi, 0.03, 3.0)
+        bi, bj, best, nbrs, amb = K.score_peaks(img, tpl, c, np.array([s], np.int64), lo, hi, 0.03, 3.0)
         win = img[lo[0, 1] - h : hi[0, 1] + h + 1, lo[0, 0] - h : hi[0, 0] + h + 1]
         ref = cv2.matchTemplate(win, tpl[0, 1:-1, 1:-1], cv2.TM_CCOEFF_NORMED)
         i, j = np.unravel_index(np.argmax(ref), ref.shape)
@@ -129,6 +129,6 @@ def test_kernels_handle_empty_input():
     cfg = N.NCCConfig()
     ref, ker = _both(N.match_ncc, img, img, np.zeros((0, 2)), np.zeros((0, 2)), cfg)
     assert len(ker.pts) == len(ref.pts) == 0
-    s, sig = K.scale_fit(img.astype(np.float32), img.astype(np.float32), np.zeros((0, 2)), np.zeros((0, 2)),
+    s, sig = K.scale_fit(img, img, np.zeros((0, 2)), np.zeros((0, 2)),
                          np.zeros(0), np.zeros(0, np.bool_), 7, 2, 1.3, 1.5, 0.06)
     assert s.shape == sig.shape == (0,)

@@ -481,7 +481,7 @@ def _score_kernel(run, templates, img_cur, c, s, lo, hi, config: NCCConfig):
     every window scored in one pass, the verdicts judged as in :func:`_score_group`."""
     sr, cr = s[run], c[run]
     bi, bj, b, nbrs, ambiguous = _kernels.score_peaks(
-        img_cur.astype(np.float32), templates[run], cr, sr, lo[run], hi[run], float(config.ambiguity_margin), float(config.ambiguity_min_separation))
+        img_cur, templates[run], cr, sr, lo[run], hi[run], float(config.ambiguity_margin), float(config.ambiguity_min_separation))
     b = np.where(np.isfinite(b), b, -1.0)
     edge_l, edge_r, edge_u, edge_d = (v <= _EMPTY + 0.5 for v in nbrs)
     x0, y0 = lo[run, 0], lo[run, 1]
@@ -769,7 +769,7 @@ def estimate_scale(img_prev, img_cur, pts_prev, pts_cur, config: NCCConfig, scal
     ok = fits(pts_prev, mp) & fits(pts_cur, mc)
     f32 = np.float32
     if jit.ENABLED:
-        return _kernels.scale_fit(img_prev.astype(f32), img_cur.astype(f32), pts_prev, pts_cur, s, ok, h,
+        return _kernels.scale_fit(img_prev, img_cur, pts_prev, pts_cur, s, ok, h,
                                   config.scale_iterations, smax, config.scale_sigma_factor, config.scale_sigma_slope)
     # template with a 1-px rim at the exact sub-pixel point, its gradients, normalization
     off = np.arange(-h - 1, h + 2, dtype=f32)

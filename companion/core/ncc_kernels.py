@@ -64,7 +64,7 @@ def template_stats(templates):
 def score_peaks(img, templates, c, s, lo, hi, margin, min_sep):
     """Eq. 13 for every template centre of each point's window, then the peak and its tests.
 
-    ``img`` (H, W) float32 current frame (converted once per call: the inner loop then needs no conversion); ``templates`` (N, T+2, T+2) uint8 (the inner T×T patch is
+    ``img`` (H, W) current frame (uint8; converted to float32 as each window is copied); ``templates`` (N, T+2, T+2) uint8 (the inner T×T patch is
     matched); ``c`` (N, 2) int64 window centres (u, v); ``s`` (N,) search half-sizes; ``lo``/``hi``
     (N, 2) the window clipped to the image (template centres, inclusive).  A point's block is the
     (2s+1)² cells around ``c``; cells outside [lo, hi] are not searched (the sentinel −2).
@@ -244,8 +244,10 @@ def _sample_grid(img, ix, wx, iy, wy, out):
         ya, yb, ay = iy[i, 0], iy[i, 1], wy[i]
         for j in range(out.shape[1]):
             xa, xb, ax = ix[j, 0], ix[j, 1], wx[j]
-            top = img[ya, xa] + ax * (img[ya, xb] - img[ya, xa])
-            bot = img[yb, xa] + ax * (img[yb, xb] - img[yb, xa])
+            i00, i01 = float(img[ya, xa]), float(img[ya, xb])
+            i10, i11 = float(img[yb, xa]), float(img[yb, xb])
+            top = i00 + ax * (i01 - i00)
+            bot = i10 + ax * (i11 - i10)
             out[i, j] = top + ay * (bot - top)
 
 
@@ -254,7 +256,7 @@ def scale_fit(img_prev, img_cur, pts_prev, pts_cur, s0, ok_in, h, iterations, sm
     """Scale change s and its σ per point (NaN where not measurable): the Gauss–Newton fit of
     :func:`companion.core.ncc.estimate_scale`, one point at a time (same steps, same tests).
 
-    ``img_prev``/``img_cur`` float32 frames; ``pts_prev``/``pts_cur`` (N, 2); ``s0`` (N,) start;
+    ``img_prev``/``img_cur`` uint8 frames; ``pts_prev``/``pts_cur`` (N, 2); ``s0`` (N,) start;
     ``ok_in`` (N,) the points whose windows fit both frames; ``h`` the half-size of the fitted
     patch; ``smax`` = 1 + max_scale_change.
     """
@@ -424,7 +426,6 @@ def _warm() -> None:
     template_stats(tpl)
     c = np.array([[20, 20], [21, 19]], np.int64)
     s = np.array([3, 2], np.int64)
-    score_peaks(img.astype(np.float32), tpl, c, s, c - s[:, None], c + s[:, None], 0.03, 3.0)
-    f32 = img.astype(np.float32)
+    score_peaks(img, tpl, c, s, c - s[:, None], c + s[:, None], 0.03, 3.0)
     p = np.array([[20.3, 20.1], [19.5, 21.0]])
-    scale_fit(f32, f32, p, p, np.ones(2), np.ones(2, np.bool_), 4, 2, 1.3, 1.5, 0.06)
+    scale_fit(img, img, p, p, np.ones(2), np.ones(2, np.bool_), 4, 2, 1.3, 1.5, 0.06)
