@@ -568,3 +568,46 @@ def test_held_by_the_avoidance_the_quad_stays_where_it_stopped():
     assert far - at[9.0][0][0] < 7.0  # braking from 6 m/s at the tilt limit (overshoot included)
     assert at[15.5][1] < 0.1 and at[18.0][1] < 0.05  # stopped ...
     assert np.linalg.norm(at[18.0][0] - at[15.5][0]) < 0.1  # ... and stays there (no creep)
+
+
+class _FlipGuidance:
+    """PX4-like guidance flipping the setpoint ±30° off the demand every control tick."""
+
+    def __init__(self):
+        self.sign = 1.0
+
+    def limit(self, t, p_ned, v_ned, yaw, v_des):
+        self.sign = -self.sign
+        a = math.radians(30.0) * self.sign
+        c, s = math.cos(a), math.sin(a)
+        return (c * v_des[0] - s * v_des[1], s * v_des[0] + c * v_des[1], v_des[2])
+
+
+class _SlideStopGo:
+    """ArduPilot-like slide: the demand turned sideways (held towards the obstacle) for 1.5 s, then let through."""
+
+    def limit(self, t, p_ned, v_ned, yaw, v_des):
+        if int(t / 1.5) % 2:
+            return (-v_des[1], v_des[0], v_des[2])
+        return tuple(v_des)
+
+
+@pytest.mark.parametrize("guidance", [_FlipGuidance, _SlideStopGo], ids=["flip", "slide"])
+def test_turned_sideways_by_the_avoidance_the_quad_never_flies_faster_than_the_demand(guidance):
+    """The leash holds in every horizontal direction: a setpoint the avoidance turns sideways (a slide, a
+    guidance that flips from side to side) must not let the position controller push the vehicle past
+    the speed the avoidance let through (before: 1.54x in front of a wide wall)."""
+    from flightsim.fly import Flight
+    from flightsim.scenario import load_scenario
+
+    sc = load_scenario(WALL6, avoidance="ardupilot")
+    sc = dataclasses.replace(sc, meta=dataclasses.replace(sc.meta, duration_s=14.0))
+    fl = Flight(sc)
+    fl.vehicle.avoidance = guidance()
+    v_max_h, v_cmd_max_h = 0.0, 0.0
+    while (st := fl.physics_step()) is not None:
+        if st.time_s > 4.0:  # after the climb
+            v_max_h = max(v_max_h, float(np.hypot(st.v_ned[0], st.v_ned[1])))
+            v_cmd_max_h = max(v_cmd_max_h, float(np.hypot(*fl.vehicle.v_cmd[:2])))
+    assert v_cmd_max_h == pytest.approx(6.0, abs=0.05)
+    assert v_max_h <= 1.08 * v_cmd_max_h, (v_max_h, v_cmd_max_h)

@@ -277,12 +277,14 @@ class QuadSim(JSBSimVehicle):
         ends only when the waypoint is reached (at rest within 5 cm).  The reference velocity follows
         the limited demand at up to the tilt-limited acceleration (a braking demand is not softened).
 
-        While the avoidance lets the vehicle move on, the reference runs at most ``avoid_leash_m``
-        ahead of it along the pilot's horizontal demand (as an autopilot's position controller
-        limits its position error), so the velocity demand exceeds the limited one by at most
+        While the avoidance lets the vehicle move on, the reference stays within ``avoid_leash_m`` of
+        it horizontally, in every direction (as an autopilot's position controller limits its
+        position error), so the velocity demand exceeds the limited one by at most
         ``pos_kp·avoid_leash_m``.  Held, the reference stays where it stopped and the vehicle holds
         that position.  Without the leash the vehicle, released after a hold, chased a reference
-        that had run ahead at the tilt limit and flew up to 1.6× the pilot's demand.
+        that had run ahead at the tilt limit and flew up to 1.6× the pilot's demand; with a leash
+        along the demand only, a sideways slide (ArduPilot's slide, PX4's guidance) still let the
+        reference run off to the side (up to 1.5× the demand in front of a wide wall).
         """
         q = self.config.quad
         target, speed = act[1], act[3]
@@ -316,14 +318,12 @@ class QuadSim(JSBSimVehicle):
         nv = (rvn + dv[0] * k, rve + dv[1] * k, rvd + dv[2] * k)
         acc = ((nv[0] - rvn) / dt, (nv[1] - rve) / dt, (nv[2] - rvd) / dt)
         rn, re, rd = rn + nv[0] * dt, re + nv[1] * dt, rd + nv[2] * dt
-        h_des = math.hypot(v_des[0], v_des[1])
-        if h_des > 1e-6:
-            un, ue = v_des[0] / h_des, v_des[1] / h_des
-            leash = q.avoid_leash_m
-            v_along = v_cmd[0] * un + v_cmd[1] * ue
-            ahead = (rn - p_ned[0]) * un + (re - p_ned[1]) * ue
-            if v_along > 0.05 and ahead > leash:  # moving on: the reference never runs further ahead than the leash
-                rn, re = rn - (ahead - leash) * un, re - (ahead - leash) * ue
+        if math.hypot(v_cmd[0], v_cmd[1]) > 0.05:  # moving on: the reference stays within the leash, every way
+            en, ee = rn - p_ned[0], re - p_ned[1]
+            off = math.hypot(en, ee)
+            if off > q.avoid_leash_m:
+                k = q.avoid_leash_m / off
+                rn, re = p_ned[0] + en * k, p_ned[1] + ee * k
         self._ref = ((rn, re, rd), nv, acc)
 
     # ------------------------------------------------------------------ autopilot tick
