@@ -326,3 +326,52 @@ def test_texture_moments_do_not_depend_on_memory_alignment():
     a = blocks_texture(np.random.default_rng(11), 64, 96, 0.1)
     b = blocks_texture(np.random.default_rng(11), 64, 96, 0.1)
     np.testing.assert_array_equal(a, b)
+
+
+# ---------------------------------------------------------------------------- texture cache
+def test_texture_cache_returns_exactly_what_a_build_makes(tmp_path, monkeypatch):
+    """The disk cache of world textures: first call builds and stores, the second reads the file back
+    (no build), and every mip level of every surface is identical to a fresh build; another world
+    (a different ground seed) gets its own entry; ``off`` disables the cache."""
+    from flightsim.world import textures as T
+
+    monkeypatch.setenv(T.CACHE_ENV, str(tmp_path / "cache"))
+    world = World(WorldConfig(
+        seed=3, ground=GroundConfig(tile_px=256),
+        cylinder=(CylinderConfig(name="pole", centre_ne_m=(10.0, 0.0), radius_m=0.3, height_m=6.0),),
+        wall=(WallConfig(name="wall", start_ne_m=(20.0, -5.0), end_ne_m=(20.0, 5.0), height_m=4.0),)))
+    ref = T.build_world_textures(world)
+    first = T.cached_world_textures(world)
+    files = list((tmp_path / "cache").glob("*.npz"))
+    assert len(files) == 1
+    built = []
+    monkeypatch.setattr(T, "build_world_textures", lambda w: built.append(w))
+    second = T.cached_world_textures(world)
+    assert built == []  # read from the file
+    for got in (first, second):
+        assert len(got.ground) == len(ref.ground) and got.ground_texel_m == ref.ground_texel_m
+        for a, b in zip(got.ground, ref.ground):
+            np.testing.assert_array_equal(a, b)
+        assert got.faces.keys() == ref.faces.keys()
+        for k in ref.faces:
+            assert len(got.faces[k]) == len(ref.faces[k])
+            for a, b in zip(got.faces[k], ref.faces[k]):
+                assert a.dtype == b.dtype and a.flags.c_contiguous
+                np.testing.assert_array_equal(a, b)
+    other = World(WorldConfig(seed=4, ground=GroundConfig(tile_px=256)))
+    assert T.texture_cache_key(other) != T.texture_cache_key(world)
+    monkeypatch.setenv(T.CACHE_ENV, "off")
+    assert T.texture_cache_dir() is None
+
+
+def test_damaged_texture_cache_file_is_rebuilt(tmp_path, monkeypatch):
+    from flightsim.world import textures as T
+
+    monkeypatch.setenv(T.CACHE_ENV, str(tmp_path))
+    world = World(WorldConfig(seed=5, ground=GroundConfig(tile_px=128)))
+    path = tmp_path / f"{T.texture_cache_key(world)}.npz"
+    path.write_bytes(b"not an npz")
+    tex = T.cached_world_textures(world)
+    np.testing.assert_array_equal(tex.ground[0], T.build_world_textures(world).ground[0])
+    with np.load(path) as arrays:  # replaced by a good file
+        assert "ground/0" in arrays.files

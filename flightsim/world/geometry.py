@@ -344,11 +344,11 @@ class World:
 
     # ------------------------------------------------------------------------------ textures
     def textures(self):
-        """Procedural textures of this world (built once, then cached; see :mod:`.textures`)."""
+        """Procedural textures of this world (built once, then cached in memory and on disk; see :mod:`.textures`)."""
         if self._texture_cache is None:
-            from .textures import build_world_textures
+            from .textures import cached_world_textures
 
-            self._texture_cache = build_world_textures(self)
+            self._texture_cache = cached_world_textures(self)
         return self._texture_cache
 
 

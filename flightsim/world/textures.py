@@ -17,12 +17,22 @@ Every texture is a deterministic function of its seed (``numpy.random.default_rn
 
 Feature sizes are in metres (converted with the texel size), so a texture looks the same at any
 resolution.  Mip level k halves level k−1 with a 2×2 box filter (``cv2.INTER_AREA``).
+
+Building a world's textures takes seconds (the ground tile most); every flight of a campaign uses
+the same world, so :func:`cached_world_textures` keeps them on disk, keyed by the world's
+configuration and this module's source (``$FLIGHTSIM_TEXTURE_CACHE``, default
+``$XDG_CACHE_HOME/monorange/textures`` or ``~/.cache/monorange/textures``; ``off`` disables it).
+A cached world is exactly the one :func:`build_world_textures` would build.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
+import os
+import uuid
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -281,3 +291,76 @@ def build_world_textures(world) -> WorldTextures:
             texel = texel_for((l1, l2), base_texel)
             out.faces[(ob.index, key)] = build_mips(_face_texture(rng, ob, _dims(l2, texel), _dims(l1, texel), texel, key))
     return out
+
+
+#: environment variable naming the texture cache directory ("off": no disk cache)
+CACHE_ENV = "FLIGHTSIM_TEXTURE_CACHE"
+
+
+def texture_cache_dir() -> Path | None:
+    """Where world textures are cached (None: disabled)."""
+    v = os.environ.get(CACHE_ENV, "").strip()
+    if v.lower() == "off":
+        return None
+    if v:
+        return Path(v)
+    base = os.environ.get("XDG_CACHE_HOME", "").strip() or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "monorange" / "textures"
+
+
+def texture_cache_key(world) -> str:
+    """Digest of everything the textures depend on: the world configuration and this module's code."""
+    h = hashlib.sha256()
+    h.update(repr(world.config).encode())
+    h.update(str(MAX_TEXTURE_PX).encode())
+    h.update(Path(__file__).read_bytes())
+    return h.hexdigest()[:32]
+
+
+def _flatten(tex: WorldTextures) -> dict[str, np.ndarray]:
+    arrays = {}
+    for k, lv in enumerate(tex.ground or []):
+        arrays[f"ground/{k}"] = lv
+    for (index, key), levels in tex.faces.items():
+        for k, lv in enumerate(levels):
+            arrays[f"face/{index}/{key}/{k}"] = lv
+    return arrays
+
+
+def _unflatten(arrays, ground_texel_m: float) -> WorldTextures:
+    ground: dict[int, np.ndarray] = {}
+    faces: dict[tuple[int, str], dict[int, np.ndarray]] = {}
+    for name in arrays.files:
+        parts = name.split("/")
+        if parts[0] == "ground":
+            ground[int(parts[1])] = arrays[name]
+        else:
+            faces.setdefault((int(parts[1]), parts[2]), {})[int(parts[3])] = arrays[name]
+    out = WorldTextures([ground[k] for k in sorted(ground)] or None, ground_texel_m)
+    out.faces = {fk: [lv[k] for k in sorted(lv)] for fk, lv in faces.items()}
+    return out
+
+
+def cached_world_textures(world) -> WorldTextures:
+    """:func:`build_world_textures`, read from the disk cache when this world was built before (and
+    written there otherwise; atomically, so parallel flights never read half a file).  A cache that
+    cannot be read or written is ignored: the textures are built."""
+    d = texture_cache_dir()
+    if d is None:
+        return build_world_textures(world)
+    path = d / f"{texture_cache_key(world)}.npz"
+    if path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as arrays:
+                return _unflatten(arrays, world.ground.texel_m)
+        except Exception:  # a damaged file: rebuild and replace it
+            pass
+    tex = build_world_textures(world)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        tmp = d / f".{path.stem}.{uuid.uuid4().hex}.npz"
+        np.savez(tmp, **_flatten(tex))
+        os.replace(tmp, path)
+    except OSError:
+        pass
+    return tex
