@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from companion.errors import EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, CompanionError, ConfigError, Terminated
-from companion.interrupts import interrupt_exit_code, interrupt_name, raise_on_sigterm
+from companion.interrupts import interrupt_exit_code, interrupt_in, interrupt_name, raise_on_sigterm
 
 log = logging.getLogger("companion")
 
@@ -426,6 +426,8 @@ def cmd_replay(args) -> int:
     print(f"latency capture → send: p50 {s.latency_p50_ms:.1f} ms, p99 {s.latency_p99_ms:.1f} ms; first valid sector after "
           + (f"{s.first_valid_s:.2f} s" if s.first_valid_s is not None else "never"))
     if s.processed:
+        from companion.core import jit
+
         stages = ", ".join(f"{k} {v:.1f}" for k, v in s.stage_cpu_ms.items())
         print(f"CPU per frame: mean {s.cpu_ms_mean:.1f} ms, p99 {s.cpu_ms_p99:.1f} ms ({stages}); {jit.describe()}")
     print(f"wrote {sum(s.messages.values())} messages to {s.out} as system {s.system_id}: "
@@ -491,6 +493,13 @@ def main(argv=None) -> int:
         log.error("%s", exc)
         return EXIT_RUNTIME
     except Exception as exc:  # a bug: say so, with the traceback in the log
+        stop = interrupt_in(exc)
+        if stop is not None:  # a signal that surfaced inside a C extension's call
+            if args.command in _SIGNAL_STOPS_CLEANLY:
+                log.info("interrupted")
+                return EXIT_OK
+            print(f"companion {args.command}: {interrupt_name(stop)}", file=sys.stderr)
+            return interrupt_exit_code(stop)
         log.exception("companion %s failed: %r", args.command, exc)
         return EXIT_RUNTIME
 

@@ -78,3 +78,21 @@ def interrupt_name(exc: BaseException) -> str:
 
 
 __all__ = ["raise_on_sigterm", "signals_deferred", "interrupt_exit_code", "interrupt_name"]
+
+
+def interrupt_in(exc: BaseException) -> BaseException | None:
+    """The Ctrl-C / SIGTERM hidden inside ``exc``, if any (else None).
+
+    A signal whose handler raises while a C extension has control (a compiled kernel, OpenCV)
+    surfaces as a ``SystemError`` ("returned a result with an exception set") caused by the
+    :class:`KeyboardInterrupt` or :class:`~companion.errors.Terminated`; an ``except Exception``
+    that treats it as a bug would swallow the signal.  Such blocks re-raise what this returns.
+    """
+    seen = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if not isinstance(e, Exception):
+            return e
+        e = e.__cause__ or e.__context__
+    return None

@@ -57,6 +57,7 @@ from companion.config import require, require_finite
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.estimator import RangeEstimator, RangeOutput
 from companion.core import jit
+from companion.interrupts import interrupt_in
 from companion.core.frames import R_to_euler_zyx
 from companion.core.obstacle_map import ObstacleMap, consistent_for_entry, landmark_covariance, points_on_current_rays, world_to_body
 from companion.core.prediction import make_track_predictor
@@ -322,6 +323,9 @@ class Pipeline:
             self._new_state()
             res.restart = res.restart or "error"
         except Exception as exc:  # a bug: never take the process down, say so loudly, start afresh
+            stop = interrupt_in(exc)
+            if stop is not None:  # Ctrl-C / SIGTERM that arrived inside a compiled call: not a bug
+                raise stop from None
             self.counters["internal_errors"] += 1
             if self.counters["internal_errors"] <= 5:
                 log.exception("internal error on frame %d: %r; ranging restarts", index, exc)

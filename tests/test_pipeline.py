@@ -685,3 +685,37 @@ def test_statustext_overall_budget_sends_the_most_severe_first_and_drops_obsolet
     assert texts(102.0, [(S.MAV_SEVERITY_NOTICE, "n1"), (S.MAV_SEVERITY_NOTICE, "n2"), (S.MAV_SEVERITY_ERROR, "e1")]) == ["e1"]
     assert rep.counters["statustext_dropped"] == 1  # info one, n1, n2 and e1 did not fit in 3: the least severe went
     assert texts(103.0, []) == ["n1"] and texts(104.0, []) == ["n2"] and texts(105.0, []) == []
+
+
+@pytest.mark.parametrize("signal_exc", [KeyboardInterrupt, "terminated"])
+def test_a_signal_surfacing_inside_a_compiled_call_stops_the_process_not_the_ranging(signal_exc, monkeypatch):
+    """Ctrl-C or SIGTERM arriving while a C extension (a numba kernel, OpenCV) has control comes out
+    as a SystemError caused by the interrupt; the pipeline must let the interrupt through instead of
+    logging an internal error and ranging on (the process would not stop). Any other error still
+    restarts the ranging."""
+    from companion.errors import Terminated
+    from companion.interrupts import interrupt_in
+
+    exc_type = Terminated if signal_exc == "terminated" else signal_exc
+    flight, tel, p = make_pipeline()
+    feed_telemetry(tel, flight, 0.0, 2.0)
+    assert p.process(Frame(0, 1.0, flight.render(1.0)), now=1.02).ok
+
+    def wrapped(*_a, **_k):
+        try:
+            raise exc_type("received")
+        except BaseException as inner:
+            raise SystemError("CPUDispatcher(<function score_peaks>) returned a result with an exception set") from inner
+
+    monkeypatch.setattr(p.tracks, "step", wrapped)
+    with pytest.raises(exc_type):
+        p.process(Frame(1, 1.0 + 1 / FPS, flight.render(1.0 + 1 / FPS)), now=1.06)
+    assert p.counters["internal_errors"] == 0
+
+    def bug(*_a, **_k):
+        raise SystemError("a real bug")
+
+    monkeypatch.setattr(p.tracks, "step", bug)
+    res = p.process(Frame(2, 1.0 + 2 / FPS, flight.render(1.0 + 2 / FPS)), now=1.1)
+    assert not res.ok and res.restart == "internal error" and p.counters["internal_errors"] == 1
+    assert interrupt_in(ValueError("x")) is None
