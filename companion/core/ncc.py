@@ -78,6 +78,7 @@ import numpy as np
 from companion.config import require, require_finite
 from companion.core import jit
 from companion.core import ncc_kernels as _kernels
+from companion.core.lk_kernel import lk_track
 from companion.core.harris import as_gray_u8
 from companion.errors import InputError
 
@@ -351,23 +352,14 @@ def _lk_refine_frames(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel match of ``pts_prev`` (exact sub-pixel points of ``img_prev``) starting from ``guess``.
 
-    One ``cv2.calcOpticalFlowPyrLK`` call for all points (single level, window = the template,
+    One ``cv2.calcOpticalFlowPyrLK`` for all points (single level, window = the template,
     bilinear interpolation of both frames, so the template sits exactly on the sub-pixel point).
     Returns the refined points and a mask of those that converged within 1 px of the guess.
     """
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 0.01)
-    nxt, status, _ = cv2.calcOpticalFlowPyrLK(
-        img_prev,
-        img_cur,
-        pts_prev.astype(np.float32).reshape(-1, 1, 2),
-        guess.astype(np.float32).reshape(-1, 1, 2),
-        winSize=(2 * h + 1, 2 * h + 1),
-        maxLevel=0,
-        criteria=crit,
-        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-    )
-    nxt = nxt.reshape(-1, 2).astype(np.float64)
-    ok = (status.reshape(-1) == 1) & np.all(np.isfinite(nxt), 1) & np.all(np.abs(nxt - guess) <= 1.0, 1)
+    # lk_track is the compiled copy of cv2.calcOpticalFlowPyrLK (same floats on x86; calls OpenCV
+    # itself when kernels are off): companion/core/lk_kernel.py
+    nxt, status = lk_track(img_prev, img_cur, pts_prev, guess, h, iterations, 0.01)
+    ok = status & np.all(np.isfinite(nxt), 1) & np.all(np.abs(nxt - guess) <= 1.0, 1)
     return nxt, ok
 
 
