@@ -196,8 +196,8 @@ def _world_for_names(scenario: str | None, run_dir: Path | None, rec: dict | Non
 
 def cmd_score(args) -> int:
     from companion.io.atomic import StagedFiles, prepare_output_dir
-    from flightsim.score import mark
-    from flightsim.score_io import load_score_config, score_run, stage_score
+    from flightsim.score.evaluation import mark
+    from flightsim.score.files import load_score_config, score_run, stage_score
 
     run_dir = Path(args.dir) if args.dir else None
     if run_dir is not None and not run_dir.is_dir():

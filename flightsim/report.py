@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flightsim.score import REP_CLEAR, REP_RANGE, SECTOR_DEG, TRUTH_OBSTACLE, mark
+from flightsim.score.evaluation import REP_CLEAR, REP_RANGE, SECTOR_DEG, TRUTH_OBSTACLE, mark
 
 
 def _plt():

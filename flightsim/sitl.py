@@ -674,7 +674,7 @@ def _score(out: Path, companion_config: Path | None, world) -> tuple[dict | None
     The companion's own configuration (its sector σ factor) and the world (obstacle names) are
     handed to the scorer.
     """
-    from flightsim.score_io import score_run, write_score
+    from flightsim.score.files import score_run, write_score
 
     opts = {"world": world}
     if companion_config is not None:

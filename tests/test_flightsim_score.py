@@ -12,9 +12,9 @@ import pytest
 from companion.mavlink import messages as M
 from companion.mavlink.dialect import mavlink
 from companion.replay import TlogOut
-from flightsim import score as S
+from flightsim.score import evaluation as S
 from flightsim.cli import main as flightsim_main
-from flightsim.score_io import load_score_config, load_series, read_ranges_tlog, read_truth_npz, score_run, write_score
+from flightsim.score.files import load_score_config, load_series, read_ranges_tlog, read_truth_npz, score_run, write_score
 
 ROOT = Path(__file__).resolve().parents[1]
 U = 65535

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from flightsim import campaign as C
-from flightsim import score as S
+from flightsim.score import evaluation as S
 from flightsim.fly import save_npz_deterministic
-from flightsim.score_io import read_truth_npz, write_score
+from flightsim.score.files import read_truth_npz, write_score
 
 U = 65535
 MAX_CM, MIN_CM = 4000, 50

@@ -25,7 +25,7 @@ from companion.io.atomic import StagedFiles, atomic_path
 from companion.io.config_files import read_toml
 from companion.io.inputs import check_input_file
 from companion.io.tlog import read_tlog
-from flightsim.score import (
+from flightsim.score.evaluation import (
     N_SECTORS,
     RangeMessages,
     ScoreConfig,
