@@ -9,7 +9,7 @@ scenario's own ``[scenario] seed`` unless given), each in a worker process
   fixed processing time (deterministic), ranges in ``ranges.tlog``;
 * mode ``sitl``: :func:`flightsim.sitl.run_sitl` (lockstep clock, free ports), ranges in
   ``received.tlog`` (stamped on arrival);
-* then :func:`flightsim.score_io.score_run` (obstacles named from the scenario's world) writes
+* then :func:`flightsim.score.files.score_run` (obstacles named from the scenario's world) writes
   ``score.json``, ``score.md`` and ``score_series.npz``.
 
 The companion configuration of every run (and of the scoring: its ``sigma_k``) is the one given,
@@ -46,7 +46,9 @@ import numpy as np
 
 from companion.errors import EXIT_TERMINATED, ConfigError, Terminated
 from companion.io.atomic import atomic_dir, partial_path, prepare_output_dir, write_text_atomic
-from flightsim.score.evaluation import ScoreConfig, _jsonable, mark, nees_stats
+from flightsim.score.config import ScoreConfig
+from flightsim.score.markdown import mark
+from flightsim.score.summary import _jsonable, nees_stats
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +197,7 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
     """Pool the scored runs: summed cell counts and pooled rates, mean ± std of per-run rates, the
     targets on the pooled rates (and how many runs meet each), pooled range error, latency, NEES and
     time to the first valid range per obstacle name.  ``series``: seed → score_series arrays."""
-    from flightsim.score.evaluation import error_table
+    from flightsim.score.summary import error_table
 
     ok = [r for r in results if r["status"] == "ok" and r.get("score")]
     scores = [r["score"] for r in ok]

@@ -62,7 +62,7 @@ Output in ``DIR``: the same export as ``flightsim fly`` — ``truth.npz``, ``fra
 sent) and, with ``video``, ``video.avi`` — plus ``received.tlog`` (every MAVLink message received
 from the companion, stamped with its arrival on the recording clock of truth.npz ``t_s`` and
 frames.csv), ``companion.log`` and ``sitl.json`` (the summary); the received ranges are scored
-against the truth (:mod:`flightsim.score_io`: ``score.json``, ``score.md``).  Everything but ``camera.toml`` (the companion reads it at start)
+against the truth (:mod:`flightsim.score.files`: ``score.json``, ``score.md``).  Everything but ``camera.toml`` (the companion reads it at start)
 and ``companion.log`` is written under a temporary name and appears when the flight is complete
 (:class:`companion.io.atomic.StagedFiles`); a run that fails or is interrupted leaves the two tlogs
 as ``telemetry.tlog.partial`` and ``received.tlog.partial`` and nothing at the other names.
@@ -669,7 +669,7 @@ class _Run:
 
 
 def _score(out: Path, companion_config: Path | None, world) -> tuple[dict | None, str]:
-    """Score received.tlog against truth.npz (:mod:`flightsim.score_io`): (score, note).
+    """Score received.tlog against truth.npz (:mod:`flightsim.score.files`): (score, note).
 
     The companion's own configuration (its sector σ factor) and the world (obstacle names) are
     handed to the scorer.
