@@ -130,7 +130,7 @@ def _issue11_tables(res: dict) -> list[str]:
     first valid range per obstacle, and detection by true range in view."""
     lines = ["", "Issue-11 targets, pooled over each campaign's runs (cells after the 2 s warm-up; detection = a range "
              "within tolerance; remembered = out-of-view obstacle cells whose own point was in view within 10 s, the "
-             "vehicle having moved < 20 m since; definitions in `flightsim/score.py`):", "",
+             "vehicle having moved < 20 m since; definitions in `flightsim/score/__init__.py`):", "",
              "| scenario | " + " | ".join(f"{label} ({_bound(res, key)})" for key, label in _TARGET_COLUMNS)
              + " | time to first valid range per obstacle, s (mean over runs; target ≤ 1.0) |",
              "|---|" + "---|" * (len(_TARGET_COLUMNS) + 1)]
@@ -204,7 +204,7 @@ def markdown(res: dict) -> str:
         "",
         "`flightsim campaign configs/scenarios/X.toml --runs N --workers 2 --mode sitl --out out/bench/campaign_X` "
         "(plots and index.md in `out/bench/campaign_X/report/`). Pooled over the runs (N seeds from the scenario's own); "
-        "cell definitions in `flightsim/score.py`. What each scenario flies (the hard flights of issue 11 hover, turn in "
+        "cell definitions in `flightsim/score/__init__.py`. What each scenario flies (the hard flights of issue 11 hover, turn in "
         "place and come close, where DESIGN.md §6–§7 say avoidance needs ranges most and a single camera gains least):",
         "",
     ]

@@ -14,7 +14,7 @@ check                     PASS when
                           (OBSTACLE_DISTANCE needs MAVLink 2 on this port)
 ``ATTITUDE``,             arriving at ``[link] min_rate_fraction`` or more of the rate the link asks
 ``LOCAL_POSITION_NED``    for (``attitude_hz``, ``local_position_hz``), measured by the link's own
-                          :class:`~companion.mavlink.link.RateMeter` over a full ``rate_window_s``;
+                          :class:`~companion.mavlink.streams.RateMeter` over a full ``rate_window_s``;
                           the pipeline needs both
 ``GLOBAL_POSITION_INT``   the same, but only WARN when it is missing: the ranges do not use it
 ``timesync``              the companion's :class:`~companion.mavlink.timesync.TimesyncEstimator` has

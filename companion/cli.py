@@ -466,7 +466,7 @@ def cmd_monitor(args) -> int:
 
     if not args.json and not installed("rich"):
         raise ConfigError("companion monitor's view needs rich (pip install 'monorange[gcs]'); --json works without it")
-    from companion.monitor import cmd_monitor as run
+    from companion.monitor.runner import cmd_monitor as run
 
     check_connection_string("CONN", args.conn)
     return run(args)

@@ -9,7 +9,7 @@ scenario's own ``[scenario] seed`` unless given), each in a worker process
   fixed processing time (deterministic), ranges in ``ranges.tlog``;
 * mode ``sitl``: :func:`flightsim.sitl.run_sitl` (lockstep clock, free ports), ranges in
   ``received.tlog`` (stamped on arrival);
-* then :func:`flightsim.score_io.score_run` (obstacles named from the scenario's world) writes
+* then :func:`flightsim.score.files.score_run` (obstacles named from the scenario's world) writes
   ``score.json``, ``score.md`` and ``score_series.npz``.
 
 The companion configuration of every run (and of the scoring: its ``sigma_k``) is the one given,
@@ -46,7 +46,9 @@ import numpy as np
 
 from companion.errors import EXIT_TERMINATED, ConfigError, Terminated
 from companion.io.atomic import atomic_dir, partial_path, prepare_output_dir, write_text_atomic
-from flightsim.score import ScoreConfig, _jsonable, mark, nees_stats
+from flightsim.score.config import ScoreConfig
+from flightsim.score.markdown import mark
+from flightsim.score.summary import _jsonable, nees_stats
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +110,7 @@ def _sitl_run(job: RunJob, run_dir: Path) -> Path:
 def run_one(job: RunJob) -> dict:
     """Fly, range and score one seed (in a worker process); never raises for a failed run."""
     from flightsim.scenario import load_scenario
-    from flightsim.score_io import score_run, write_score
+    from flightsim.score.files import score_run, write_score
 
     run_dir = Path(job.run_dir)
     if run_dir.exists():  # a previous campaign's run of this seed: start clean (the directory belongs to the campaign)
@@ -195,7 +197,7 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
     """Pool the scored runs: summed cell counts and pooled rates, mean ± std of per-run rates, the
     targets on the pooled rates (and how many runs meet each), pooled range error, latency, NEES and
     time to the first valid range per obstacle name.  ``series``: seed → score_series arrays."""
-    from flightsim.score import error_table
+    from flightsim.score.summary import error_table
 
     ok = [r for r in results if r["status"] == "ok" and r.get("score")]
     scores = [r["score"] for r in ok]
@@ -381,7 +383,7 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     """
     from flightsim.report import write_report
     from flightsim.scenario import load_scenario, resolve_companion_config
-    from flightsim.score_io import load_series
+    from flightsim.score.files import load_series
 
     if not (isinstance(runs, int) and runs >= 1):
         raise ConfigError(f"--runs must be an integer >= 1, got {runs!r}")
@@ -410,7 +412,7 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
         raise ConfigError(f"--seed0 must be >= 0, got {base}")
     companion_config = resolve_companion_config(sc, companion_config)
     if companion_config is not None:
-        from flightsim.score_io import companion_score_params
+        from flightsim.score.files import companion_score_params
 
         companion_config = Path(companion_config).resolve()
         if not companion_config.is_file():
@@ -562,7 +564,7 @@ def _run_in_processes(jobs: list[RunJob], workers: int, run_fn: Callable[[RunJob
 
 def campaign_from_args(args) -> int:
     """``flightsim campaign`` (see flightsim/cli.py for the options)."""
-    from flightsim.score_io import load_score_config
+    from flightsim.score.files import load_score_config
 
     times = parse_times(args.times)
     cfg = load_score_config(args.score_config)

@@ -114,7 +114,7 @@ def run_jobs(jobs: list, scenario: Path, companion_config: Path | None, address:
                 for name, data in (res.pop("files_out", None) or {}).items():
                     (run_dir / name).write_bytes(data)
                 if res.get("score") and (run_dir / "score.json").is_file():  # name the driver's files, not the task's
-                    from flightsim.score_io import write_score
+                    from flightsim.score.files import write_score
 
                     write_score(run_dir, res["score"])
                 on_result(job, res)

@@ -196,8 +196,8 @@ def _world_for_names(scenario: str | None, run_dir: Path | None, rec: dict | Non
 
 def cmd_score(args) -> int:
     from companion.io.atomic import StagedFiles, prepare_output_dir
-    from flightsim.score import mark
-    from flightsim.score_io import load_score_config, score_run, stage_score
+    from flightsim.score.markdown import mark
+    from flightsim.score.files import load_score_config, score_run, stage_score
 
     run_dir = Path(args.dir) if args.dir else None
     if run_dir is not None and not run_dir.is_dir():
@@ -301,7 +301,7 @@ def main(argv=None) -> int:
                "  realtime  the simulator follows the wall clock; the companion runs on its own clock with TIMESYNC.\n\n"
                "output in --out: truth.npz, frames.csv, camera.toml, telemetry.tlog (sent), received.tlog (from the\n"
                "companion, stamped on arrival on the truth clock), companion.log, sitl.json, score.json/score.md when\n"
-               "flightsim/score.py is present, video.avi with --video.\n\n"
+               "flightsim/score/ is present, video.avi with --video.\n\n"
                "example:\n  flightsim sitl configs/scenarios/quad_approach.toml --out out/sitl\n"
                "  flightsim sitl configs/scenarios/quad_approach.toml --out out/sitl --attach   # you start the companion")
     q.add_argument("scenario", help="scenario TOML file")

@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from flightsim.score import REP_CLEAR, REP_RANGE, SECTOR_DEG, TRUTH_OBSTACLE, mark
+from flightsim.score.config import REP_CLEAR, REP_RANGE, SECTOR_DEG, TRUTH_OBSTACLE
+from flightsim.score.markdown import mark
 
 
 def _plt():
@@ -318,7 +319,7 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
          f"--mode {c['mode']} --fixed-processing-ms {c['fixed_processing_ms']:g}"
          + (f" --avoidance {c['avoidance']}" if c.get("avoidance") not in (None, "none") else "") + " --out DIR`.", "",
          "Definitions (cells, tolerance, false obstacle, dangerous clear, NEES, latency): the module docstring of "
-         "`flightsim/score.py`, repeated at the end of every run's score.md.", "",
+         "`flightsim/score/__init__.py`, repeated at the end of every run's score.md.", "",
          *_avoidance_lines(c),
          f"## Targets, pooled over runs (after a {c.get('score_config', {}).get('warmup_s', 0):g} s warm-up; "
          f"{a.get('warmup_messages_excluded', 0)} messages excluded)", "",

@@ -281,7 +281,7 @@ def test_flightsim_score_bad_files_exit_2(recording, bad, tmp_path, capsys, opti
 
 
 def test_flightsim_score_warns_of_a_truncated_ranges_tlog(recording, tmp_path, caplog):
-    from flightsim.score_io import read_ranges_tlog
+    from flightsim.score.files import read_ranges_tlog
 
     cut = tmp_path / "cut.tlog"
     cut.write_bytes((recording / "telemetry.tlog").read_bytes()[:-5])

@@ -20,10 +20,11 @@ import numpy as np
 import pytest
 
 from companion.camera_sources import (
-    ACK_PROCESSED, ACK_REJECTED, CLOCK_AUTOPILOT_BOOT, CLOCK_HOST_MONOTONIC, SIM_HEADER, CameraSourceConfig, Frame,
+    ACK_PROCESSED, ACK_REJECTED, CLOCK_AUTOPILOT_BOOT, CLOCK_HOST_MONOTONIC, CameraSourceConfig, Frame,
     OpenCVSource, RecordedSource, SimFrameServer, SimFrameSource, SourceError, check_gray, open_source,
     pack_sim_header, parse_camera_spec, read_frames_csv,
 )
+from companion.camera_sources.sim_transport import SIM_HEADER
 from companion.errors import ConfigError
 
 W, H = 160, 120

@@ -11,7 +11,7 @@ import pytest
 from companion.errors import ConfigError
 from flightsim import campaign as C
 from flightsim.cli import main as flightsim_main
-from flightsim.score import ScoreConfig
+from flightsim.score.config import ScoreConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 

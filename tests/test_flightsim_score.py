@@ -12,15 +12,20 @@ import pytest
 from companion.mavlink import messages as M
 from companion.mavlink.dialect import mavlink
 from companion.replay import TlogOut
-from flightsim import score as S
+from flightsim.score.config import ScoreConfig
+from flightsim.score.evaluation import evaluate
+from flightsim.score.inputs import RangeMessages, SectorTruth
+from flightsim.score.obstacles import group_obstacles, name_obstacles, world_namer
+from flightsim.score.stats import chi2_quantile, nees_band
+from flightsim.score.summary import error_table, summarize
 from flightsim.cli import main as flightsim_main
-from flightsim.score_io import load_score_config, load_series, read_ranges_tlog, read_truth_npz, score_run, write_score
+from flightsim.score.files import load_score_config, load_series, read_ranges_tlog, read_truth_npz, score_run, write_score
 
 ROOT = Path(__file__).resolve().parents[1]
 U = 65535
 MAX_CM, MIN_CM = 4000, 50
 CLEAR = MAX_CM + 1
-NOWARM = S.ScoreConfig(warmup_s=0.0)  # hand-built runs start scoring at once (the 2-s warm-up has its own test)
+NOWARM = ScoreConfig(warmup_s=0.0)  # hand-built runs start scoring at once (the 2-s warm-up has its own test)
 
 
 def truth_of(sector_rows, t0=1000.0, rate=10.0, sector_max_m=60.0, yaw=None, p_ned=None):
@@ -32,7 +37,7 @@ def truth_of(sector_rows, t0=1000.0, rate=10.0, sector_max_m=60.0, yaw=None, p_n
         for i, v in row.items():
             sec[f, i] = v
     t = t0 + np.arange(F) / rate
-    return S.SectorTruth(t, sec, np.zeros((F, 3)) if p_ned is None else p_ned, np.zeros(F) if yaw is None else yaw, sector_max_m)
+    return SectorTruth(t, sec, np.zeros((F, 3)) if p_ned is None else p_ned, np.zeros(F) if yaw is None else yaw, sector_max_m)
 
 
 def od(t, values: dict, time_usec=0):
@@ -46,7 +51,7 @@ def od(t, values: dict, time_usec=0):
 def four_messages():
     """Sector 0: obstacle 20 m; 1: nothing (inf); 2: obstacle 35 m; 3: 50 m (beyond max → clear cell)."""
     truth = truth_of([{0: 20.0, 1: np.inf, 2: 35.0, 3: 50.0}] * 10)
-    msgs = S.RangeMessages.build(od=[
+    msgs = RangeMessages.build(od=[
         od(1000.05, {0: 1900, 1: CLEAR, 2: CLEAR, 3: 3000}),  # valid, correct clear, DANGEROUS, false (50 − 30 > 10)
         od(1000.15, {0: 1000, 1: 1500, 2: 3400, 3: CLEAR}),  # too near, false (inf), valid, correct clear
         od(1000.25, {}),  # no claim
@@ -57,7 +62,7 @@ def four_messages():
 
 def test_cells_are_classified_as_defined():
     truth, msgs = four_messages()
-    s = S.summarize(S.evaluate(msgs, truth, NOWARM))
+    s = summarize(evaluate(msgs, truth, NOWARM))
     c, r = s["cells"], s["rates"]
     assert c["obstacle"] == 8 and c["clear"] == 8
     assert c["detections"] == 4 and c["valid_ranges"] == 2
@@ -82,38 +87,38 @@ def test_cells_are_classified_as_defined():
 
 def test_range_error_bins():
     truth, msgs = four_messages()
-    rows = S.summarize(S.evaluate(msgs, truth, NOWARM))["range_error"]["published_all_sectors"]
+    rows = summarize(evaluate(msgs, truth, NOWARM))["range_error"]["published_all_sectors"]
     assert [r["bin"] for r in rows] == ["0–10 m", "10–20 m", "20–40 m", "40+ m"]
     assert [r["n"] for r in rows] == [0, 0, 4, 0]
     b = rows[2]  # errors −1 (19 vs 20), −10, −1 (34 vs 35), +10
     assert b["bias_m"] == pytest.approx(-0.5) and b["mae_m"] == pytest.approx(5.5)
     assert b["mae_pct"] == pytest.approx(100 * np.mean([1 / 20, 10 / 20, 1 / 35, 10 / 20]))
-    rows = S.error_table([5.0, 15.0, 45.0], [5.5, 14.0, 49.0], (0.0, 10.0, 40.0))
+    rows = error_table([5.0, 15.0, 45.0], [5.5, 14.0, 49.0], (0.0, 10.0, 40.0))
     assert [r["n"] for r in rows] == [1, 1, 1] and rows[1]["bias_m"] == pytest.approx(-1.0) and rows[2]["hi_m"] is None
 
 
 def test_no_false_obstacle_and_no_dangerous_clear_meet_the_targets():
     truth = truth_of([{0: 20.0, 1: np.inf}] * 5)
-    msgs = S.RangeMessages.build(od=[od(1000.05 + 0.1 * k, {0: 1800, 1: CLEAR}) for k in range(5)])
-    s = S.summarize(S.evaluate(msgs, truth, NOWARM))
+    msgs = RangeMessages.build(od=[od(1000.05 + 0.1 * k, {0: 1800, 1: CLEAR}) for k in range(5)])
+    s = summarize(evaluate(msgs, truth, NOWARM))
     assert [t["met"] for t in s["targets"]] == [True, True, True, True, None, None]  # nothing near, nothing out of view
     assert s["rates"]["messages_without_false_obstacle"] == 1.0 and s["cells"]["valid_ranges"] == 5
 
 
 def test_truth_horizon_makes_near_horizon_ranges_unverifiable():
     truth = truth_of([{1: np.inf}] * 3, sector_max_m=40.0)  # "inf" = nothing within 40 m only
-    msgs = S.RangeMessages.build(od=[od(1000.05, {1: 3800}), od(1000.15, {1: 2000})])
-    ev = S.evaluate(msgs, truth, NOWARM)
-    s = S.summarize(ev)
+    msgs = RangeMessages.build(od=[od(1000.05, {1: 3800}), od(1000.15, {1: 2000})])
+    ev = evaluate(msgs, truth, NOWARM)
+    s = summarize(ev)
     # 38 m: the truth may be 40.1 m, within tolerance (8 m) → unverifiable; 20 m: false in any case
     assert s["cells"]["unverifiable_beyond_truth"] == 1 and s["cells"]["false_obstacles_clear_cells"] == 1
 
 
 def test_messages_without_truth_are_counted_not_scored():
     truth = truth_of([{0: 20.0}] * 3)  # frames at 1000.0, 1000.1, 1000.2
-    msgs = S.RangeMessages.build(od=[od(999.9, {0: 2000}), od(1000.05, {0: 2000}), od(1000.35, {0: 2000}),
+    msgs = RangeMessages.build(od=[od(999.9, {0: 2000}), od(1000.05, {0: 2000}), od(1000.35, {0: 2000}),
                                      od(1000.1, {0: 2000}, ) + (False,)])
-    s = S.summarize(S.evaluate(msgs, truth, S.ScoreConfig(truth_max_age_s=0.1, warmup_s=0.0)))
+    s = summarize(evaluate(msgs, truth, ScoreConfig(truth_max_age_s=0.1, warmup_s=0.0)))
     # before the first frame, 0.15 s after the last frame, and a message not in 72 × 5° BODY_FRD
     assert s["messages"]["obstacle_distance_scored"] == 1 and s["messages"]["without_truth"] == 2
     assert s["cells"]["obstacle"] == 1 and any("not in 72" in n for n in s["notes"])
@@ -122,8 +127,8 @@ def test_messages_without_truth_are_counted_not_scored():
 def test_truth_is_the_latest_frame_at_or_before_the_stamp():
     truth = truth_of([{0: 30.0}, {0: 20.0}, {0: 10.0}])
     assert list(truth.frame_at(np.array([1000.0, 1000.099, 1000.1, 1000.25, 1000.31]), 0.1)) == [0, 0, 1, 2, -1]
-    msgs = S.RangeMessages.build(od=[od(1000.199, {0: 2000}), od(1000.2, {0: 1000})])
-    ev = S.evaluate(msgs, truth, NOWARM)
+    msgs = RangeMessages.build(od=[od(1000.199, {0: 2000}), od(1000.2, {0: 1000})])
+    ev = evaluate(msgs, truth, NOWARM)
     assert list(ev.od_truth[:, 0]) == [20.0, 10.0]
 
 
@@ -140,8 +145,8 @@ def test_latency_maps_exposure_through_the_companions_boot_clock():
         od_rows.append(od(t_cap + L, {0: 2000}, usec))
         boot.append((t_cap + L + 0.0005, int(round((t_cap + L - boot0) * 1000))))  # DISTANCE_SENSOR send stamps
     od_rows.append(od(truth.t_s[-1], {}, 0))  # an all-unknown message without an exposure
-    ev = S.evaluate(S.RangeMessages.build(od=od_rows, boot=boot), truth, NOWARM)
-    s = S.summarize(ev)["latency"]
+    ev = evaluate(RangeMessages.build(od=od_rows, boot=boot), truth, NOWARM)
+    s = summarize(ev)["latency"]
     assert s["n"] == 20 and s["unmatched_exposures"] == 0
     assert s["p50_ms"] == pytest.approx(np.percentile(lat * 1000, 50), abs=1e-6)
     assert s["p99_ms"] == pytest.approx(np.percentile(lat * 1000, 99), abs=1e-6)
@@ -151,8 +156,8 @@ def test_latency_maps_exposure_through_the_companions_boot_clock():
 
 def test_latency_unknown_without_sending_times():
     truth = truth_of([{0: 20.0}] * 3)
-    ev = S.evaluate(S.RangeMessages.build(od=[od(1000.05, {0: 2000}, 10_000_000)]), truth, NOWARM)
-    s = S.summarize(ev)
+    ev = evaluate(RangeMessages.build(od=[od(1000.05, {0: 2000}, 10_000_000)]), truth, NOWARM)
+    s = summarize(ev)
     assert s["latency"]["n"] == 0 and any("time_boot_ms" in n for n in s["notes"])
 
 
@@ -184,8 +189,8 @@ def nees_campaign(noise_scale: float, n: int = 3000, seed: int = 7, delay_s: flo
         od_rows.append(od(t_send, {0: cm}, int(round((t_cap - boot0) * 1e6))))
         ds_rows.append((t_send, cm, MIN_CM, MAX_CM, cov, q))
         boot.append((t_send, int(round((t_send - boot0) * 1000))))
-    ev = S.evaluate(S.RangeMessages.build(od=od_rows, ds=ds_rows, boot=boot), truth, S.ScoreConfig(sigma_k=k, warmup_s=0.0))
-    return S.summarize(ev)
+    ev = evaluate(RangeMessages.build(od=od_rows, ds=ds_rows, boot=boot), truth, ScoreConfig(sigma_k=k, warmup_s=0.0))
+    return summarize(ev)
 
 
 def test_nees_is_one_for_correctly_scaled_noise():
@@ -218,21 +223,21 @@ def test_sigma_sources_and_clamped_values():
           (1000.15, 1900, MIN_CM, MAX_CM, 255, 2),  # saturated quality: σ unknown
           (1000.20, MAX_CM, MIN_CM, MAX_CM, 255, 50),  # clamped at max: not undone
           (1000.25, CLEAR, MIN_CM, MAX_CM, 255, 100)]  # "clear" while an obstacle is ahead
-    ev = S.evaluate(S.RangeMessages.build(ds=ds), truth, NOWARM)
+    ev = evaluate(RangeMessages.build(ds=ds), truth, NOWARM)
     assert ev.ds_sigma_m[0] == pytest.approx(0.1) and ev.ds_sigma_m[1] == pytest.approx(0.95)
     assert np.isnan(ev.ds_sigma_m[2:]).all() and list(ev.ds_sigma_source) == [1, 2, 0, 0, 0]
     assert ev.ds_estimate_m[1] == pytest.approx(19.0 + 2 * 0.95)
-    s = S.summarize(ev)
+    s = summarize(ev)
     assert s["distance_sensor"]["dangerous_clears"] == 1 and s["distance_sensor"]["ranges"] == 4
 
 
 def test_chi2_band_matches_scipy():
     stats = pytest.importorskip("scipy.stats")
     for n in (1, 2, 5, 30, 200, 3000, 100000):
-        lo, hi = S.nees_band(n, 0.95)
+        lo, hi = nees_band(n, 0.95)
         assert lo == pytest.approx(stats.chi2.ppf(0.025, n) / n, rel=1e-6)
         assert hi == pytest.approx(stats.chi2.ppf(0.975, n) / n, rel=1e-6)
-    assert S.chi2_quantile(0.5, 3) == pytest.approx(stats.chi2.ppf(0.5, 3), rel=1e-9)
+    assert chi2_quantile(0.5, 3) == pytest.approx(stats.chi2.ppf(0.5, 3), rel=1e-9)
 
 
 # ---------------------------------------------------------------------- obstacles ---------------
@@ -248,25 +253,25 @@ def approach_truth():
     R = euler_zyx_to_R(0.0, 0.0, 0.0)
     sec = np.stack([sector_truth(world, R, pi, None, 40.0) for pi in p])
     sec[:, 8:64] = np.nan  # a ±37.5° camera
-    return world, S.SectorTruth(1000.0 + 0.1 * np.arange(len(xs)), sec, p, np.zeros(len(xs)), 40.0)
+    return world, SectorTruth(1000.0 + 0.1 * np.arange(len(xs)), sec, p, np.zeros(len(xs)), 40.0)
 
 
 def test_obstacles_are_grouped_and_named(approach_truth):
     world, truth = approach_truth
-    labels, centroids, points = S.group_obstacles(truth)
-    names = S.name_obstacles(centroids, points, S.world_namer(world))
+    labels, centroids, points = group_obstacles(truth)
+    names = name_obstacles(centroids, points, world_namer(world))
     assert sorted(names) == ["building", "mast"]
     mast = names.index("mast")
     assert np.hypot(*(centroids[mast] - [40.0, 3.0])) < 1.5
     # every finite cell got a group, nothing else did
     assert np.array_equal(labels >= 0, np.isfinite(truth.sector_m))
-    assert S.name_obstacles(centroids, points, None)[0].startswith("obstacle 1 (N ")
+    assert name_obstacles(centroids, points, None)[0].startswith("obstacle 1 (N ")
 
 
 def test_time_to_first_valid_range(approach_truth):
     world, truth = approach_truth
-    labels, _, _ = S.group_obstacles(truth)
-    names = S.name_obstacles(*S.group_obstacles(truth)[1:], S.world_namer(world))
+    labels, _, _ = group_obstacles(truth)
+    names = name_obstacles(*group_obstacles(truth)[1:], world_namer(world))
     k_mast = names.index("mast")
     rows = []
     for f, t in enumerate(truth.t_s):
@@ -278,7 +283,7 @@ def test_time_to_first_valid_range(approach_truth):
             elif f >= 20:
                 vals[int(i)] = int(round(0.5 * T * 100))  # half the distance: a detection, not valid
         rows.append(od(t + 0.02, vals))
-    s = S.summarize(S.evaluate(S.RangeMessages.build(od=rows), truth, NOWARM, namer=S.world_namer(world)))
+    s = summarize(evaluate(RangeMessages.build(od=rows), truth, NOWARM, namer=world_namer(world)))
     o = next(x for x in s["obstacles"] if x["name"] == "mast")
     first_in = np.flatnonzero(np.any(labels == k_mast, axis=1) & np.any(truth.sector_m <= 40.0, axis=1))[0]
     assert o["in_range_at_s"] == pytest.approx(truth.t_s[first_in] + 0.02 - truth.t_s[0])
@@ -354,7 +359,7 @@ def test_bad_inputs_are_named(tmp_path):
     cfg.write_text("[score]\ntolerence_m = 1.0\n")
     with pytest.raises(ConfigError, match="unknown key"):
         load_score_config(cfg)
-    assert load_score_config(ROOT / "configs" / "score.toml") == S.ScoreConfig()
+    assert load_score_config(ROOT / "configs" / "score.toml") == ScoreConfig()
     # an empty tlog, or one that is not MAVLink, is bad input (exit 2), not a run without ranges
     (tmp_path / "empty.tlog").write_bytes(b"")
     with pytest.raises(ConfigError, match="empty"):
@@ -367,7 +372,7 @@ def test_bad_inputs_are_named(tmp_path):
     w.write(1000.0, mavlink.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3))
     w.close()
     msgs = read_ranges_tlog(tmp_path / "autopilot.tlog")
-    s = S.summarize(S.evaluate(msgs, truth_of([{0: 20.0}] * 3), NOWARM))
+    s = summarize(evaluate(msgs, truth_of([{0: 20.0}] * 3), NOWARM))
     assert s["cells"]["obstacle"] == 0 and s["targets"][0]["met"] is None
 
 
@@ -417,7 +422,7 @@ def test_end_to_end_fly_replay_score(flown_and_replayed, capsys):
         t_s, sec = z["t_s"], z["sector_m"]
     j = np.searchsorted(t_s, msgs.od_t[5], side="right") - 1
     i = int(np.flatnonzero(np.isfinite(sec[j]))[0])
-    ev = S.evaluate(msgs, read_truth_npz(run / "truth.npz"))
+    ev = evaluate(msgs, read_truth_npz(run / "truth.npz"))
     assert ev.od_truth[5, i] == sec[j, i]
     # missing inputs: exit 2 naming them
     assert flightsim_main(["score", str(run / "nope")]) == 2

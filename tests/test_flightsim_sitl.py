@@ -148,7 +148,7 @@ def test_published_ranges_agree_with_truth(lockstep_runs):
     assert over / n <= 0.10
     assert err and np.median(np.abs(err)) < 10.0
     score = s["score"]
-    if score is not None:  # flightsim/score.py present: its verdict within loose bounds
+    if score is not None:  # flightsim/score/ present: its verdict within loose bounds
         msgs = score["messages"]  # every message is scored or falls in the scorer's 2 s warm-up
         assert msgs["obstacle_distance_scored"] + msgs["in_warmup"] == s["messages_received"]["OBSTACLE_DISTANCE"]
         assert msgs["obstacle_distance_scored"] > 0

@@ -26,7 +26,8 @@ from companion.cli import main
 from companion.errors import ConfigError
 from companion.io.config_files import CompanionConfig
 from companion.mavlink.guard import BootClockGuard, RequestBudget, SourceTable
-from companion.mavlink.link import LinkConfig, MavLink
+from companion.mavlink.config import LinkConfig
+from companion.mavlink.link import MavLink
 from companion.mavlink.signing import load_signing_key
 from companion.pipeline import PipelineConfig, Reporter
 from companion.telemetry import TelemetryBuffer, TelemetryConfig
@@ -122,7 +123,7 @@ def test_without_require_signing_unsigned_input_is_accepted_but_wrong_signatures
     assert hbs and all(m.get_msgbuf()[2] & mavlink.MAVLINK_IFLAG_SIGNED for m in hbs)  # we still sign
     wrong = mavlink.MAVLink(None, srcSystem=VEHICLE_SYSID, srcComponent=1)
     wrong.signing.secret_key, wrong.signing.sign_outgoing, wrong.signing.link_id = b"\x77" * 32, True, 9
-    wrong.signing.timestamp = link._conn.mav.signing.timestamp + 100  # current (else: rejected as "stale")
+    wrong.signing.timestamp = link.transport.conn.mav.signing.timestamp + 100  # current (else: rejected as "stale")
     vehicle.conn.write(bytes(mavlink.MAVLink_attitude_message(vehicle.boot_ms(clock.t) + 3, 1, 1, 1, 0, 0, 0).pack(wrong)))
     run(link, vehicle, clock, 0.01)
     assert link.status().counters["signing.bad_signature"] == 1

@@ -17,7 +17,10 @@ import pytest
 from companion.mavlink.dialect import COMP_ID_OBSTACLE_AVOIDANCE, UINT16_MAX, mavlink, mavutil  # noqa: I001 (first)
 from companion.errors import ConfigError
 from companion.mavlink import messages as M
-from companion.mavlink.link import LinkConfig, MavLink, StreamState, load_signing_key
+from companion.mavlink.config import LinkConfig
+from companion.mavlink.link import MavLink
+from companion.mavlink.signing import load_signing_key
+from companion.mavlink.streams import StreamState
 from companion.mavlink.timesync import NS
 
 DT = 0.005
@@ -798,7 +801,7 @@ def test_udpin_sends_only_to_addresses_that_spoke_valid_mavlink_of_the_vehicle(p
         for s in strangers:  # none of them receives our traffic
             with pytest.raises(BlockingIOError):
                 s.recv(4096)
-        assert {port for _, port in link._conn.clients} == {vehicle.conn.port.getsockname()[1]}
+        assert {port for _, port in link.transport.conn.clients} == {vehicle.conn.port.getsockname()[1]}
         n = len(vehicle.received("HEARTBEAT"))
         run(link, vehicle, clock, 1.0)
         assert len(vehicle.received("HEARTBEAT")) > n  # the vehicle still does
@@ -806,7 +809,7 @@ def test_udpin_sends_only_to_addresses_that_spoke_valid_mavlink_of_the_vehicle(p
         for s in strangers:
             s.sendto(bytes(mavlink.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3).pack(_spoofer(vehicle))), ("127.0.0.1", port))
         run(link, vehicle, clock, 0.1)
-        assert len(link._conn.clients) == 2 and link.counters["udp_peers_evicted"] >= 4
+        assert len(link.transport.conn.clients) == 2 and link.counters["udp_peers_evicted"] >= 4
     finally:
         for s in strangers:
             s.close()

@@ -24,8 +24,10 @@ from companion.cli import main
 from companion.core.sectors import SectorState
 from companion.errors import ConfigError
 from companion.mavlink import messages as M
-from companion.monitor import (DecodeError, MonitorConfig, MonitorState, Reader, bin_sectors, decode_distance_sensor,
-                               decode_obstacle_distance, render_text)
+from companion.monitor.decode import DecodeError, bin_sectors, decode_distance_sensor, decode_obstacle_distance
+from companion.monitor.runner import Reader
+from companion.monitor.state import MonitorConfig, MonitorState
+from companion.monitor.view import render_text
 
 ROOT = Path(__file__).resolve().parents[1]
 SYS, COMP = 7, 196

@@ -9,14 +9,18 @@ import numpy as np
 import pytest
 
 from flightsim import campaign as C
-from flightsim import score as S
+from flightsim.score.config import ScoreConfig
+from flightsim.score.evaluation import evaluate
+from flightsim.score.inputs import RangeMessages, SectorTruth
+from flightsim.score.markdown import markdown
+from flightsim.score.summary import summarize
 from flightsim.fly import save_npz_deterministic
-from flightsim.score_io import read_truth_npz, write_score
+from flightsim.score.files import read_truth_npz, write_score
 
 U = 65535
 MAX_CM, MIN_CM = 4000, 50
 CLEAR = MAX_CM + 1
-NOWARM = S.ScoreConfig(warmup_s=0.0)
+NOWARM = ScoreConfig(warmup_s=0.0)
 FRONT = np.r_[np.arange(0, 8), np.arange(64, 72)]  # a ±37.5° camera: sectors −40°…+35°
 
 
@@ -44,18 +48,18 @@ def turn_truth(n_before=5, n_after=5, rate=10.0, dist=20.0, p_after=None):
     obst = np.array([dist, 0.0])
     sec[n_before:, 36] = np.hypot(*(obst - p[n_before:, :2]).T)
     t = 1000.0 + np.arange(F) / rate
-    return S.SectorTruth(t, sec, p, yaw, 60.0, view)
+    return SectorTruth(t, sec, p, yaw, 60.0, view)
 
 
 def msgs_after_turn(truth, n_before, value_behind, value_front=2000):
     rows = []
     for f, t in enumerate(truth.t_s):
         rows.append(od(t + 0.02, {0: value_front} if f < n_before else {36: value_behind}))
-    return S.RangeMessages.build(od=rows)
+    return RangeMessages.build(od=rows)
 
 
 def score(truth, msgs, cfg=NOWARM):
-    return S.summarize(S.evaluate(msgs, truth, cfg))
+    return summarize(evaluate(msgs, truth, cfg))
 
 
 # ---------------------------------------------------------------------- out of view --------------
@@ -81,7 +85,7 @@ def test_clear_behind_on_an_obstacle_is_dangerous():
     msgs = msgs_after_turn(truth, 5, U)
     rows = list(zip(msgs.od_t, msgs.od_time_usec, msgs.od_distances_cm, msgs.od_min_cm, msgs.od_max_cm))
     rows[7] = od(truth.t_s[7] + 0.02, {36: CLEAR})  # one message says "clear" behind, where the obstacle stands
-    s = score(truth, S.RangeMessages.build(od=rows))
+    s = score(truth, RangeMessages.build(od=rows))
     assert s["cells_out_of_view"]["dangerous_clears"] == 1 and s["cells_out_of_view"]["obstacle"] == 1
     assert s["cells"]["dangerous_clears"] == 1 and s["cells"]["obstacle"] == 6  # 5 in view + the claimed one
     assert s["rates"]["dangerous_clear"] == pytest.approx(1 / 6)
@@ -95,7 +99,7 @@ def test_unknown_out_of_view_changes_nothing():
     msgs = msgs_after_turn(truth, 5, U)  # nothing published behind
     s = score(truth, msgs)
     # the same messages against an old truth that knows only the sectors in view
-    old = S.SectorTruth(truth.t_s, np.where(truth.in_view, truth.sector_m, np.nan), truth.p_ned, truth.yaw, 60.0)
+    old = SectorTruth(truth.t_s, np.where(truth.in_view, truth.sector_m, np.nan), truth.p_ned, truth.yaw, 60.0)
     s_old = score(old, msgs)
     assert s["cells"] == s_old["cells"] == s["cells_in_view"]
     assert {k: v for k, v in s["rates"].items()} == s_old["rates"]
@@ -110,7 +114,7 @@ def test_unknown_out_of_view_changes_nothing():
 def test_false_obstacle_out_of_view_counts_against_the_message():
     truth = turn_truth()
     rows = [od(t + 0.02, {0: 2000, 20: 500} if f == 2 else {0: 2000}) for f, t in enumerate(truth.t_s[:5])]
-    s = score(truth, S.RangeMessages.build(od=rows))  # sector 20 (100°, out of view) is clear: 5 m there is false
+    s = score(truth, RangeMessages.build(od=rows))  # sector 20 (100°, out of view) is clear: 5 m there is false
     assert s["cells_out_of_view"]["false_obstacles_clear_cells"] == 1 and s["cells_out_of_view"]["clear"] == 1
     assert s["cells"]["false_obstacles_clear_cells"] == 1
     assert s["cells"]["messages_without_false_obstacle"] == 4 and s["cells"]["messages_eligible_no_false"] == 5
@@ -129,17 +133,17 @@ def test_false_obstacle_beside_an_obstacle_is_told_apart_from_a_phantom():
             rows.append(od(t + 0.02, {36: 2000, 38: 1000}))  # 10 m two sectors off: a phantom (range does not match)
         else:
             rows.append(od(t + 0.02, {36: 2000, 40: 2000}))  # the right range four sectors off: beyond 2 sectors
-    s = score(truth, S.RangeMessages.build(od=rows))
+    s = score(truth, RangeMessages.build(od=rows))
     fb = s["false_obstacles_beside_obstacle"]
     assert fb["out_of_view_total"] == 1 + 1 + 3 and fb["out_of_view"] == 1
     assert fb["in_view"] == 0 and fb["in_view_total"] == 0 and fb["sectors"] == 2
-    wide = score(truth, S.RangeMessages.build(od=rows), S.ScoreConfig(warmup_s=0.0, beside_sectors=4))
+    wide = score(truth, RangeMessages.build(od=rows), ScoreConfig(warmup_s=0.0, beside_sectors=4))
     assert wide["false_obstacles_beside_obstacle"]["out_of_view"] == 1 + 3
-    off = score(truth, S.RangeMessages.build(od=rows), S.ScoreConfig(warmup_s=0.0, beside_sectors=0))
+    off = score(truth, RangeMessages.build(od=rows), ScoreConfig(warmup_s=0.0, beside_sectors=0))
     assert off["false_obstacles_beside_obstacle"]["out_of_view"] == 0
     assert s["cells"]["false_obstacles_clear_cells"] == 5  # the diagnostic never changes the score
     with pytest.raises(Exception, match="beside_sectors"):
-        S.ScoreConfig(beside_sectors=-1)
+        ScoreConfig(beside_sectors=-1)
 
 
 def test_remembered_only_within_the_window_and_the_travel():
@@ -163,12 +167,12 @@ def test_detection_by_true_range_bins_are_exact():
     F = 4
     sec = np.full((F, 72), np.inf)
     sec[:, :7] = dists
-    truth = S.SectorTruth(1000.0 + np.arange(F) / 10, sec, np.zeros((F, 3)), np.zeros(F), 60.0, np.ones((F, 72), bool))
+    truth = SectorTruth(1000.0 + np.arange(F) / 10, sec, np.zeros((F, 3)), np.zeros(F), 60.0, np.ones((F, 72), bool))
     rows = []
     for f, t in enumerate(truth.t_s):
         vals = {0: 300, 1: 500 if f < 2 else U, 2: 1500, 3: 1500, 4: CLEAR if f == 0 else 2500, 5: U, 6: 3900}
         rows.append(od(t + 0.01, vals))  # sector 2: 15 m for a 7-m obstacle = over range; sector 3: exact
-    s = score(truth, S.RangeMessages.build(od=rows))
+    s = score(truth, RangeMessages.build(od=rows))
     b = {r["bin"]: r for r in s["detection_by_range"]["in_view"]}
     assert list(b) == ["0–5 m", "5–10 m", "10–20 m", "20–30 m", "30–40 m", "40+ m"]
     assert (b["0–5 m"]["obstacle_cells"], b["0–5 m"]["valid"]) == (4, 4)
@@ -188,14 +192,14 @@ def test_warmup_cells_are_not_scored():
     F = 30  # 3 s at 10 Hz
     sec = np.full((F, 72), np.inf)
     sec[:, 0] = 20.0
-    truth = S.SectorTruth(1000.0 + np.arange(F) / 10, sec, np.zeros((F, 3)), np.zeros(F), 60.0, np.ones((F, 72), bool))
+    truth = SectorTruth(1000.0 + np.arange(F) / 10, sec, np.zeros((F, 3)), np.zeros(F), 60.0, np.ones((F, 72), bool))
     rows = [od(t + 0.01, {0: CLEAR} if f < 20 else {0: 2000}) for f, t in enumerate(truth.t_s)]  # dangerous only in the warm-up
-    s = score(truth, S.RangeMessages.build(od=rows), S.ScoreConfig())
+    s = score(truth, RangeMessages.build(od=rows), ScoreConfig())
     assert s["config"]["warmup_s"] == 2.0 and s["warmup"]["messages_excluded"] == 20
     assert s["messages"]["obstacle_distance_scored"] == 10 and s["cells"]["obstacle"] == 10
     assert s["cells"]["dangerous_clears"] == 0 and s["cells"]["valid_ranges"] == 10
     assert s["first_claim_at_s"] == pytest.approx(0.01)  # the first claim counts from the start, warm-up included
-    s0 = score(truth, S.RangeMessages.build(od=rows), NOWARM)
+    s0 = score(truth, RangeMessages.build(od=rows), NOWARM)
     assert s0["cells"]["dangerous_clears"] == 20 and s0["cells"]["obstacle"] == 30
 
 
@@ -210,7 +214,7 @@ def test_truth_npz_new_keys_and_old_files(tmp_path):
     assert old.in_view is None and np.isnan(old.sector_m[:, 36]).all() and np.array_equal(old.view, truth.in_view)
     assert np.array_equal(new.in_view, truth.in_view) and np.array_equal(new.sector_m, truth.sector_m)
     with pytest.raises(Exception, match="in_view must be"):
-        S.SectorTruth(truth.t_s, truth.sector_m, truth.p_ned, truth.yaw, 60.0, np.ones((10, 71), bool))
+        SectorTruth(truth.t_s, truth.sector_m, truth.p_ned, truth.yaw, 60.0, np.ones((10, 71), bool))
 
 
 def test_score_md_and_json_carry_the_new_figures(tmp_path):
@@ -222,7 +226,7 @@ def test_score_md_and_json_carry_the_new_figures(tmp_path):
     assert "Remembered obstacles out of view" in md and "| in view | out of view | all scored |" in md
     line = next(x for x in md.splitlines() if x.startswith("| remembered obstacles out of view"))
     assert line.endswith("| ✓ |")
-    assert S.markdown(score(truth, msgs_after_turn(truth, 5, 1950), S.ScoreConfig())).count("Warm-up: cells of the first 2 s") == 1
+    assert markdown(score(truth, msgs_after_turn(truth, 5, 1950), ScoreConfig())).count("Warm-up: cells of the first 2 s") == 1
 
 
 def test_campaign_pools_bins_remembered_and_targets():
@@ -260,11 +264,11 @@ def test_remembered_needs_the_cell_s_own_point_in_view_not_only_its_obstacle():
     # after turning left 90° (facing west) the wall north is at sectors 11…18: sector k is 90° − 5k° west of north
     for k in range(11, 19):
         sec[5:, k] = 10.0 / math.cos(math.radians(90.0 - 5.0 * k))  # one wall; only its part at sector 18 was in view
-    truth = S.SectorTruth(1000.0 + np.arange(F) / 10, sec, np.zeros((F, 3)), yaw, 60.0, view)
+    truth = SectorTruth(1000.0 + np.arange(F) / 10, sec, np.zeros((F, 3)), yaw, 60.0, view)
     rows = [od(t + 0.02, {0: 1000} if f < 5 else {18: 1000, 11: 1220}) for f, t in enumerate(truth.t_s)]
-    msgs = S.RangeMessages.build(od=rows)
-    ev = S.evaluate(msgs, truth, NOWARM)
+    msgs = RangeMessages.build(od=rows)
+    ev = evaluate(msgs, truth, NOWARM)
     assert ev.od_remember[5:, 18].all() and not ev.od_remember[5:, 11].any()
-    ev_group = S.evaluate(msgs, truth, S.ScoreConfig(warmup_s=0.0, remember_point=False))
+    ev_group = evaluate(msgs, truth, ScoreConfig(warmup_s=0.0, remember_point=False))
     assert ev_group.od_label[5, 11] == ev_group.od_label[5, 18]  # one obstacle to the grouping
     assert ev_group.od_remember[5:, 11].all()  # the obstacle-level rule counted the unseen part

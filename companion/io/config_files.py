@@ -28,7 +28,7 @@ from companion.core.prediction import PredictionConfig
 from companion.core.tracks import TrackConfig
 from companion.core.sectors import SectorConfig
 from companion.core.triangulation import TriangulationConfig
-from companion.mavlink.link import LinkConfig
+from companion.mavlink.config import LinkConfig
 from companion.mavlink.messages import OutputConfig
 from companion.pipeline import PipelineConfig
 from companion.telemetry import TelemetryConfig

@@ -3,8 +3,14 @@
 :class:`MavLink` is a thin, single-owner I/O shell around ``mavutil.mavlink_connection``
 (serial device with baud, ``udpin:``, ``udpout:``, ``tcp:``) that delegates every decision to pure
 pieces: :class:`~companion.telemetry.TelemetryBuffer` (telemetry history),
-:class:`~companion.mavlink.timesync.TimesyncEstimator` (clock mapping), :class:`StreamRequester`
-(which telemetry to ask for, how, and whether it arrives) and :class:`RateMeter`.
+:class:`~companion.mavlink.timesync.TimesyncEstimator` (clock mapping),
+:class:`~companion.mavlink.streams.StreamRequester` (which telemetry to ask for, how, and whether
+it arrives) and :class:`~companion.mavlink.streams.RateMeter`.  Below it,
+:class:`~companion.mavlink.transport.Connection` opens and reopens the pymavlink connection and
+moves the raw bytes; its settings are :class:`~companion.mavlink.config.LinkConfig` (``[link]``).
+This module holds the rest: the receive loop (:meth:`MavLink.poll`: parse, dispatch by message
+and source), the periodic duties (HEARTBEAT, link loss, TIMESYNC and stream requests), sending,
+and the status.
 
 What it does (docs/derivations/link.md; each item fixes a flaw of the wiki depth-camera script):
 
@@ -48,320 +54,29 @@ Threading: one internal lock serializes :meth:`poll`, :meth:`send` and the statu
 a pipeline thread may send while another polls (the wiki script shared state unlocked).
 """
 
+
 from __future__ import annotations
 
 import collections
 import dataclasses
-import enum
-import errno
 import logging
 import math
 import threading
 import time
 from typing import Any, Callable
 
-from companion.mavlink.dialect import mavlink, mavutil  # first: MAVLink 2 + ardupilotmega
-from companion.config import require, require_finite
+from companion.mavlink.dialect import mavlink  # first: MAVLink 2 + ardupilotmega
 from companion.errors import ConfigError
 from companion.mavlink import messages as msgs
-from companion.mavlink.guard import BootClockGuard, RequestBudget, SourceTable
+from companion.mavlink.config import LinkConfig
+from companion.mavlink.guard import BootClockGuard, SourceTable
 from companion.mavlink.signing import SigningPolicy, load_signing_key
-from companion.mavlink.timesync import TimesyncConfig, TimesyncEstimator, handle_timesync, timesync_request
+from companion.mavlink.streams import RateMeter, StreamRequester, StreamSpec
+from companion.mavlink.timesync import TimesyncEstimator, handle_timesync, timesync_request
+from companion.mavlink.transport import Connection, Disconnected, LogLimiter
 from companion.telemetry import AddResult, TelemetryBuffer
 
 log = logging.getLogger(__name__)
-
-
-# ---------------------------------------------------------------------- configuration ----------
-@dataclasses.dataclass(frozen=True)
-class LinkConfig:
-    """The ``[link]`` table (TIMESYNC settings in ``[link.timesync]``)."""
-
-    baud: int = 921600  # serial baud rate (ignored by udp/tcp connection strings)
-    system_id: int = 0  # own system id; 0 = use the vehicle's, learnt from its HEARTBEAT
-    provisional_system_id: int = 1  # system id of our HEARTBEAT until the vehicle's is known (udpout must talk first)
-    component_id: int = 196  # own component id (MAV_COMP_ID_OBSTACLE_AVOIDANCE)
-    autopilot_component_id: int = 1  # component whose HEARTBEAT identifies the vehicle (MAV_COMP_ID_AUTOPILOT1)
-    heartbeat_hz: float = 1.0  # own HEARTBEAT rate
-    attitude_hz: float = 50.0  # ATTITUDE rate requested
-    local_position_hz: float = 20.0  # LOCAL_POSITION_NED rate requested
-    global_position_hz: float = 5.0  # GLOBAL_POSITION_INT rate requested
-    command_timeout_s: float = 1.0  # wait this long for the COMMAND_ACK of SET_MESSAGE_INTERVAL
-    command_retries: int = 3  # SET_MESSAGE_INTERVAL attempts per stream before falling back to REQUEST_DATA_STREAM
-    rate_check_s: float = 2.5  # after an accepted request, the stream must reach its rate within this long
-    rate_window_s: float = 2.0  # arrival rates are measured over this window
-    min_rate_fraction: float = 0.5  # a stream below this fraction of its requested rate counts as not arriving
-    fallback_repeat_s: float = 5.0  # REQUEST_DATA_STREAM is repeated this often while a fallback stream is missing
-    link_timeout_s: float = 3.0  # no vehicle HEARTBEAT for this long = link lost
-    reconnect_interval_s: float = 2.0  # serial / tcp reopen attempts while the link is lost or broken
-    autopilot_system_id: int = 0  # system id of the autopilot to follow; 0 = the first vehicle HEARTBEAT's (then locked until restart)
-    signing_key_file: str = ""  # MAVLink 2 signing key file; "" = no signing (32 raw bytes, 64 hex digits, or a passphrase hashed with SHA-256 like MAVProxy)
-    require_signing: bool = False  # with a key: true = reject every unsigned packet; false = accept unsigned ones too (counted; wrongly signed are always rejected)
-    signing_link_id: int = 1  # link id written into our signatures (the ground-station output uses the next one)
-    max_signing_streams: int = 64  # signing timestamps remembered per (link id, system, component), oldest forgotten first
-    max_messages_per_poll: int = 2000  # bound on messages handled by one poll()
-    clock_jitter_s: float = 0.5  # time_boot_ms may go back, or run ahead of our clock, by this much and still be the autopilot's clock, s
-    clock_lock_messages: int = 3  # agreeing time_boot_ms stamps needed to lock onto the autopilot's clock at start
-    reboot_confirm_messages: int = 10  # stamps on a new clock needed before a reboot is declared ...
-    reboot_confirm_s: float = 0.5  # ... spanning this long, with the old clock silent this long, s
-    reboot_heartbeat_gap_s: float = 1.5  # a HEARTBEAT silence this long that ended after the old clock stopped confirms a reboot (else two message types must agree), s
-    reboot_min_interval_s: float = 5.0  # at most one declared reboot per this long, s
-    max_clock_candidates: int = 4  # time_boot_ms clocks other than the autopilot's tracked at once (for reboot detection)
-    stream_request_interval_s: float = 2.0  # SET_MESSAGE_INTERVAL / REQUEST_DATA_STREAM: at most one per this long on average ...
-    stream_request_burst: int = 5  # ... after a burst of at most this many (one per stream and data stream at start-up)
-    timesync_answer_max_hz: float = 20.0  # answers to the autopilot's TIMESYNC requests at most this often
-    max_sources: int = 32  # (system, component) sources counted in the per-source table; least recently heard evicted first
-    max_udp_peers: int = 4  # udpin: addresses we send to (those that sent valid MAVLink from the vehicle), least recently heard evicted first
-    max_events: int = 64  # state changes (for STATUSTEXT) held between two drains; older ones are dropped and counted
-    timesync: TimesyncConfig = dataclasses.field(default_factory=TimesyncConfig)  # [link.timesync]
-
-    def __post_init__(self) -> None:
-        def _int(name: str, lo: int, hi: int) -> None:
-            v = getattr(self, name)
-            require(isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi, f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
-
-        _int("baud", 1, 100_000_000)
-        _int("system_id", 0, 255)
-        _int("provisional_system_id", 1, 255)
-        _int("component_id", 1, 255)
-        _int("autopilot_component_id", 1, 255)
-        _int("command_retries", 1, 100)
-        _int("autopilot_system_id", 0, 255)
-        _int("signing_link_id", 0, 254)
-        _int("max_signing_streams", 1, 65536)
-        _int("max_messages_per_poll", 1, 1_000_000)
-        _int("clock_lock_messages", 1, 1000)
-        _int("reboot_confirm_messages", 2, 10000)
-        _int("max_clock_candidates", 1, 64)
-        _int("stream_request_burst", 1, 100)
-        _int("max_sources", 2, 65536)
-        _int("max_udp_peers", 1, 256)
-        _int("max_events", 1, 100_000)
-        for name in ("heartbeat_hz", "attitude_hz", "local_position_hz", "global_position_hz", "command_timeout_s",
-                     "rate_check_s", "rate_window_s", "fallback_repeat_s", "link_timeout_s", "reconnect_interval_s",
-                     "clock_jitter_s", "reboot_confirm_s", "reboot_heartbeat_gap_s", "reboot_min_interval_s",
-                     "stream_request_interval_s", "timesync_answer_max_hz"):
-            require_finite(name, getattr(self, name), positive=True)
-        require_finite("min_rate_fraction", self.min_rate_fraction, positive=True)
-        require(self.min_rate_fraction <= 1.0, "min_rate_fraction must be <= 1")
-        require(self.clock_jitter_s <= 10.0, f"clock_jitter_s must be <= 10 s, got {self.clock_jitter_s}")
-        require(self.reboot_min_interval_s >= self.reboot_confirm_s,
-                "reboot_min_interval_s must be >= reboot_confirm_s")
-        require(isinstance(self.signing_key_file, str), "signing_key_file must be a string")
-        require(isinstance(self.require_signing, bool), "require_signing must be true or false")
-        require(not self.require_signing or bool(self.signing_key_file.strip()),
-                "require_signing = true needs signing_key_file (a 32-byte key: raw, or 64 hex digits)")
-        require(isinstance(self.timesync, TimesyncConfig), "timesync must be a [link.timesync] table")
-
-
-# ---------------------------------------------------------------------- streams (pure) ---------
-@dataclasses.dataclass(frozen=True)
-class StreamSpec:
-    name: str  # MAVLink message name, e.g. "ATTITUDE"
-    msg_id: int
-    rate_hz: float
-    data_stream_id: int  # MAV_DATA_STREAM carrying it for REQUEST_DATA_STREAM
-
-
-class StreamState(str, enum.Enum):
-    IDLE = "idle"  # to be requested
-    WAIT_ACK = "wait_ack"  # SET_MESSAGE_INTERVAL sent
-    WAIT_RATE = "wait_rate"  # accepted; measuring the rate
-    OK = "ok"  # arriving at the requested rate
-    FALLBACK = "fallback"  # asked with REQUEST_DATA_STREAM
-
-
-class RateMeter:
-    """Arrival rates per message name over a sliding window (pure; caller's clock).
-
-    Bounded: at most ``max_names`` names (others are not measured) and ``max_per_name`` arrivals
-    per name in the window (rates above ``max_per_name / window_s`` read as that)."""
-
-    def __init__(self, window_s: float = 2.0, max_per_name: int = 4096, max_names: int = 16):
-        self.window_s = window_s
-        self.max_per_name = max_per_name
-        self.max_names = max_names
-        self._t: dict[str, collections.deque[float]] = {}
-
-    def tick(self, name: str, now: float) -> None:
-        q = self._t.get(name)
-        if q is None:
-            if len(self._t) >= self.max_names:
-                return
-            q = self._t[name] = collections.deque(maxlen=self.max_per_name)
-        q.append(now)
-        self._trim(q, now)
-
-    def _trim(self, q: collections.deque, now: float) -> None:
-        while q and (now - q[0] >= self.window_s or q[0] > now):
-            q.popleft()
-
-    def rate(self, name: str, now: float) -> float:
-        q = self._t.get(name)
-        if not q:
-            return 0.0
-        self._trim(q, now)
-        return len(q) / self.window_s
-
-    def rates(self, now: float) -> dict[str, float]:
-        return {k: self.rate(k, now) for k in list(self._t)}
-
-    def clear(self) -> None:
-        self._t.clear()
-
-
-@dataclasses.dataclass
-class _Stream:
-    spec: StreamSpec
-    state: StreamState = StreamState.IDLE
-    attempts: int = 0
-    sent_at: float = -math.inf
-    acked_at: float = -math.inf
-    fallback_at: float = -math.inf
-    confirmation: int = 0
-
-
-class StreamRequester:
-    """Decides the SET_MESSAGE_INTERVAL / REQUEST_DATA_STREAM traffic (pure; docs/derivations/link.md).
-
-    ``step(now)`` returns actions ``("interval", spec, confirmation)`` or ``("data_stream",
-    stream_id, rate_hz)``; ``on_ack(result, now)`` feeds the COMMAND_ACK of the one command in
-    flight.  ``events`` collects (severity, text) for STATUSTEXT.
-
-    Every action spends a token of a :class:`~companion.mavlink.guard.RequestBudget`
-    (``stream_request_burst`` at once, then one per ``stream_request_interval_s``): whatever
-    restarts the requests (reboots, link losses, dropouts) the autopilot never gets more than that.
-    An action without a token waits (``rate_limited`` counts the steps that held one back); a
-    waiting REQUEST_DATA_STREAM is kept once per data stream.
-    """
-
-    def __init__(self, specs: list[StreamSpec], config: LinkConfig, meter: RateMeter):
-        self.config = config
-        self.meter = meter
-        self._streams = {s.name: _Stream(s) for s in specs}
-        self._outstanding: str | None = None
-        self.counters: collections.Counter[str] = collections.Counter()
-        self.events: collections.deque[tuple[int, str]] = collections.deque(maxlen=32)
-        self._pending_actions: list = []  # REQUEST_DATA_STREAMs decided but not yet sent (at most one per data stream)
-        self.budget = RequestBudget(config.stream_request_interval_s, config.stream_request_burst)
-
-    def restart(self) -> None:
-        """Request everything again (link regained, autopilot rebooted)."""
-        for st in self._streams.values():
-            st.state, st.attempts, st.fallback_at = StreamState.IDLE, 0, -math.inf
-        self._outstanding = None
-        self.counters["restarts"] += 1
-
-    def state(self, name: str) -> StreamState:
-        return self._streams[name].state
-
-    def specs(self) -> list[StreamSpec]:
-        """The streams requested, with their rates (what ``companion check`` measures against)."""
-        return [st.spec for st in self._streams.values()]
-
-    def states(self) -> dict[str, str]:
-        return {k: v.state.value for k, v in self._streams.items()}
-
-    def _ok(self, st: _Stream, now: float) -> bool:
-        return self.meter.rate(st.spec.name, now) >= self.config.min_rate_fraction * st.spec.rate_hz
-
-    def _fallback(self, st: _Stream, now: float, why: str, actions: list) -> None:
-        st.state = StreamState.FALLBACK
-        st.fallback_at = now
-        self.counters["fallbacks"] += 1
-        self.events.append((mavlink.MAV_SEVERITY_WARNING, f"{st.spec.name}: {why}, using REQUEST_DATA_STREAM"))
-        log.warning("%s: %s; falling back to REQUEST_DATA_STREAM", st.spec.name, why)
-        actions.append(("data_stream", st.spec.data_stream_id, self._stream_rate(st.spec.data_stream_id)))
-
-    def _stream_rate(self, stream_id: int) -> float:
-        return max(s.spec.rate_hz for s in self._streams.values() if s.spec.data_stream_id == stream_id)
-
-    def on_ack(self, result: int, now: float) -> None:
-        name = self._outstanding
-        if name is None:
-            self.counters["unexpected_acks"] += 1
-            return
-        st = self._streams[name]
-        if result == mavlink.MAV_RESULT_IN_PROGRESS:
-            return
-        self._outstanding = None
-        if result == mavlink.MAV_RESULT_ACCEPTED:
-            st.state, st.acked_at = StreamState.WAIT_RATE, now
-            self.counters["accepted"] += 1
-            return
-        self.counters["refused"] += 1
-        if result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED and st.attempts + 1 < self.config.command_retries:
-            st.attempts += 1
-            st.state = StreamState.IDLE
-            return
-        self._fallback(st, now, f"SET_MESSAGE_INTERVAL refused ({result})", self._pending_actions)
-
-    def step(self, now: float) -> list:
-        cfg = self.config
-        actions: list = self._pending_actions  # REQUEST_DATA_STREAMs waiting for a token come first
-        self._pending_actions = []
-        if self._outstanding is not None:
-            st = self._streams[self._outstanding]
-            if now - st.sent_at >= cfg.command_timeout_s:
-                self._outstanding = None
-                st.attempts += 1
-                self.counters["ack_timeouts"] += 1
-                if st.attempts >= cfg.command_retries:
-                    self._fallback(st, now, "no COMMAND_ACK", actions)
-                else:
-                    st.state = StreamState.IDLE
-        repeat: set[int] = set()
-        for st in self._streams.values():
-            ok = self._ok(st, now)
-            if st.state == StreamState.WAIT_RATE and now - st.acked_at >= cfg.rate_check_s:
-                if ok:
-                    st.state = StreamState.OK
-                    st.attempts = 0
-                else:
-                    st.attempts += 1
-                    self.counters["rate_misses"] += 1
-                    rate = self.meter.rate(st.spec.name, now)
-                    if st.attempts >= cfg.command_retries:
-                        self._fallback(st, now, f"accepted but {rate:.1f} Hz", actions)
-                    else:
-                        st.state = StreamState.IDLE
-            elif st.state == StreamState.OK and not ok:
-                rate = self.meter.rate(st.spec.name, now)
-                self.counters["dropouts"] += 1
-                self.events.append((mavlink.MAV_SEVERITY_WARNING, f"{st.spec.name} at {rate:.1f} Hz, re-requesting"))
-                log.warning("%s dropped to %.1f Hz (requested %.1f): re-requesting", st.spec.name, rate, st.spec.rate_hz)
-                st.state, st.attempts = StreamState.IDLE, 0
-            elif st.state == StreamState.FALLBACK and not ok and now - st.fallback_at >= cfg.fallback_repeat_s:
-                st.fallback_at = now
-                repeat.add(st.spec.data_stream_id)
-        for sid in sorted(repeat):
-            self.counters["fallback_repeats"] += 1
-            actions.append(("data_stream", sid, self._stream_rate(sid)))
-        out: list = []
-        waiting: set[int] = set()
-        for a in actions:  # one REQUEST_DATA_STREAM per data stream; each needs a token
-            if a[1] in waiting or any(o[1] == a[1] for o in out):
-                continue
-            if self.budget.take(now):
-                out.append(a)
-            else:
-                waiting.add(a[1])
-                self._pending_actions.append(a)
-        if self._outstanding is None:
-            for st in self._streams.values():
-                if st.state == StreamState.IDLE:
-                    if not self.budget.take(now):
-                        waiting.add(-1)
-                        break
-                    st.state, st.sent_at = StreamState.WAIT_ACK, now
-                    st.confirmation = st.attempts
-                    self._outstanding = st.spec.name
-                    self.counters["interval_requests"] += 1
-                    out.append(("interval", st.spec, min(st.confirmation, 255)))
-                    break
-        if waiting:
-            self.counters["rate_limited"] += 1
-        return out
 
 
 # ---------------------------------------------------------------------- status -----------------
@@ -402,34 +117,6 @@ _TELEMETRY_FLOATS = {
 _CLOCK_WARNING_PERIOD_S = 10.0
 
 
-class _Disconnected(Exception):
-    pass
-
-
-def _default_factory(conn_str: str, baud: int, source_system: int, source_component: int):
-    # retries=0: one TCP connect attempt (pymavlink would otherwise sleep between retries inside poll)
-    return mavutil.mavlink_connection(conn_str, baud=baud, source_system=source_system,
-                                      source_component=source_component, autoreconnect=False, retries=0)
-
-
-class _LogLimiter:
-    """Log the first occurrence of a key at WARNING, then at most every ``period`` s with a count."""
-
-    def __init__(self, period: float = 10.0):
-        self.period = period
-        self._last: dict[str, float] = {}
-        self._suppressed: collections.Counter[str] = collections.Counter()
-
-    def warn(self, key: str, now: float, fmt: str, *args) -> None:
-        last = self._last.get(key)
-        if last is None or now - last >= self.period or now < last:
-            extra = self._suppressed.pop(key, 0)
-            self._last[key] = now
-            log.warning(fmt + (f" (+{extra} more since last report)" if extra else ""), *args)
-        else:
-            self._suppressed[key] += 1
-
-
 # ---------------------------------------------------------------------- the link ---------------
 class MavLink:
     """MAVLink connection of the companion (see module docstring).
@@ -455,7 +142,6 @@ class MavLink:
         self.config = config
         self.role = role
         self._clock = clock
-        self._factory = connection_factory or _default_factory
         self._boot_observer = boot_time_observer
         if clock_offset_s is not None and not (isinstance(clock_offset_s, (int, float)) and math.isfinite(clock_offset_s)):
             raise ConfigError(f"clock_offset_s must be a finite number, got {clock_offset_s!r}")
@@ -480,7 +166,7 @@ class MavLink:
             self.meter,
         )
         self._events: collections.deque[tuple[int, str]] = collections.deque(maxlen=config.max_events)
-        self._logs = _LogLimiter()
+        self._logs = LogLimiter(log)
         self._signing_key = load_signing_key(config.signing_key_file) if config.signing_key_file else None
         self.signing_policy = (SigningPolicy(self._signing_key, config.require_signing, config.max_signing_streams)
                                if self._signing_key is not None else None)
@@ -496,8 +182,6 @@ class MavLink:
             heartbeat_gap_s=config.reboot_heartbeat_gap_s, reboot_min_interval_s=config.reboot_min_interval_s,
             max_candidates=config.max_clock_candidates)
         self.sources = SourceTable(config.max_sources)
-        self._udp_peers: collections.OrderedDict[Any, float] = collections.OrderedDict()  # udpin: address -> last heard
-        self._rx_addr = None  # sender of the datagram being parsed (udpin)
         self._rx_trusted = False  # that datagram carried a message from the vehicle (or, before the lock, any valid one)
         self._ts_answers = msgs.RateLimiter(config.timesync_answer_max_hz)
         self._clock_warned = -math.inf
@@ -510,71 +194,23 @@ class MavLink:
         self._last_hb = -math.inf
         self._system_status = mavlink.MAV_STATE_STANDBY
         self._hb_limiter = msgs.RateLimiter(config.heartbeat_hz)
-        self._last_open_try = -math.inf
-        # serial and tcp are reopened while the vehicle is silent; a UDP socket only if it fails
-        self._reopenable = conn_str.startswith("tcp:") or ":" not in conn_str
         self._mavlink1_warned = False
         self.global_position = None  # last GLOBAL_POSITION_INT from the vehicle (message object)
         self.vehicle_heartbeat = None  # last HEARTBEAT of the vehicle's autopilot component (message object)
-        self.open_error = ""  # why the latest attempt to open the connection failed ("" after a success)
-        self._conn = None
+        self.transport = Connection(conn_str, config, self.counters, self._logs, clock, connection_factory,
+                                    signing_key=self._signing_key, signing_policy=self.signing_policy,
+                                    signing_link_id=self._signing_link_id)
         now = self._clock()
         self._open(now, first=True)
 
     # ------------------------------------------------------------------ connection -----------
     def _open(self, now: float, first: bool = False) -> bool:
-        self._last_open_try = now
-        src = self._sysid or self.config.provisional_system_id
-        try:
-            conn = self._factory(self.conn_str, self.config.baud, src, self.config.component_id)
-        except ImportError as exc:  # serial connections need pyserial: a setup error, not a flaky link
-            self.open_error = str(exc)
-            if first:
-                raise ConfigError(f"MAVLink connection {self.conn_str!r} needs a missing module: {exc} "
-                                  "(serial links need pyserial: pip install pyserial)") from None
-            conn = None
-            self.counters["open_failures"] += 1
-        except ValueError as exc:  # pymavlink's verdict on a malformed connection string
-            self.open_error = str(exc)
-            if first:
-                raise ConfigError(f"MAVLink connection {self.conn_str!r}: {exc}") from None
-            conn = None
-            self.counters["open_failures"] += 1
-            self._logs.warn("open", now, "cannot open %s: %s", self.conn_str, exc)
-        except Exception as exc:  # device missing, port busy, connection refused: try again later
-            self.open_error = str(exc)
-            conn = None
-            self.counters["open_failures"] += 1
-            self._logs.warn("open", now, "cannot open %s: %s (retrying every %.1f s)", self.conn_str, exc,
-                            self.config.reconnect_interval_s)
-        if conn is None:
-            return False
-        conn.mav.robust_parsing = True
-        conn.mav.srcSystem = src
-        conn.mav.srcComponent = self.config.component_id
-        if self.signing_policy is not None:
-            conn.setup_signing(self._signing_key, sign_outgoing=True, link_id=self._signing_link_id)
-            self.signing_policy.install(conn.mav)
-        self._conn = conn
-        self.open_error = ""
-        self._udp_peers.clear()
-        self._reopenable = isinstance(conn, (mavutil.mavserial, mavutil.mavtcp))
-        if not first:
-            self.counters["reconnects"] += 1
-            log.info("reopened %s", self.conn_str)
-        return True
+        return self.transport.open(now, self._sysid or self.config.provisional_system_id, first)
 
-    def _close_conn(self) -> None:
-        conn, self._conn = self._conn, None
-        if conn is not None:
-            try:
-                conn.close()
-            except Exception:  # already broken: nothing to do
-                pass
-
+    # ------------------------------------------------------------------ connection -----------
     def close(self) -> None:
         with self._lock:
-            self._close_conn()
+            self.transport.close()
 
     def __enter__(self):
         return self
@@ -582,101 +218,20 @@ class MavLink:
     def __exit__(self, *exc):
         self.close()
 
-    def _transport_error(self, now: float, why: str) -> None:
-        self.counters["transport_errors"] += 1
-        self._logs.warn("transport", now, "%s: %s", self.conn_str, why)
-        self._close_conn()  # reopened by _service every reconnect_interval_s
-
-    # ------------------------------------------------------------------ reading --------------
-    def _read_bytes(self) -> bytes:
-        conn = self._conn
-        if isinstance(conn, mavutil.mavtcp):
-            if conn.port is None:
-                raise _Disconnected("socket closed")
-            try:
-                data = conn.port.recv(4096)
-            except (BlockingIOError, InterruptedError):
-                return b""
-            except OSError as exc:
-                raise _Disconnected(str(exc)) from None
-            if not data:
-                raise _Disconnected("connection closed by peer")
-            return data
-        if isinstance(conn, mavutil.mavserial):
-            try:
-                return bytes(conn.port.read(4096))
-            except Exception as exc:  # serial.SerialException when the device vanishes
-                raise _Disconnected(str(exc)) from None
-        self._rx_addr = None
-        try:
-            if isinstance(conn, mavutil.mavudp) and conn.udp_server:
-                # read the socket ourselves: pymavlink's recv() would add every sender to the set of
-                # addresses it sends to (unbounded, and random bytes from anyone would redirect our traffic);
-                # a sender becomes a peer only through _register_peer
-                data, self._rx_addr = conn.port.recvfrom(65535)
-            else:
-                data = conn.recv(4096)
-        except OSError as exc:
-            if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
-                return b""
-            raise _Disconnected(str(exc)) from None
-        return bytes(data) if data else b""
-
-    def _register_peer(self, addr, now: float) -> None:
-        """udpin: ``addr`` sent valid MAVLink from the vehicle: send to it (at most ``max_udp_peers``)."""
-        conn = self._conn
-        if addr is None or not (isinstance(conn, mavutil.mavudp) and conn.udp_server):
-            return
-        peers = self._udp_peers
-        if addr in peers:
-            peers.move_to_end(addr)
-        peers[addr] = now
-        conn.clients.add(addr)
-        conn.clients_last_alive[addr] = time.time()
-        while len(peers) > self.config.max_udp_peers:
-            old, _ = peers.popitem(last=False)
-            conn.clients.discard(old)
-            conn.clients_last_alive.pop(old, None)
-            self.counters["udp_peers_evicted"] += 1
-
-    def _reset_parser(self) -> None:
-        mav = self._conn.mav
-        mav.buf = bytearray()
-        mav.buf_index = 0
-        mav.expected_length = mavlink.HEADER_LEN_V1 + 2
-
-    def _parse(self, data: bytes, datagram: bool) -> list:
-        mav = self._conn.mav
-        if datagram and mav.buf_len() > 0:
-            # a packet cut short in the previous datagram: MAVLink over UDP never spans datagrams
-            self.counters["rx_truncated"] += 1
-            self._reset_parser()
-        try:
-            out = mav.parse_buffer(data) or []
-        except Exception as exc:  # robust_parsing turns errors into BAD_DATA; anything else is a parser bug
-            self.counters["rx_parser_errors"] += 1
-            self._logs.warn("parser", self._clock(), "MAVLink parser error: %r", exc)
-            self._reset_parser()
-            return []
-        if datagram and mav.buf_len() > 0:
-            self.counters["rx_truncated"] += 1
-            self._reset_parser()
-        return out
-
     def poll(self) -> int:
         """Read and handle everything available, then run the periodic duties; never blocks or raises
         on wire input.  Returns the number of messages handled."""
         with self._lock:
             now = self._clock()
             handled = 0
-            datagram = isinstance(self._conn, mavutil.mavudp) or bool(getattr(self._conn, "mavlink_datagrams", False))
+            datagram = self.transport.datagram
             for _ in range(self.config.max_messages_per_poll):
-                if self._conn is None:
+                if self.transport.conn is None:
                     break
                 try:
-                    data = self._read_bytes()
-                except _Disconnected as exc:
-                    self._transport_error(now, str(exc))
+                    data = self.transport.read()
+                except Disconnected as exc:
+                    self.transport.fail(now, str(exc))
                     break
                 except Exception as exc:  # pragma: no cover - defensive
                     self.counters["rx_errors"] += 1
@@ -685,8 +240,8 @@ class MavLink:
                 if not data:
                     break
                 self.counters["rx_bytes"] += len(data)
-                addr, self._rx_trusted = self._rx_addr, False
-                for m in self._parse(data, datagram):
+                addr, self._rx_trusted = self.transport.rx_addr, False
+                for m in self.transport.parse(data, datagram):
                     handled += 1
                     try:
                         self._dispatch(m, now)
@@ -694,7 +249,7 @@ class MavLink:
                         self.counters["rx_handler_errors"] += 1
                         self._logs.warn("handler", now, "error handling %s: %r", getattr(m, "get_type", lambda: "?")(), exc)
                 if self._rx_trusted and addr is not None:
-                    self._register_peer(addr, now)
+                    self.transport.register_peer(addr, now)
                 if handled >= self.config.max_messages_per_poll:
                     self.counters["poll_budget_exhausted"] += 1
                     break
@@ -857,8 +412,7 @@ class MavLink:
                      "(from [link] autopilot_system_id)" if self.config.autopilot_system_id else "learnt from its HEARTBEAT")
         if self._sysid is None:
             self._sysid = src
-            if self._conn is not None:
-                self._conn.mav.srcSystem = src
+            self.transport.set_source_system(src)
             self._hb_limiter.reset()  # announce ourselves under the vehicle's system id now, not a period later
         self._rx_trusted = True
         self.guard.heartbeat(now)
@@ -885,11 +439,11 @@ class MavLink:
             self.counters["link_lost"] += 1
             self._event(mavlink.MAV_SEVERITY_WARNING, f"No heartbeat for {cfg.link_timeout_s:.0f}s: link lost")
             log.warning("%s: no HEARTBEAT for %.1f s, link lost", self.conn_str, cfg.link_timeout_s)
-        need_open = self._conn is None or (self._reopenable and self._ever_connected and not self._connected)
-        if need_open and now - self._last_open_try >= cfg.reconnect_interval_s:
-            self._close_conn()
+        need_open = self.transport.conn is None or (self.transport.reopenable and self._ever_connected and not self._connected)
+        if need_open and now - self.transport.last_open_try >= cfg.reconnect_interval_s:
+            self.transport.close()
             self._open(now)
-        if self._conn is None:
+        if self.transport.conn is None:
             return
         if self._hb_limiter.ready(now):
             self._send(msgs.heartbeat(self._system_status))
@@ -919,29 +473,9 @@ class MavLink:
         if len(self._events) == self._events.maxlen:
             self.counters["events_dropped"] += 1  # the oldest goes: nobody drained for a long time
         self._events.append((severity, text))
-
     # ------------------------------------------------------------------ sending --------------
-    def _write(self, buf: bytes) -> None:
-        conn = self._conn
-        if isinstance(conn, mavutil.mavtcp):
-            if conn.port is None:
-                raise _Disconnected("socket closed")
-            try:
-                conn.port.sendall(buf)
-            except (BlockingIOError, InterruptedError):
-                self.counters["tx_dropped_busy"] += 1
-            except OSError as exc:
-                raise _Disconnected(str(exc)) from None
-        elif isinstance(conn, mavutil.mavserial):
-            try:
-                conn.port.write(buf)
-            except Exception as exc:
-                raise _Disconnected(str(exc)) from None
-        else:
-            conn.write(buf)
-
     def _send(self, msg) -> bool:
-        conn = self._conn
+        conn = self.transport.conn
         if conn is None:
             self.counters["tx_dropped_no_link"] += 1
             return False
@@ -953,9 +487,9 @@ class MavLink:
             return False
         conn.mav.seq = (conn.mav.seq + 1) % 256
         try:
-            self._write(bytes(buf))
-        except _Disconnected as exc:
-            self._transport_error(self._clock(), str(exc))
+            self.transport.write(bytes(buf))
+        except Disconnected as exc:
+            self.transport.fail(self._clock(), str(exc))
             return False
         except Exception as exc:  # pragma: no cover - defensive
             self.counters["tx_errors"] += 1
@@ -999,8 +533,7 @@ class MavLink:
             if not (isinstance(sysid, int) and 1 <= sysid <= 255):
                 raise ConfigError(f"system id must be in 1..255, got {sysid!r}")
             self._sysid = sysid
-            if self._conn is not None:
-                self._conn.mav.srcSystem = sysid
+            self.transport.set_source_system(sysid)
 
     def drain_events(self) -> list[tuple[int, str]]:
         """State changes since the last call, as (MAV_SEVERITY, text ≤ 50 chars) for STATUSTEXT."""
@@ -1027,7 +560,12 @@ class MavLink:
     @property
     def is_open(self) -> bool:
         """The connection (serial device, socket) is open now; :attr:`open_error` says why not."""
-        return self._conn is not None
+        return self.transport.conn is not None
+
+    @property
+    def open_error(self) -> str:
+        """Why the latest attempt to open the connection failed ("" after a success)."""
+        return self.transport.open_error
 
     @property
     def system_status(self) -> int:

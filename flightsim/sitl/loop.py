@@ -1,25 +1,11 @@
-"""Software-in-the-loop run: the simulator plays the autopilot and the camera to a live companion.
+"""One SITL run (:class:`Run`): the simulator's side of the sockets, stepped under one of two clocks.
 
-``flightsim sitl configs/scenarios/X.toml --out DIR`` (:func:`run_sitl`) flies the scenario with
-the same per-step loop as ``flightsim fly`` (:class:`flightsim.fly.Flight`) and, instead of
-writing the autopilot's messages to a file, speaks them over real sockets on 127.0.0.1:
-
-* MAVLink 2 over UDP (:mod:`flightsim.autopilot`): the simulator binds ``127.0.0.1:PORT`` (14550
-  on the command line, like ArduPilot SITL's ground-station port; a free port from the API) and
-  the companion connects with ``udpout:127.0.0.1:PORT``.  HEARTBEAT 1 Hz as system
-  ``[telemetry] system_id`` component 1, the streams the companion asks for at the rates it asks
-  (SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM), TIMESYNC answers, ``time_boot_ms`` on the
-  vehicle's own boot clock, with the telemetry model's noise, drift and latency;
-* camera frames through the simulator frame transport (:class:`companion.camera_sources.SimFrameServer`,
-  ``sim://127.0.0.1:PORT``), each stamped with its capture (mid-exposure) time on the autopilot
-  boot clock (clock 1).  A frame leaves once the ATTITUDE sample that brackets its exposure has
-  been sent (at least ``frame_latency_s``, at most ``frame_wait_max_s`` after capture) — the
-  readout and transfer delay of a real camera — preceded by a SYSTEM_TIME carrying the vehicle's
-  clock at that instant;
-* the companion: ``python -m companion run`` started as a separate process (stdout and stderr to
-  ``DIR/companion.log``) and stopped with SIGTERM at the end (SIGKILL after ``stop_timeout_s``);
-  with ``attach`` the user runs it and the command line is printed.  A companion that exits,
-  never connects or stops acknowledging frames ends the run with :class:`SitlError` naming the log.
+:meth:`Run.setup` opens the MAVLink endpoint (:class:`flightsim.autopilot.UdpEndpoint`) and the
+frame server (:class:`companion.camera_sources.SimFrameServer`), starts the companion
+(:mod:`flightsim.sitl.process`) and waits for it; :meth:`Run.loop` flies the scenario with two
+cursors over the steps — the physics and camera (run ahead in lockstep while the companion works)
+and the autopilot (requests, telemetry, frames; strictly in order); :meth:`Run.close` stops the
+companion and closes everything.  :func:`flightsim.sitl.run_sitl` drives it.
 
 Clocks
 ------
@@ -47,25 +33,6 @@ frame (acknowledgement) is — true of Linux loopback, where ``sendto`` delivers
 ``realtime``: the simulator paces itself to the wall clock and never waits for the companion,
 which runs on its normal monotonic clock with TIMESYNC; a datagram is dated when it is read
 (``select`` between physics steps).
-
-Hostile link (off by default): ``SitlConfig.hostile`` (:class:`flightsim.hostile.HostileConfig`)
-interleaves seeded hostile datagrams with the telemetry at each step they fall due (random bytes,
-bad CRC, truncated, unknown ids, NaN/inf payloads, glued packets, spoofed ATTITUDE; packed apart from
-the vehicle's own messages, whose sequence numbers they leave alone, and not recorded in ``telemetry.tlog``) and
-silences the vehicle's telemetry (optionally its HEARTBEAT and answers) in blackout windows;
-``sitl.json`` ``hostile`` counts them by kind.  ``SitlConfig.rss_sample_s`` samples the companion's
-resident set (``/proc/PID/status`` VmRSS) into ``companion_rss_kib``.  A failed run's
-:class:`SitlError` carries what was measured until then (``partial``).
-
-Output in ``DIR``: the same export as ``flightsim fly`` — ``truth.npz``, ``frames.csv``,
-``camera.toml``, ``telemetry.tlog`` (every MAVLink message the vehicle sent, stamped when it was
-sent) and, with ``video``, ``video.avi`` — plus ``received.tlog`` (every MAVLink message received
-from the companion, stamped with its arrival on the recording clock of truth.npz ``t_s`` and
-frames.csv), ``companion.log`` and ``sitl.json`` (the summary); the received ranges are scored
-against the truth (:mod:`flightsim.score_io`: ``score.json``, ``score.md``).  Everything but ``camera.toml`` (the companion reads it at start)
-and ``companion.log`` is written under a temporary name and appears when the flight is complete
-(:class:`companion.io.atomic.StagedFiles`); a run that fails or is interrupted leaves the two tlogs
-as ``telemetry.tlog.partial`` and ``received.tlog.partial`` and nothing at the other names.
 """
 
 from __future__ import annotations
@@ -73,177 +40,27 @@ from __future__ import annotations
 import collections
 import dataclasses
 import heapq
-import json
 import logging
 import math
-import os
 import shlex
-import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Callable
-
-import cv2
 
 from companion.mavlink.dialect import mavlink  # first: MAVLink 2 + ardupilotmega
 from companion.camera_sources import ACK_DROPPED, ACK_PROCESSED, ACK_REJECTED, SimFrameServer
-from companion.config import require, require_finite
-from companion.errors import CompanionError, ConfigError
-from companion.io.atomic import StagedFiles, prepare_output_dir, write_text_atomic
-from companion.io.config_files import load_companion_config
+from companion.io.atomic import StagedFiles, write_text_atomic
 from flightsim.autopilot import AutopilotLogic, PortBusyError, UdpEndpoint
 from flightsim.fly import EPS_T, Flight, StreamSchedule, camera_toml, open_video
-from flightsim.hostile import HostileConfig, HostileInjector
-from flightsim.scenario import Scenario, load_scenario, resolve_companion_config
+from flightsim.hostile import HostileInjector
+from flightsim.scenario import Scenario
+from flightsim.sitl.config import SitlConfig, SitlError
+from flightsim.sitl.process import CompanionProcess, companion_command, companion_rss_kib, cpu_seconds
 from flightsim.tlog import TlogWriter
 
 log = logging.getLogger(__name__)
 
-CLOCKS = ("lockstep", "realtime")
 _ACK_NAMES = {ACK_PROCESSED: "processed", ACK_DROPPED: "dropped", ACK_REJECTED: "rejected"}
-
-
-@dataclasses.dataclass(frozen=True)
-class SitlConfig:
-    """Settings of a SITL run (defaults suit CI and the benchmark)."""
-
-    processing_ms: float = 25.0  # lockstep: the companion's simulated compute time per frame (--sim-processing-ms), ms; its log reports the measured "ms per round"
-    frame_latency_s: float = 0.0  # a frame leaves at least this long after its capture, s
-    frame_wait_max_s: float = 0.1  # ... and at most this long, even if the ATTITUDE that brackets it has not been sent, s
-    connect_timeout_s: float = 60.0  # the companion must connect to the frame transport within this long (wall), s
-    ack_timeout_s: float = 30.0  # lockstep: a frame not acknowledged within this long (wall) is a failure, s
-    stop_timeout_s: float = 5.0  # SIGTERM, then SIGKILL after this long (wall), s
-    tail_s: float = 0.5  # realtime: keep listening this long (wall) after the flight for the last messages, s
-    build_ahead: bool = True  # lockstep: build the telemetry of the steps ahead while the companion works (same messages; False = step by step, for tests)
-    hostile: HostileConfig = HostileConfig()  # hostile traffic and telemetry blackouts (flightsim/hostile.py; off by default)
-    rss_sample_s: float = 0.0  # sample the companion's resident set (/proc/PID/status VmRSS) every this many simulated seconds; 0 = off
-
-    def __post_init__(self) -> None:
-        require_finite("processing_ms", self.processing_ms, nonnegative=True)
-        require(self.processing_ms < 10_000, "processing_ms must be < 10000")
-        require_finite("frame_latency_s", self.frame_latency_s, nonnegative=True)
-        require_finite("frame_wait_max_s", self.frame_wait_max_s, nonnegative=True)
-        require(self.frame_wait_max_s >= self.frame_latency_s, "frame_wait_max_s must be >= frame_latency_s")
-        for name in ("connect_timeout_s", "ack_timeout_s", "stop_timeout_s"):
-            require_finite(name, getattr(self, name), positive=True)
-        require_finite("tail_s", self.tail_s, nonnegative=True)
-        require(isinstance(self.hostile, HostileConfig), "hostile must be a HostileConfig")
-        require_finite("rss_sample_s", self.rss_sample_s, nonnegative=True)
-
-
-class SitlError(CompanionError, RuntimeError):
-    """The run failed (companion crashed, never connected, stopped answering); the message names the log.
-
-    ``partial``: what the run had measured until then (set by :func:`run_sitl`: simulation time
-    reached, hostile traffic counts, the companion's RSS samples, its exit code), else None."""
-
-    partial: dict | None = None
-
-
-# ---------------------------------------------------------------------- the companion process ---
-class CompanionProcess:
-    """``python -m companion run …`` as a child process with its output in a log file.
-
-    On Linux the child is sent SIGTERM if the thread that started it ends (PR_SET_PDEATHSIG), so a
-    killed simulator leaves no orphan: start runs from a thread that outlives them (e.g. a
-    process's main thread, as the campaign workers do).
-    """
-
-    def __init__(self, cmd: list[str], log_path: Path):
-        self.cmd = cmd
-        self.log_path = log_path
-        self._log = log_path.open("wb")
-        # One thread per library: the simulator needs the other core, and OpenBLAS / OpenCV worker
-        # threads on these small matrices and images only spin against it (same results, less CPU).
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        for var in _SINGLE_THREAD_ENV:
-            env.setdefault(var, "1")
-        self._cpu0 = _cpu_s(children=True)
-        self.cpu_s: float | None = None  # user + system CPU of the companion, s (after stop)
-        try:
-            self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                         env=env, start_new_session=True,  # Ctrl-C reaches us; we stop it cleanly
-                                         preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
-        except OSError as exc:
-            self._log.close()
-            raise SitlError(f"cannot start the companion ({shlex.join(cmd[:4])} …): {exc}") from None
-        self.exit_code: int | None = None
-        self.killed = False
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def tail(self, lines: int = 12) -> str:
-        try:
-            self._log.flush()
-            text = self.log_path.read_text(errors="replace").rstrip().splitlines()
-        except OSError:
-            return ""
-        return "\n".join("    " + ln for ln in text[-lines:])
-
-    def failure(self, what: str) -> SitlError:
-        tail = self.tail()
-        return SitlError(f"{what}; see {self.log_path}" + (f" — last lines:\n{tail}" if tail else ""))
-
-    def stop(self, timeout: float) -> int:
-        """SIGTERM, wait ``timeout`` s, then SIGKILL; returns the exit code (negative = killed by a signal)."""
-        if self.proc.poll() is None:
-            try:
-                self.proc.send_signal(signal.SIGTERM)
-                self.proc.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                log.warning("companion (pid %d) did not stop within %.0f s of SIGTERM: killing it", self.proc.pid, timeout)
-                self.killed = True
-                self.proc.kill()
-                self.proc.wait()
-            except ProcessLookupError:
-                pass
-        self.exit_code = self.proc.returncode
-        self.cpu_s = _cpu_s(children=True) - self._cpu0  # the only child waited for in between
-        self._log.close()
-        return self.exit_code
-
-
-_SINGLE_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
-
-
-def _cpu_s(children: bool = False) -> float:
-    """User + system CPU seconds of this process (all its threads), or of its waited-for children."""
-    try:
-        import resource
-
-        r = resource.getrusage(resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF)
-        return r.ru_utime + r.ru_stime
-    except (ImportError, OSError):  # pragma: no cover - not POSIX
-        return math.nan
-
-
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
-    """Linux: SIGTERM the companion if the simulator dies without stopping it (no orphans on CI)."""
-    try:
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except Exception:
-        pass
-
-
-def companion_command(mavlink_port: int, camera_port: int, camera_config: Path, *, lockstep: bool, processing_ms: float,
-                      companion_config: Path | None, python: str = sys.executable) -> list[str]:
-    """The ``companion run`` command line that talks to this simulator."""
-    cmd = [python, "-m", "companion", "run", "--mavlink", f"udpout:127.0.0.1:{mavlink_port}",
-           "--camera", f"sim://127.0.0.1:{camera_port}", "--camera-config", str(camera_config)]
-    if companion_config is not None:
-        cmd += ["--config", str(companion_config)]
-    if lockstep:
-        cmd += ["--clock", "sim", "--sim-processing-ms", f"{processing_ms:g}"]
-    return cmd
 
 
 # ---------------------------------------------------------------------- the run ---------------------
@@ -254,7 +71,7 @@ class _Received:
     msg: object
 
 
-class _Run:
+class Run:
     """One SITL run (see the module docstring); :func:`run_sitl` is the entry point."""
 
     def __init__(self, sc: Scenario, staged: StagedFiles, clock: str, cfg: SitlConfig, companion_config: Path | None,
@@ -624,7 +441,7 @@ class _Run:
         self.ahead: collections.deque = collections.deque()
         self.pending: collections.deque = collections.deque()
         self.wall0 = time.perf_counter()
-        cpu0 = _cpu_s()
+        cpu0 = cpu_seconds()
         next_alive_check = 0.0
         while self.ahead or self._physics_one():
             state, frame, spec = self.ahead.popleft()
@@ -641,7 +458,7 @@ class _Run:
                 self._pace(t + fl.dt, self.wall0)
         self.frames_unsent += len(self.pending)  # captured too late in the flight to be delivered
         self.wall_loop = time.perf_counter() - self.wall0
-        self.cpu_loop = _cpu_s() - cpu0
+        self.cpu_loop = cpu_seconds() - cpu0
         if not self.lockstep:  # the last messages still on their way
             self._pace(self.t_now + cfg.tail_s, self.wall0)
         while self.inbox:  # arrived after the last step: counted, no longer answered
@@ -666,193 +483,3 @@ class _Run:
         for w in ("tx_log", "rx_log"):
             if hasattr(self, w):
                 getattr(self, w).close()
-
-
-def _score(out: Path, companion_config: Path | None, world) -> tuple[dict | None, str]:
-    """Score received.tlog against truth.npz (:mod:`flightsim.score_io`): (score, note).
-
-    The companion's own configuration (its sector σ factor) and the world (obstacle names) are
-    handed to the scorer.
-    """
-    from flightsim.score_io import score_run, write_score
-
-    opts = {"world": world}
-    if companion_config is not None:
-        opts["companion_config"] = companion_config
-    score = score_run(out / "received.tlog", out / "truth.npz", **opts)
-    write_score(out, score)
-    return score, "scored"
-
-
-def _fly_against_companion(run: _Run) -> None:
-    """Set the run up, fly it, and stop the companion and close the sockets and files whatever happened."""
-    failure: BaseException | None = None
-    # OpenCV on one thread in the simulator for the run (as the companion is started with): its
-    # worker threads split each warp of the renderer across both cores and then preempt the
-    # companion's process; the results are the same row by row
-    cv_threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        run.setup()
-        run.loop()
-    except BaseException as exc:  # stop the companion whatever happened, then re-raise
-        failure = exc
-        if isinstance(exc, SitlError):
-            try:
-                exc.partial = run.partial()  # what was measured up to the failure
-            except Exception:  # the report of a failure must not hide it
-                pass
-        raise
-    finally:
-        run.close()
-        cv2.setNumThreads(cv_threads)
-        if failure is not None and run.companion is not None:
-            log.info("companion log: %s", run.companion.log_path)
-
-
-def _free_or(port: int | None) -> int:
-    return 0 if port is None else int(port)
-
-
-def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None = None, clock: str = "lockstep",
-             companion_config: str | Path | None = None, attach: bool = False, video: bool = False,
-             progress: Callable[[int, int], None] | None = None, port_base: int | None = None,
-             mavlink_port: int | None = None, camera_port: int | None = None, processing_ms: float | None = None,
-             config: SitlConfig | None = None, score: bool = True, avoidance: str | None = None) -> dict:
-    """Fly ``scenario_path`` against a live companion and write ``out_dir``; returns the summary dict.
-
-    Ports: ``mavlink_port`` / ``camera_port`` when given, else ``port_base`` and ``port_base + 1``,
-    else free ports chosen by the system (parallel runs do not collide).  ``companion_config``:
-    the companion's TOML (default: the scenario's ``[scenario] companion_config``, else the
-    repository's ``configs/companion.toml``; :func:`flightsim.scenario.resolve_companion_config`).  ``processing_ms``
-    overrides ``config.processing_ms``.  Raises :class:`ConfigError` for a bad scenario, argument
-    or busy port and :class:`SitlError` when the companion fails.  ``avoidance`` overrides the
-    scenario's ``[avoidance] model`` (:mod:`flightsim.avoidance`).
-    """
-    if clock not in CLOCKS:
-        raise ConfigError(f"clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
-    cfg = config or SitlConfig()
-    if processing_ms is not None:
-        cfg = dataclasses.replace(cfg, processing_ms=float(processing_ms))
-    if port_base is not None:
-        if not (isinstance(port_base, int) and 1 <= port_base <= 65534):
-            raise ConfigError(f"port_base must be in 1..65534, got {port_base!r}")
-        mavlink_port = port_base if mavlink_port is None else mavlink_port
-        camera_port = port_base + 1 if camera_port is None else camera_port
-    for name, p in (("mavlink_port", mavlink_port), ("camera_port", camera_port)):
-        if p is not None and not (isinstance(p, int) and 0 <= p <= 65535):
-            raise ConfigError(f"{name} must be in 0..65535, got {p!r}")
-    sc = load_scenario(scenario_path, seed=seed, avoidance=avoidance)
-    companion_config = resolve_companion_config(sc, companion_config)
-    if companion_config is not None:
-        companion_config = Path(companion_config).resolve()
-        load_companion_config(companion_config)  # a bad file stops here, not in the companion's log
-    out = prepare_output_dir(out_dir)
-    # the names a previous run here may have left that this one writes after the commit (or not at all)
-    staged = StagedFiles(out, keep_partial=("telemetry.tlog", "received.tlog"),
-                         obsolete=("video.avi", "avoidance.png", "score.json", "score.md", "score_series.npz", "sitl.json"))
-    run = _Run(sc, staged, clock, cfg, companion_config, attach, video, progress, _free_or(mavlink_port),
-               _free_or(camera_port))
-    wall0 = time.perf_counter()
-    try:
-        _fly_against_companion(run)
-        wall = time.perf_counter() - wall0
-        w0 = time.perf_counter()
-        run.flight.write_common(staged)
-        staged.commit()
-        write_s = time.perf_counter() - w0
-    except BaseException:
-        staged.abort()
-        raise
-    sc_result, note, score_failed = None, "not requested", False
-    if score:
-        try:
-            sc_result, note = _score(out, companion_config, sc.world)
-        except Exception as exc:  # the run itself is recorded; say loudly that its verdict is missing
-            log.exception("scoring %s failed", out)
-            sc_result, note, score_failed = None, f"scoring failed: {exc!r}", True
-    if sc_result is not None and sc_result.get("avoidance") and not score_failed:
-        from flightsim.plots import plot_run_outcome
-
-        plot_run_outcome(out, sc.world, sc_result["avoidance"], title=sc.meta.name)
-    fl = run.flight
-    sim_s = fl.state.time_s
-    timing = {k: round(v, 3) for k, v in sorted({**fl.timing, **run.timing, "write_files": write_s}.items())}
-    sim_work = sum(v for k, v in timing.items() if k not in ("ipc_wait_ack", "setup_flight", "write_files", "turnaround"))
-    summary = {
-        "scenario": sc.meta.name, "scenario_file": str(sc.path), "seed": sc.meta.seed, "clock": clock,
-        "processing_ms": cfg.processing_ms if clock == "lockstep" else None,
-        "duration_s": sim_s, "frames": run.frames_sent, "frames_captured": fl.next_frame, "frames_unsent": run.frames_unsent,
-        "acks": dict(run.acks), "messages_received": dict(sorted(run.counts_rx.items())),
-        "messages_sent": dict(sorted(run.counts_tx.items())),
-        "received_from": {k[5:]: v for k, v in sorted(run.checks.items()) if k.startswith("from_")},
-        "checks": {k: v for k, v in sorted(run.checks.items()) if not k.startswith("from_")},
-        "streams": {k: (None if v is None else round(1.0 / v, 3)) for k, v in run.logic.periods.items()},
-        "stream_requests": [{"t_s": round(t, 4), "how": how, "stream": s, "rate_hz": None if p is None else round(1.0 / p, 3)}
-                            for t, how, s, p in run.logic.requests],
-        "timesync_answered": run.logic.counters["timesync_answered"],
-        "telemetry_ahead": {"steps": run.speculated, "rebuilt": run.rewound},
-        "autopilot_counters": dict(sorted(run.logic.counters.items())),
-        "endpoint_counters": dict(sorted(run.endpoint.counters.items())),
-        "wall_s": round(wall, 3), "loop_wall_s": round(run.wall_loop, 3),
-        "realtime_factor": round(sim_s / run.wall_loop, 3) if run.wall_loop > 0 else None,
-        "timing_s": timing,  # wall seconds per part of the simulator (ipc_wait_ack: waiting for the companion)
-        "sim_work_s": round(sim_work, 3),
-        "cpu_s": {  # user + system CPU: the simulator's flight loop (all its threads) and the whole companion process
-            "simulator_loop": _round_or_none(run.cpu_loop),
-            "companion": None if run.companion is None else _round_or_none(run.companion.cpu_s)},
-        "companion": None if run.companion is None else {
-            "command": run.cmd, "pid": run.companion.pid, "exit_code": run.companion.exit_code,
-            "killed": run.companion.killed, "log": str(run.companion.log_path)},
-        "companion_command": run.cmd, "companion_exit_code": None if run.companion is None else run.companion.exit_code,
-        "ports": {"mavlink_udp": run.endpoint.port, "camera_tcp": run.server.port},
-        "avoidance": {"model": sc.avoidance.model, **run.flight.avoidance.counters},
-        "hostile": ({**(run.injector.summary() if run.injector is not None else run.hostile_cfg.to_json()),
-                     "blackout_dropped": dict(sorted(run.blackout_dropped.items()))}
-                    if run.hostile_cfg.active else None),
-        "companion_rss_kib": run.rss if cfg.rss_sample_s > 0 else None,  # [simulation s, loop wall s, VmRSS kiB]
-        "paths": {name: str(out / name) for name in ("truth.npz", "trajectory.npz", "avoidance.png", "frames.csv", "camera.toml", "telemetry.tlog",
-                                                     "received.tlog", "companion.log", "sitl.json", "video.avi",
-                                                     "score.json", "score.md") if (out / name).exists() or name == "sitl.json"},
-        "score": sc_result, "score_note": note, "score_failed": score_failed,
-    }
-    write_text_atomic(out / "sitl.json", json.dumps(summary, indent=2, default=_json_default) + "\n")
-    if not run.counts_rx.get("HEARTBEAT"):
-        what = (f"the companion never spoke MAVLink to the simulated autopilot (UDP 127.0.0.1:{run.endpoint.port}): "
-                "no HEARTBEAT received")
-        raise SitlError(f"{what}; see {run.companion.log_path}" if run.companion is not None else what)
-    return summary
-
-
-def companion_rss_kib(pid: int) -> int | None:
-    """Resident set of process ``pid`` (Linux ``/proc/PID/status`` VmRSS), kiB; None if unavailable."""
-    try:
-        with open(f"/proc/{int(pid)}/status", encoding="ascii", errors="replace") as fh:
-            for line in fh:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1])
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
-def _round_or_none(v: float | None, nd: int = 3) -> float | None:
-    return None if v is None or not math.isfinite(v) else round(v, nd)
-
-
-def _json_default(o):
-    try:
-        import numpy as np
-
-        if isinstance(o, np.generic):
-            return o.item()
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-    except ImportError:  # pragma: no cover
-        pass
-    if isinstance(o, Path):
-        return str(o)
-    return repr(o)
-
-
-__all__ = ["run_sitl", "SitlConfig", "SitlError", "CompanionProcess", "companion_command", "companion_rss_kib", "CLOCKS"]

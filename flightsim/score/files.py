@@ -25,17 +25,12 @@ from companion.io.atomic import StagedFiles, atomic_path
 from companion.io.config_files import read_toml
 from companion.io.inputs import check_input_file
 from companion.io.tlog import read_tlog
-from flightsim.score import (
-    N_SECTORS,
-    RangeMessages,
-    ScoreConfig,
-    SectorTruth,
-    evaluate,
-    markdown,
-    series_arrays,
-    summarize,
-    world_namer,
-)
+from flightsim.score.config import N_SECTORS, ScoreConfig
+from flightsim.score.evaluation import evaluate
+from flightsim.score.inputs import RangeMessages, SectorTruth
+from flightsim.score.markdown import markdown
+from flightsim.score.obstacles import world_namer
+from flightsim.score.summary import series_arrays, summarize
 
 log = logging.getLogger(__name__)
 

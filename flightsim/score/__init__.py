@@ -1,0 +1,123 @@
+"""flightsim.score: scoring the companion's published ranges against the simulator's truth (docs/derivations/sectors.md).
+
+Layers, each importing only the ones before it:
+
+* :mod:`.config` — the ``[score]`` table (:class:`~.config.ScoreConfig`, configs/score.toml) and the cell codes;
+* :mod:`.inputs` — :class:`~.inputs.RangeMessages` (the companion's messages as arrays) and
+  :class:`~.inputs.SectorTruth` (the parts of ``truth.npz`` the score needs);
+* :mod:`.obstacles` — truth cells grouped by position into obstacles, and named;
+* :mod:`.stats` — χ² quantiles for the NEES band (no SciPy at run time);
+* :mod:`.evaluation` — every message against the truth (:func:`~.evaluation.evaluate` →
+  :class:`~.evaluation.Evaluation`) and the cell categories (:func:`~.evaluation.cell_masks`);
+* :mod:`.summary` — counts, rates, targets and tables: the JSON-ready score
+  (:func:`~.summary.summarize`) and the per-message arrays a campaign pools;
+* :mod:`.markdown` — ``score.md``;
+* :mod:`.files` — the only one with I/O: reading the ranges tlog, ``truth.npz`` and
+  configs/score.toml, writing ``score.json`` / ``score.md`` / ``score_series.npz``, and
+  :func:`~.files.score_run`, the entry point (``flightsim score``, ``sitl``, ``campaign``).
+
+Pure logic (all but :mod:`.files`): arrays in, arrays and a JSON-ready dict out.  :mod:`.files`
+imports the others and nothing imports it back; this package module re-exports nothing.
+
+What is scored
+--------------
+Every OBSTACLE_DISTANCE (and forward DISTANCE_SENSOR) the companion sent is compared with the
+truth *of the moment it arrives*: the record stamp of the message in the ranges tlog (the time it
+left the companion in a replay, its arrival in SITL) picks the latest truth frame at or before
+that stamp (``truth.npz`` ``t_s``, the same recording clock), if that frame is at most
+``truth_max_age_s`` old; messages without such a frame are counted, not scored.  The companion
+already turns its sectors to the yaw at sending time, so the truth sectors of that frame (body
+FRD at the frame's own yaw, at most one frame period earlier) are compared as they are.
+
+A *cell* is one (message, sector).  With ``T`` the true horizontal distance of the sector
+(:mod:`flightsim.world.truth`: nearest obstacle footprint inside the ±2.5° wedge, within the
+vertical band) and ``max`` the message's own ``max_distance``:
+
+* **unknown-truth cell**: ``T`` is NaN (an older truth.npz knows only the sectors the camera
+  sees); claims there are counted as *unscored claims*, nothing else;
+* **obstacle cell**: ``T`` finite and ``T ≤ max``;
+* **clear cell**: ``T`` is inf (nothing within the truth's ``sector_max_m``) or ``T > max``.
+
+The published value of a sector is one of: *unknown* (UINT16_MAX), *clear* (``max + 1``), a
+*range* ``r`` (``min_distance ≤ r ≤ max``, conservative: estimate − k·σ), or *invalid* (anything
+else, e.g. below ``min_distance``; ArduPilot discards it).  The tolerance is
+``tol(T) = max(tolerance_m, tolerance_rel · T)`` (defaults: max(2 m, 20 %)).
+
+* **detection**: a range reported in an obstacle cell;
+* **valid range**: a detection with ``|r − T| ≤ tol(T)``;
+* **false obstacle**: a range reported in a clear cell nearer than the truth by more than ``tol``
+  (``T − r > tol(T)``), or the same in an obstacle cell ("too near"); the first kind is the *false
+  obstacle in a clear sector*.  Where ``T`` is inf the truth only says "beyond ``sector_max_m``",
+  so it is taken at ``sector_max_m`` (the most favourable case): a range there is false when
+  ``sector_max_m − r > tol(sector_max_m)`` and otherwise *unverifiable* (counted apart, neither
+  right nor wrong; a truth horizon beyond the companion's ``max_distance`` removes the case);
+* **over-range**: a detection farther than the truth by more than ``tol`` (``r − T > tol``);
+* **dangerous clear**: "clear" (``max + 1``) reported in an obstacle cell — the most dangerous
+  error: the autopilot is told the way is free while an obstacle stands within range.
+
+Rates: detection rate = detections / obstacle cells; dangerous-clear rate = dangerous clears /
+obstacle cells; false-obstacle rate (clear sectors) = false obstacles in clear cells / clear cells.
+Per message: the share of messages *with no false obstacle in a clear sector*, over the messages
+that make at least one claim (a range or "clear" in any sector) and have at least one clear cell
+in view (an all-unknown message claims nothing and is not counted).
+
+Over 360° (docs/derivations/sectors.md — an unknown sector means no constraint — and docs/derivations/obstacle_map.md — the
+local map publishes remembered obstacles beside and behind the vehicle).  A truth.npz with
+``sector_all_m`` and ``in_view`` knows every sector.  Cells in the camera's view are scored as
+above.  Out of view only a *claim* is scored (a range or "clear"): a range within tolerance on an
+obstacle cell is a (remembered) detection, too near in a clear cell a false obstacle, "clear" on
+an obstacle cell a dangerous clear; unknown there is neutral (neither a cell nor a miss).  Counts
+and rates are reported in view, out of view and pooled (``cells``/``rates`` are pooled), and the
+safety targets are judged pooled.
+
+*Remembered* cells (:func:`.evaluation.remembered_cells`): out-of-view obstacle cells whose obstacle (the
+grouping below) was in view within ``remember_window_s`` with the vehicle moved less than
+``remember_max_travel_m`` since; their share reported within tolerance (unknown counts as not
+reported).  Detection by true range (``detection_bins_m``): per bin, in view and out of view (all
+out-of-view obstacle cells), the share within tolerance, the share with any range, unknown and
+clear.  Warm-up: messages stamped within ``warmup_s`` of the first truth frame are not scored
+(cells, the forward DISTANCE_SENSOR and NEES); latency and the first claim include them.
+
+Targets (thresholds in configs/score.toml): no false obstacle in clear sectors in
+≥ 98 % of messages; dangerous clears ≤ 0.5 % of obstacle cells; false obstacles ≤ 1 % of clear
+cells; detection (within tolerance) ≥ 90 % of in-view obstacle cells and ≥ 95 % of those within
+``near_range_m``; remembered ≥ 90 %.  "Detection" in the issue-11 targets and the by-range tables
+means a range *within tolerance* (``valid``); the ``detection`` rate below keeps its issue-5
+meaning (any range in an obstacle cell).
+
+Range error by range bin (of the true distance ``T``), absolute and in % of ``T``: of the
+conservative published value over all detections, and for the forward sector of the estimate
+behind it, from DISTANCE_SENSOR: ``estimate = published + k·σ`` (``k`` = the companion's
+``[sectors] sigma_k``).  σ comes from the message's ``covariance`` (variance in cm², 1…254) or,
+since a uint8 variance cannot hold a σ above 16 cm (255 = unknown), from ``signal_quality``
+``q = 100·(1 − (σ/d)/z)`` (``z`` = ``[outputs] quality_zero_rel_sigma``, ``d`` the published
+range) when ``3 ≤ q ≤ 99`` (2 and 100 are saturated bounds); σ is then known to ±0.5 % of ``d``·z.
+Published values clamped at ``min_distance`` or ``max_distance`` are not undone.  σ is the
+companion's 3-D range σ applied to the horizontal range (rays within the flight band are nearly
+horizontal).
+
+NEES of the reported σ (forward sector): ``(estimate − T)² / σ²`` averaged, against the two-sided
+95 % band of the mean of ``n`` χ²₁ samples, ``[χ²(n, 2.5 %), χ²(n, 97.5 %)] / n``.
+The estimate describes the exposure, so ``T`` is the truth of the capture frame when it is known
+(the DISTANCE_SENSOR is paired with the OBSTACLE_DISTANCE sent with it, whose ``time_usec`` is the
+exposure); the NEES against the truth at arrival is reported beside it.  Consecutive samples are
+correlated (one filter over many frames), so the band is narrower than a band for the effective
+number of independent samples would be.
+
+Obstacles and time to the first valid range.  Truth sectors are grouped into obstacles by
+position: the world point of every obstacle cell of every truth frame (vehicle position + ``T``
+along the sector's centre bearing) is linked to every point within ``max(obstacle_link_m,
+obstacle_link_rel · T)``; connected groups are obstacles (two solids closer than the link distance
+merge into one).  With a world at hand (:func:`.obstacles.world_namer`) each group takes the name of the
+solid nearest most of its points.  For each obstacle: the first message in which it occupies an
+obstacle cell (``in range``), the first message with a valid range in one of its cells, the
+difference (time to the first valid range), and the share of its in-range messages in which at
+least one of its cells was detected.
+
+Latency.  OBSTACLE_DISTANCE ``time_usec`` is the exposure on the autopilot's boot clock (µs; 0 =
+no exposure behind it).  The companion's boot→recording offset is the lower envelope of
+``stamp − time_boot_ms`` over its DISTANCE_SENSOR / NAMED_VALUE_FLOAT / OBSTACLE_DISTANCE_3D
+messages (their ``time_boot_ms`` is the sending time); the mapped exposure snaps to the nearest
+truth frame within ``capture_snap`` frame periods (its true capture time), and latency = stamp −
+capture time.  p50 / p95 / p99 over messages with an exposure.
+"""
