@@ -177,6 +177,8 @@ def _read_calibration_nodes(path: Path) -> tuple[np.ndarray, np.ndarray, int | N
     try:
         if not fs.isOpened():
             raise ConfigError(f"{path}: OpenCV cannot read this calibration file")
+        if not fs.root().isMap():  # a bare value or a sequence: getNode would assert inside OpenCV
+            raise ConfigError(f"{path}: not a calibration file (its top level is not a map of named nodes)")
         K = _calibration_matrix(fs, path, "camera_matrix")
         D = _calibration_matrix(fs, path, "distortion_coefficients")
         width, height = (_calibration_int(fs, path, n) for n in ("image_width", "image_height"))
@@ -194,7 +196,10 @@ def _calibration_matrix(fs, path: Path, name: str) -> np.ndarray:
     """Node ``name`` as an OpenCV matrix (``!!opencv-matrix``); ConfigError if missing or not a matrix."""
     import cv2
 
-    node = fs.getNode(name)
+    try:
+        node = fs.getNode(name)
+    except cv2.error as exc:
+        raise ConfigError(f"{path}: not a calibration file OpenCV can read ({_opencv_reason(exc)})") from None
     if node.empty() or node.isNone():
         raise ConfigError(f"{path}: {name} missing")
     try:
@@ -208,7 +213,12 @@ def _calibration_matrix(fs, path: Path, name: str) -> np.ndarray:
 
 def _calibration_int(fs, path: Path, name: str) -> int | None:
     """Optional integer node ``name`` (None when absent); ConfigError if it is not a number."""
-    node = fs.getNode(name)
+    import cv2
+
+    try:
+        node = fs.getNode(name)
+    except cv2.error as exc:
+        raise ConfigError(f"{path}: not a calibration file OpenCV can read ({_opencv_reason(exc)})") from None
     if node.empty() or node.isNone():
         return None
     if not (node.isInt() or node.isReal()):
