@@ -121,25 +121,28 @@ def score_peaks(img, templates, c, s, lo, hi, margin, min_sep):
         nx = x1 - x0 + 1
         h = t // 2
         ny = y1 - y0 + 1
-        # numerator of every cell, Σ_ij f̂_ij · g(y + i − h, x + j − h): the window's pixels are copied
-        # into one row-major buffer of width L, where cell (r, q) starts at r·L + q, so that for each
-        # template pixel (i, j) one long contiguous loop over all cells (and the L − nx columns
-        # between rows, computed and ignored) accumulates the products — long enough to be vectorized.
-        # The masks only tell the compiler the indices are not negative (no wraparound test).
-        L = (nx + t - 1) & 0xFFFF
-        for r in range(ny + t - 1):
-            src = img[y0 - h + r, x0 - h : x0 - h + L]
-            for x in range(L):
-                region[r * L + x] = src[x]
-        P = ((ny - 1) * L + nx) & 0xFFFFFF
+        # numerator of every cell, Σ_ij f̂_ij · g(y + i − h, x + j − h).  For each template column j the
+        # window's pixels shifted by j are copied into a row-major buffer of width nx (one entry per
+        # cell column), so that for each template row i one contiguous loop over all ny·nx cells
+        # accumulates f̂_ij times the buffer from row i on — long and unit-stride, so the compiler
+        # vectorizes it (a loop over one window row, 7–20 cells, is too short).  The masks only tell
+        # the compiler the indices are not negative (no wraparound test).
+        nxm = nx & 0xFFFF
+        P = (ny * nxm) & 0xFFFFFF
         for p in range(P):
             acc[p] = 0.0
-        for i in range(t):
-            for j in range(t):
+        for j in range(t):
+            for r in range(ny + t - 1):
+                src = img[y0 - h + r, x0 - h + j : x0 - h + j + nxm]
+                base = (r * nxm) & 0xFFFFFF
+                for q in range(nxm):
+                    region[base + q] = src[q]
+            for i in range(t):
                 fij = f[i, j]
-                off = (i * L + j) & 0xFFFFFF
+                off = (i * nxm) & 0xFFFFFF
                 for p in range(P):
                     acc[p] += fij * region[p + off]
+        L = nxm
         for y in range(y0, y1 + 1):
             row0 = (y - y0) * L
             # window sums Σ g, Σ g²: column sums over the template's rows (slid down one row at a
