@@ -518,7 +518,7 @@ def estimates(x, P, RA, pA, diverged, n_updates, C, max_range, converged_rel_sig
 
 
 @jit.register_warmup
-def _warm_up() -> None:
+def warm_up() -> None:
     """Compile (or load) every kernel on one landmark with 3 and 6 states, in the array layouts the filter passes."""
     for n in (3, 6):
         x = np.zeros((1, n))

@@ -38,12 +38,14 @@ import dataclasses
 import numpy as np
 
 from companion.config import require, require_finite
+from companion.core import ekf_anchored_kernels, jit
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.ekf_anchored import UPDATE_REASON_NAMES, AnchoredEKFConfig, AnchoredInverseDepthEKF
 from companion.core.ekf_landmark import LandmarkEKFBank, LandmarkEKFConfig
 from companion.core.frames import is_orthonormal, se3_twist
 from companion.core.idbank import lookup
 from companion.core.triangulation import Reject, TriangulationConfig, triangulate_multiview
+from companion.core.triangulation import warm_up as warm_up_triangulation
 from companion.errors import InputError
 
 FILTERS = ("anchored", "landmark")
@@ -199,6 +201,9 @@ class RangeEstimator:
         #: ids of tracks whose filters diverged (inconsistent with a static point): never restarted
         self.retired = np.zeros(0, np.int64)
         self._retired_now = np.zeros(0, np.int64)
+        if jit.ENABLED:  # load (or compile) the kernels now: ~1 s from numba's cache, which must not fall on a frame
+            ekf_anchored_kernels.warm_up()
+            warm_up_triangulation()
 
     # -- validation -----------------------------------------------------------------------------
     @staticmethod

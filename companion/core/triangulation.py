@@ -354,7 +354,7 @@ def _multiview_kernel(rays, C, mask, min_baseline, min_parallax_rad, min_depth, 
 
 
 @jit.register_warmup
-def _warm_up() -> None:
+def warm_up() -> None:
     """Compile (or load) :func:`_multiview_kernel` on one two-view track."""
     rays = np.array([[[0.0, 0.0, 1.0], [-0.1, 0.0, 1.0]]])
     C = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])
