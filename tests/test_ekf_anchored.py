@@ -7,10 +7,18 @@ from scipy.stats import chi2
 from companion.core.ekf_anchored import (
     GATED, AnchoredEKFConfig, AnchoredInverseDepthEKF, inverse_depth_state, ray, ray_jacobian,
 )
+from companion.core import jit
 from companion.core.frames import SKEW_MAP, skew, so3_exp
 from companion.errors import ConfigError, InputError
 
 rng = np.random.default_rng(7)
+
+
+@pytest.fixture(params=[False, True], ids=["reference", "kernels"])
+def kernels(request, monkeypatch):
+    """Run the test on the numpy reference and on the compiled kernels (companion.core.jit)."""
+    monkeypatch.setattr(jit, "ENABLED", request.param)
+    return request.param
 
 
 def numeric_H(x, RA, pA, Rc, C, dt, eps=1e-7):
@@ -101,7 +109,7 @@ def band(nees, dof=3, p=0.99):
     return lo / len(nees), hi / len(nees)
 
 
-def test_converges_and_is_consistent():
+def test_converges_and_is_consistent(kernels):
     nees, rel = simulate(AnchoredEKFConfig(sigma_px=1.0))
     assert np.median(rel) < 0.03
     lo, hi = band(nees)
@@ -118,7 +126,7 @@ def test_drift_states_keep_filter_honest():
     assert np.median(rel) < 0.05
 
 
-def test_gate_rejects_outlier_and_keeps_state():
+def test_gate_rejects_outlier_and_keeps_state(kernels):
     f = 500.0
     ekf = AnchoredInverseDepthEKF(AnchoredEKFConfig(sigma_px=1.0), f, f)
     p = np.array([[1.0, 0.5, 20.0]])
@@ -136,7 +144,7 @@ def test_gate_rejects_outlier_and_keeps_state():
     np.testing.assert_array_equal(ekf.P, P)
 
 
-def test_point_at_infinity_stays_finite():
+def test_point_at_infinity_stays_finite(kernels):
     f = 500.0
     ekf = AnchoredInverseDepthEKF(AnchoredEKFConfig(), f, f)
     ekf.add([1], [[0.1, -0.05]], np.eye(3), np.zeros(3), 0.0, 0.01, 0.02)
@@ -177,7 +185,7 @@ def _bank_with_track(ids, drift=0.03):
     return ekf, xy, R, C, 0.1 * np.arange(8)
 
 
-def test_update_sequence_and_update_banks_match_update():
+def test_update_sequence_and_update_banks_match_update(kernels):
     """Replaying buffers (update_sequence) and one batch over two banks (update_banks) give what
     update() gives landmark by landmark, frame by frame."""
     ids = np.arange(6)

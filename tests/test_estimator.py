@@ -176,3 +176,52 @@ def test_mean_nis_is_reported_and_tells_occlusion_edges_from_points(which):
     ok = consistent_for_entry(out.mean_nis, out.converged & out.valid, 10.0)
     assert ok[real].mean() > 0.9  # the map keeps the points ...
     assert ok[junction].mean() < 0.3  # ... and refuses most junctions
+
+
+def _looming_scales(pts, frames, seed=2):
+    """Each track's true depth ratio Z_prev / Z_now (the matcher's patch scale change), with noise and some NaN."""
+    rng = np.random.default_rng(seed)
+    cam = CameraModel(CAM)
+    out, prev = [], None
+    for t, R, p, ids, uv in frames:
+        Z = cam.world_to_camera(pts[ids % 1000], R, p)[:, 2]
+        s = np.full(len(ids), np.nan) if prev is None else prev[ids % 1000] / Z + 0.002 * rng.standard_normal(len(ids))
+        s[rng.uniform(size=len(ids)) < 0.1] = np.nan
+        out.append((s, np.full(len(ids), 0.002)))
+        prev = np.full(len(pts), np.nan)
+        prev[ids % 1000] = Z
+    return out
+
+
+def test_kernels_and_reference_give_the_same_ranges(monkeypatch):
+    """The whole estimator with the compiled kernels and with the numpy reference (companion.core.jit),
+    shipped filter model (3 relinearizations, drift states, position noise, NIS retirement, looming),
+    T-junction tracks that get retired, and dropped tracks: every frame's output agrees, the discrete
+    ones exactly, the figures to float rounding (RTOL 1e-8: see tests/test_ekf_anchored_kernels.py)."""
+    from companion.core import jit
+
+    pts, frames = flight(sigma_px=0.3, K=60)
+    frames = _with_t_junctions(frames)
+    scales = _looming_scales(pts, frames)
+    cfg = AnchoredEKFConfig(sigma_px=0.5, iterations=3, attitude_drift_deg_s=0.03, position_sigma_m=0.1, max_mean_nis=4.0)
+    runs = []
+    for kernels in (False, True):
+        monkeypatch.setattr(jit, "ENABLED", kernels)
+        est = RangeEstimator(CAM, EstimatorConfig(init_max_frames=25), ekf_anchored=cfg)
+        outs = []
+        for k, (f, (s, sig)) in enumerate(zip(frames, scales)):
+            if k == 30:
+                est.drop(f[3][::7])
+            outs.append(est.process(*f, scale=s, scale_sigma=sig))
+        runs.append(outs)
+    for ref, ker in zip(*runs):
+        for name in ("ids", "converged", "valid", "retired_ids"):
+            np.testing.assert_array_equal(getattr(ker, name), getattr(ref, name), err_msg=name)
+        for name in ("n_pending", "n_initialized_tri", "n_initialized_prior", "n_rejected", "tri_reasons", "n_looming",
+                     "looming_reasons"):
+            assert getattr(ker, name) == getattr(ref, name), name
+        for name in ("p_world", "range", "range_sigma", "mean_nis"):
+            np.testing.assert_allclose(getattr(ker, name), getattr(ref, name), rtol=1e-8, err_msg=name)
+    last = runs[0][-1]
+    assert last.converged.sum() > 20 and sum(len(o.retired_ids) for o in runs[0]) > 0
+    assert sum(o.n_looming for o in runs[0]) > 100 and sum(o.n_initialized_tri for o in runs[0]) > 0

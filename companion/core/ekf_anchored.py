@@ -42,7 +42,11 @@ Measurement noise R = (σ_px/f)² + σ_att² (white attitude noise of each telem
 + 2 (ρ σ_p)² (the telemetry's position error at the anchor and now, seen from the landmark at
 inverse depth ρ; treated as white, an approximation for GPS-like correlated error).
 
-All operations are batched over landmarks: arrays of shape (N, 3), (N, 3, 3); no loop per landmark.
+The numpy code here is the *reference*: every operation is batched over landmarks, arrays of shape
+(N, 3), (N, 3, 3), no loop per landmark.  When compiled kernels are on (:mod:`companion.core.jit`)
+the pixel and looming updates (with their bookkeeping) and :meth:`~AnchoredInverseDepthEKF.estimates`
+run instead as one loop over landmarks in :mod:`companion.core.ekf_anchored_kernels`, the same
+equations to float rounding (tests/test_ekf_anchored_kernels.py compares the two).
 
 Looming (docs/derivations/looming.md).  A small surface patch facing the camera images
 with a size ∝ 1/Z, Z its depth along the optical axis, so the patch scale change between the
@@ -82,6 +86,7 @@ import statistics
 import numpy as np
 
 from companion.config import require, require_finite
+from companion.core import jit
 from companion.core.frames import SKEW_MAP
 from companion.core.idbank import lookup, rows_or_raise
 from companion.errors import InputError
@@ -349,6 +354,15 @@ def _inv2(S: np.ndarray) -> np.ndarray:
 _ADJ_SIGN = np.array([[1.0, -1.0], [-1.0, 1.0]])
 
 
+def _require_distinct(ids: np.ndarray, what: str) -> None:
+    """One observation per landmark and call: InputError naming repeated ids."""
+    if len(ids) > 1:
+        s = np.sort(ids)
+        dup = s[1:][s[1:] == s[:-1]]
+        if len(dup):
+            raise InputError(f"{what}: landmark ids listed more than once {np.unique(dup)[:10].tolist()}")
+
+
 def _as_batch(name: str, a, n: int, tail: tuple[int, ...]) -> np.ndarray:
     a = np.asarray(a, dtype=float)
     if a.shape == tail:
@@ -392,6 +406,11 @@ class AnchoredInverseDepthEKF:
         self.nis_avg = np.zeros(0)  # mean NIS over the last ~nis_window measurements (consistency with a static point)
         self.nis_count = np.zeros(0, dtype=np.int64)  # measurements in nis_avg
         self.n_looming = np.zeros(0, dtype=np.int64)  # accepted looming (scale) updates
+        #: the pixel kernels' constants: (σ_px/f)² + σ_att² (2,), σ_p, χ²₂ gate, iterations, reject limit,
+        #: NIS window, mean-NIS limit (§ Measurement noise, § Update, § Bookkeeping)
+        self._kernel_constants = (
+            self.sigma_xy**2 + np.radians(config.attitude_sigma_deg) ** 2, float(config.position_sigma_m), config.gate_threshold,
+            config.iterations, config.max_consecutive_rejects, float(config.nis_window), float(config.max_mean_nis))
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -509,6 +528,7 @@ class AnchoredInverseDepthEKF:
         if m == 0:
             return _no_update(ids)
         rows = self.index_of(ids)
+        _require_distinct(ids, "update")
         z = _as_batch("xy", xy, m, (2,))
         Rc = _shared_or_batch("R_world_cam", R_world_cam, m, (3, 3))
         C = _shared_or_batch("p_world_cam", p_world_cam, m, (3,))
@@ -540,10 +560,13 @@ class AnchoredInverseDepthEKF:
         if m == 0:
             return accepted
         rows = self.index_of(ids)
+        _require_distinct(ids, "update_sequence")
         used = np.arange(k)[None, :] < count[:, None]
         for name, a in (("xy", xy), ("R_world_cam", R), ("p_world_cam", p), ("t", t)):
             if not np.all(np.isfinite(a[used])):
                 raise InputError(f"{name} contains NaN or inf")
+        if jit.ENABLED:  # compiled: each landmark's buffer in order, in one loop (ekf_anchored_kernels)
+            return self._kernel_sequences(rows, xy, R, p, t, count.astype(np.int64))[0].sum(1)
         for j in range(int(count.max())):
             sel = np.flatnonzero(count > j)
             good = self._update_rows(rows[sel], xy[sel, j], R[sel, j], p[sel, j], t[sel, j])[0]
@@ -568,27 +591,71 @@ class AnchoredInverseDepthEKF:
         C = _shared_or_batch("p_world_cam", p_world_cam, 1, (3,))
         if Rc.shape != (3, 3) or C.shape != (3,) or np.ndim(t) != 0 or not np.isfinite(t):
             raise InputError("update_banks: one frame's pose (3,3), (3,) and a finite time t")
-        rows = [bank.index_of(ids) for bank, ids, _ in parts]
-        z = [_as_batch("xy", xy, len(ids), (2,)) for _, ids, xy in parts]
-        ends = np.cumsum([len(r) for r in rows])
+        for _, ids, _ in parts:
+            _require_distinct(ids, "update_banks")
+        return AnchoredInverseDepthEKF._update_banks_rows(
+            [(bank, ids, bank.index_of(ids), _as_batch("xy", xy, len(ids), (2,))) for bank, ids, xy in parts], Rc, C, float(t))
+
+    @staticmethod
+    def _update_banks_rows(parts, Rc, C, t: float) -> list[UpdateResult]:
+        """:meth:`update_banks` on validated input: ``parts`` a list of (bank, ids, rows, z (M,2)),
+        distinct ids per bank; one pose Rc (3,3), C (3,) at t."""
+        if jit.ENABLED:  # compiled: bank by bank (the same as one batch: landmarks are independent)
+            return [UpdateResult(ids, *bank._kernel_rows(r, z, Rc, C, t)) for bank, ids, r, z in parts]
+        ends = np.cumsum([len(r) for _, _, r, _ in parts])
         if ends[-1] == 0:
-            return [_no_update(ids) for _, ids, _ in parts]
-        gather = [np.concatenate([getattr(b, name)[r] for (b, _, _), r in zip(parts, rows)])
+            return [_no_update(ids) for _, ids, _, _ in parts]
+        gather = [np.concatenate([getattr(b, name)[r] for b, _, r, _ in parts])
                   for name in ("x", "P", "R_world_camA", "p_world_camA", "t_anchor")]
-        x, P, good, nis, reason = first._solve(*gather, np.concatenate(z), Rc, C, float(t))
+        x, P, good, nis, reason = parts[0][0]._solve(*gather, np.concatenate([z for *_, z in parts]), Rc, C, t)
         out = []
-        for (bank, ids, _), r, lo, hi in zip(parts, rows, np.concatenate([[0], ends[:-1]]), ends):
+        for (bank, ids, r, _), lo, hi in zip(parts, np.concatenate([[0], ends[:-1]]), ends):
             bank._commit(r, x[lo:hi], P[lo:hi], good[lo:hi], nis[lo:hi])
             out.append(UpdateResult(ids, good[lo:hi], nis[lo:hi], reason[lo:hi]))
         return out
 
     def _update_rows(self, rows, z, Rc, C, t):
         """The iterated EKF update of bank rows ``rows`` (validated inputs): (accepted, nis, reason)."""
+        if jit.ENABLED:
+            return self._kernel_rows(rows, z, Rc, C, t)
         x, P, good, nis, reason = self._solve(
             self.x[rows], self.P[rows], self.R_world_camA[rows], self.p_world_camA[rows], self.t_anchor[rows], z, Rc, C, t
         )
         self._commit(rows, x, P, good, nis)
         return good, nis, reason
+
+    def _kernel_rows(self, rows, z, Rc, C, t):
+        """:meth:`_update_rows` by the compiled kernels: one observation z (M,2) per row, from one pose
+        ((3,3), (3,), scalar t) or one per row; (accepted, nis, reason)."""
+        m = len(rows)
+        if m == 0:
+            return np.zeros(0, bool), np.zeros(0), np.zeros(0, np.int8)
+        if np.ndim(Rc) == 3 or np.ndim(C) == 2 or np.ndim(t) == 1:  # a pose per landmark: a sequence of one each
+            good, nis, reason = self._kernel_sequences(
+                rows, np.reshape(z, (m, 1, 2)), np.broadcast_to(Rc, (m, 3, 3))[:, None],
+                np.broadcast_to(C, (m, 3))[:, None], np.broadcast_to(t, (m,))[:, None], np.ones(m, np.int64))
+            return good[:, 0], nis[:, 0], reason[:, 0]
+        accepted, nis, reason = np.zeros(m, bool), np.empty(m), np.empty(m, np.int8)
+        _kernels.update_pixel_rows(*self._kernel_bank(), np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(z, float),
+                                   np.ascontiguousarray(Rc, float), np.ascontiguousarray(C, float), float(t),
+                                   *self._kernel_constants, accepted, nis, reason)
+        return accepted, nis, reason
+
+    def _kernel_bank(self) -> tuple:
+        """The bank arrays the pixel kernels read and update in place."""
+        return (self.x, self.P, self.R_world_camA, self.p_world_camA, self.t_anchor, self.n_updates, self.n_rejects,
+                self.diverged, self.nis_avg, self.nis_count)
+
+    def _kernel_sequences(self, rows, z, Rc, C, t, count):
+        """Run :func:`ekf_anchored_kernels.update_pixel_sequences` on bank rows ``rows`` with observations
+        z (M,K,2) from poses Rc (M,K,3,3), C (M,K,3) at t (M,K), the first ``count`` (M,) of each:
+        the bank is updated in place (with :meth:`_commit`'s bookkeeping); (accepted, nis, reason), each (M,K)."""
+        m, k = z.shape[:2]
+        accepted, nis, reason = np.zeros((m, k), bool), np.full((m, k), np.nan), np.zeros((m, k), np.int8)
+        c = np.ascontiguousarray
+        _kernels.update_pixel_sequences(*self._kernel_bank(), c(rows, np.int64), c(z, float), c(Rc, float), c(C, float),
+                                        c(t, float), c(count, np.int64), *self._kernel_constants, accepted, nis, reason)
+        return accepted, nis, reason
 
     def _solve(self, x0, P0, RA, pA, tA, z, Rc, C, t):
         """Iterated EKF update of states x0 (M,n), P0 (M,n,n) anchored at (RA, pA, tA) with measurements
@@ -705,18 +772,29 @@ class AnchoredInverseDepthEKF:
             raise InputError("update_looming_banks: one previous and one current pose, (3,3) and (3,) each")
         if np.ndim(t) or np.ndim(t_prev) or not (np.isfinite(t) and np.isfinite(t_prev)) or not t > t_prev:
             raise InputError(f"update_looming_banks: times must be finite scalars with t > t_prev, got {t_prev!r}, {t!r}")
-        rows, s_all, sig_all = [], [], []
+        checked = []
         for bank, ids, sc, sg in parts:
             m = len(ids)
-            rows.append(bank.index_of(ids))
+            _require_distinct(ids, "update_looming")
             sc = np.asarray(sc, float).reshape(-1) if sc is not None else np.full(m, np.nan)
             sg = np.zeros(m) if sg is None else np.asarray(sg, float).reshape(-1)
             if sc.shape != (m,) or sg.shape != (m,):
                 raise InputError(f"scale and scale_sigma must have shape ({m},), got {sc.shape} and {sg.shape}")
-            s_all.append(sc)
-            sig_all.append(sg)
-        z = np.concatenate(s_all)
-        sig = np.concatenate(sig_all)
+            checked.append((bank, ids, bank.index_of(ids), sc, sg))
+        return AnchoredInverseDepthEKF._looming_banks_rows(checked, Rp, Cp, float(t_prev), Rc, C, float(t))
+
+    @staticmethod
+    def _looming_banks_rows(parts, Rp, Cp, t_prev: float, Rc, C, t: float) -> list[UpdateResult]:
+        """:meth:`update_looming_banks` on validated input: ``parts`` a list of (bank, ids, rows,
+        scale (M,), scale_sigma (M,)), distinct ids per bank; poses (3,3)/(3,), t > t_prev."""
+        if not parts:
+            return []
+        first = parts[0][0]
+        if jit.ENABLED:  # compiled: bank by bank (landmarks are independent)
+            return [bank._kernel_looming(ids, r, sc, sg, Rp, Cp, t_prev, Rc, C, t) for bank, ids, r, sc, sg in parts]
+        rows = [r for _, _, r, _, _ in parts]
+        z = np.concatenate([sc for *_, sc, _ in parts])
+        sig = np.concatenate([sg for *_, sg in parts])
         reason = np.full(len(z), UPDATED, np.int8)
         reason[np.isnan(z)] = LOOM_NAN
         bad = ~np.isnan(z) & (~np.isfinite(z) | (z <= 0) | ~np.isfinite(sig) | (sig < 0))
@@ -733,7 +811,7 @@ class AnchoredInverseDepthEKF:
             var = sig[use] ** 2 + first.config.looming_sigma_floor**2
             x, P, g, nis_u, reason_u = first._solve_looming(
                 gather["x"], gather["P"], gather["R_world_camA"], gather["p_world_camA"], gather["t_anchor"],
-                z[use], var, Rp, Cp, float(t_prev), Rc, C, float(t))
+                z[use], var, Rp, Cp, t_prev, Rc, C, t)
             good[use], nis[use], reason[use] = g, nis_u, reason_u
             for k, ((bank, *_), r) in enumerate(zip(parts, rows)):
                 sel = bank_of == k
@@ -744,6 +822,20 @@ class AnchoredInverseDepthEKF:
                     bank.n_looming[rr] += g[sel]
         return [UpdateResult(ids, good[lo:hi], nis[lo:hi], reason[lo:hi])
                 for (_, ids, *_), lo, hi in zip(parts, starts, ends)]
+
+    def _kernel_looming(self, ids, rows, sc, sg, Rp, Cp, t_prev, Rc, C, t) -> UpdateResult:
+        """One bank's part of :meth:`_looming_banks_rows` by :func:`ekf_anchored_kernels.update_looming_rows`."""
+        m = len(ids)
+        accepted, nis, reason = np.zeros(m, bool), np.empty(m), np.empty(m, np.int8)
+        if m == 0:
+            return UpdateResult(ids, accepted, nis, reason)
+        cfg = self.config
+        c = np.ascontiguousarray
+        _kernels.update_looming_rows(
+            self.x, self.P, self.R_world_camA, self.p_world_camA, self.t_anchor, self.n_looming, rows, c(sc), c(sg),
+            c(Rp), c(Cp), t_prev, c(Rc), c(C), t, float(cfg.looming_sigma_floor), cfg.looming_gate_threshold,
+            cfg.looming_iterations, accepted, nis, reason)
+        return UpdateResult(ids, accepted, nis, reason)
 
     def _solve_looming(self, x0, P0, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t):
         """Iterated scalar EKF update (Joseph form) of states x0 (M,n), P0 (M,n,n) with scale
@@ -789,6 +881,14 @@ class AnchoredInverseDepthEKF:
             raise InputError("p_world_cam contains NaN or inf")
         cfg = self.config
         x = self.x
+        if jit.ENABLED:  # compiled: the same formulas landmark by landmark
+            n = len(x)
+            p_world, rng, rsig, srho = np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n)
+            valid, converged = np.zeros(n, bool), np.zeros(n, bool)
+            _kernels.estimates(x, self.P, self.R_world_camA, self.p_world_camA, self.diverged, self.n_updates, C,
+                               float(cfg.max_range_m), float(cfg.converged_rel_sigma), cfg.min_updates,
+                               p_world, rng, rsig, srho, valid, converged)
+            return LandmarkEstimates(self.ids.copy(), p_world, rng, rsig, x[:, 2].copy(), srho, converged, valid)
         rho = x[:, 2]
         srho = np.sqrt(np.maximum(self.P[:, 2, 2], 0.0))
         rho_floor = 1.0 / cfg.max_range_m
@@ -808,3 +908,7 @@ class AnchoredInverseDepthEKF:
         valid = ~self.diverged & (rho > -3.0 * srho)
         converged = valid & (rho > rho_floor) & (rsig < cfg.converged_rel_sigma * rng) & (self.n_updates >= cfg.min_updates)
         return LandmarkEstimates(self.ids.copy(), p_world, rng, rsig, rho.copy(), srho, converged, valid)
+
+
+# The compiled kernels import this module's reason codes, so they are imported last.
+from companion.core import ekf_anchored_kernels as _kernels  # noqa: E402

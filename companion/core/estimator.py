@@ -38,11 +38,14 @@ import dataclasses
 import numpy as np
 
 from companion.config import require, require_finite
+from companion.core import ekf_anchored_kernels, jit
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.ekf_anchored import UPDATE_REASON_NAMES, AnchoredEKFConfig, AnchoredInverseDepthEKF
 from companion.core.ekf_landmark import LandmarkEKFBank, LandmarkEKFConfig
 from companion.core.frames import is_orthonormal, se3_twist
+from companion.core.idbank import lookup
 from companion.core.triangulation import Reject, TriangulationConfig, triangulate_multiview
+from companion.core.triangulation import warm_up as warm_up_triangulation
 from companion.errors import InputError
 
 FILTERS = ("anchored", "landmark")
@@ -93,6 +96,17 @@ class RangeOutput:
     mean_nis: np.ndarray | None = None  # (N,) each filter's running mean NIS (consistency with a static point), None = not computed
 
 
+def _det3(R: np.ndarray) -> float:
+    """Determinant of one 3×3 matrix (cofactor expansion; cheaper than np.linalg.det for one)."""
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+
+
+def _world_rays(xy: np.ndarray, R_world_cam: np.ndarray) -> np.ndarray:
+    """Rays R_world_cam (x̄, ȳ, 1) (M, 3) of normalized points xy (M, 2) seen from one camera."""
+    return xy @ R_world_cam[:, :2].T + R_world_cam[:, 2]
+
+
 class _Pending:
     """Vectorized store of landmarks awaiting initialization (anchor + buffered observations)."""
 
@@ -104,9 +118,10 @@ class _Pending:
         self.xy = np.zeros((0, window + 1, 2))
         self.R = np.zeros((0, window + 1, 3, 3))
         self.p = np.zeros((0, window + 1, 3))
+        self.ray = np.zeros((0, window + 1, 3))  # R (x̄, ȳ, 1): each view's ray in the world frame (triangulation)
         self.t_last = np.zeros(0)
 
-    _fields = ("ids", "count", "t", "xy", "R", "p", "t_last")
+    _fields = ("ids", "count", "t", "xy", "R", "p", "ray", "t_last")
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -127,12 +142,14 @@ class _Pending:
         W1 = self.W + 1
         new = {
             "ids": ids, "count": np.ones(m, np.int64), "t": np.zeros((m, W1)), "xy": np.zeros((m, W1, 2)),
-            "R": np.broadcast_to(np.eye(3), (m, W1, 3, 3)).copy(), "p": np.zeros((m, W1, 3)), "t_last": np.full(m, t),
+            "R": np.broadcast_to(np.eye(3), (m, W1, 3, 3)).copy(), "p": np.zeros((m, W1, 3)), "ray": np.zeros((m, W1, 3)),
+            "t_last": np.full(m, t),
         }
         new["t"][:, 0] = t
         new["xy"][:, 0] = xy
         new["R"][:, 0] = R
         new["p"][:, 0] = p
+        new["ray"][:, 0] = _world_rays(xy, R)
         for f in self._fields:
             setattr(self, f, np.concatenate([getattr(self, f), new[f]]))
 
@@ -142,6 +159,7 @@ class _Pending:
         self.xy[rows, c] = xy
         self.R[rows, c] = R
         self.p[rows, c] = p
+        self.ray[rows, c] = _world_rays(xy, R)
         self.count[rows] = c + 1
         self.t_last[rows] = t
 
@@ -183,6 +201,9 @@ class RangeEstimator:
         #: ids of tracks whose filters diverged (inconsistent with a static point): never restarted
         self.retired = np.zeros(0, np.int64)
         self._retired_now = np.zeros(0, np.int64)
+        if jit.ENABLED:  # load (or compile) the kernels now: ~1 s from numba's cache, which must not fall on a frame
+            ekf_anchored_kernels.warm_up()
+            warm_up_triangulation()
 
     # -- validation -----------------------------------------------------------------------------
     @staticmethod
@@ -193,9 +214,9 @@ class RangeEstimator:
         p = np.asarray(p_world_cam, float)
         if R.shape != (3, 3) or p.shape != (3,):
             raise InputError(f"camera pose must be R (3,3) and p (3,), got {R.shape} and {p.shape}")
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p))):
+        if not (np.isfinite(R).all() and np.isfinite(p).all()):
             raise InputError("camera pose contains NaN or inf")
-        if not is_orthonormal(R) or np.linalg.det(R) < 0:
+        if not is_orthonormal(R) or _det3(R) < 0:
             raise InputError("R_world_cam is not a rotation matrix")
         ids = np.asarray(ids)
         if ids.ndim != 1 or (len(ids) and not np.issubdtype(ids.dtype, np.integer)):
@@ -203,12 +224,15 @@ class RangeEstimator:
         uv = np.asarray(uv, float)
         if uv.shape != (len(ids), 2):
             raise InputError(f"uv must have shape ({len(ids)}, 2) to match ids, got {uv.shape}")
-        if not np.all(np.isfinite(uv)):
+        if not np.isfinite(uv).all():
             bad = ids[~np.all(np.isfinite(uv), 1)]
             raise InputError(f"uv contains NaN or inf for track ids {bad[:10].tolist()}")
-        if len(np.unique(ids)) != len(ids):
-            raise InputError("ids contain duplicates")
-        return R, p, ids.astype(np.int64), uv
+        ids = ids.astype(np.int64)
+        if len(ids) > 1:
+            s = np.sort(ids)
+            if (s[1:] == s[:-1]).any():
+                raise InputError("ids contain duplicates")
+        return R, p, ids, uv
 
     # -- main step ------------------------------------------------------------------------------
     def process(self, t, R_world_cam, p_world_cam, ids, uv, v_cam=None, w_cam=None, scale=None, scale_sigma=None) -> RangeOutput:
@@ -221,7 +245,7 @@ class RangeEstimator:
         t = float(t)
         self._retired_now = np.zeros(0, np.int64)
         if len(self.retired):
-            fresh = ~np.isin(ids, self.retired)
+            fresh = ~lookup(self.retired, ids)[0]  # (retired is sorted)
             ids, uv = ids[fresh], uv[fresh]
             if scale is not None:
                 scale, scale_sigma = scale[fresh], scale_sigma[fresh]
@@ -235,30 +259,31 @@ class RangeEstimator:
                 v_cam, w_cam = se3_twist(*self.pose_prev, R, p, dt)
             self.ekf.predict(np.asarray(v_cam, float), np.asarray(w_cam, float), dt)
 
-        # 1. landmarks with a running filter; pending ones are buffered (and fed to their
-        #    wide-prior filters in the same batch)
-        in_ekf = self.ekf.contains(ids)
-        rest = ~in_ekf
-        in_pend, prow = self.pending.rows_of(ids[rest])
-        pend_ids, pend_xy = ids[rest][in_pend], xy[rest][in_pend]
-        self.pending.append(prow[in_pend], t, pend_xy, R, p)
-        n_rej = int(np.sum(~self._update(ids[in_ekf], xy[in_ekf], R, p, t, pend_ids, pend_xy)))
-        if np.any(in_ekf):
-            self.t_seen[self.ekf.index_of(ids[in_ekf])] = t
+        # 1. landmarks with a running filter (positions sel_e in this frame, rows_e in the bank);
+        #    pending ones (sel_p) are buffered, and fed to their wide-prior filters in the same batch
+        in_ekf, rows = lookup(self.ekf.ids, ids)
+        sel_e = np.flatnonzero(in_ekf)
+        rows_e = rows[sel_e]
+        sel_rest = np.flatnonzero(~in_ekf)
+        in_pend, prow = self.pending.rows_of(ids[sel_rest])
+        sel_p = sel_rest[in_pend]
+        self.pending.append(prow[in_pend], t, xy[sel_p], R, p)
+        accepted, rows_p = self._update(ids, xy, sel_e, rows_e, sel_p, R, p, t)
+        n_rej = len(accepted) - int(np.count_nonzero(accepted))
+        self.t_seen[rows_e] = t
         n_loom, loom_reasons = 0, {}
         if scale is not None and self.prior_bank is not None and self.ekf.config.looming and self.t_prev is not None:
-            sel_p = np.flatnonzero(rest)[in_pend]
-            parts = [(self.ekf, ids[in_ekf], scale[in_ekf], scale_sigma[in_ekf]),
-                     (self.prior_bank, pend_ids, scale[sel_p], scale_sigma[sel_p])]
-            res = AnchoredInverseDepthEKF.update_looming_banks(parts, *self.pose_prev, self.t_prev, R, p, t)
+            parts = [(self.ekf, ids[sel_e], rows_e, scale[sel_e], scale_sigma[sel_e]),
+                     (self.prior_bank, ids[sel_p], rows_p, scale[sel_p], scale_sigma[sel_p])]
+            res = AnchoredInverseDepthEKF._looming_banks_rows(parts, *self.pose_prev, self.t_prev, R, p, t)
             n_loom = int(sum(np.count_nonzero(r.accepted) for r in res))
-            reasons = np.concatenate([r.reason[~r.accepted] for r in res])
-            loom_reasons = {UPDATE_REASON_NAMES[int(c)]: int(np.sum(reasons == c)) for c in np.unique(reasons)}
+            counts = sum(np.bincount(r.reason[~r.accepted], minlength=len(UPDATE_REASON_NAMES)) for r in res)
+            loom_reasons = {UPDATE_REASON_NAMES[c]: int(counts[c]) for c in np.flatnonzero(counts)}
 
         # 2. new landmarks, then try to initialize the pending ones
         room = self.config.max_landmarks - len(self.ekf) - len(self.pending)
-        new_ids = ids[rest][~in_pend][: max(room, 0)]
-        new_xy = xy[rest][~in_pend][: max(room, 0)]
+        sel_new = sel_rest[~in_pend][: max(room, 0)]
+        new_ids, new_xy = ids[sel_new], xy[sel_new]
         self.pending.add(new_ids, t, new_xy, R, p)
         if self.prior_bank is not None:
             self.prior_bank.add(new_ids, new_xy, R, p, t, self.config.prior_inv_depth, self.config.prior_inv_depth_sigma)
@@ -293,52 +318,58 @@ class RangeEstimator:
     def drop(self, ids) -> None:
         """Forget landmarks whose tracks ended (e.g. the track manager's dropped ids)."""
         ids = np.asarray(ids, np.int64).reshape(-1)
+        if len(ids) == 0:
+            return
         if len(self.ekf):
-            hit = self.ekf.contains(ids)
-            if np.any(hit):
+            hit, rows = lookup(self.ekf.ids, ids)
+            if hit.any():
                 keep = np.ones(len(self.ekf), bool)
-                keep[self.ekf.index_of(ids[hit])] = False
+                keep[rows[hit]] = False
                 self.ekf.remove(ids[hit])
                 self.t_seen = self.t_seen[keep]
                 self._seen_ids = self.ekf.ids.copy()
         present, rows = self.pending.rows_of(ids)
-        if np.any(present):
+        if present.any():
             keep = np.ones(len(self.pending), bool)
             keep[rows[present]] = False
             self._keep_pending(keep)
 
     def _keep_pending(self, keep: np.ndarray) -> None:
         """Keep the pending landmarks of mask ``keep``; the others also leave the prior bank (if still there)."""
-        if self.prior_bank is not None and not np.all(keep):
+        if keep.all():
+            return
+        if self.prior_bank is not None:
             gone = self.pending.ids[~keep]
             self.prior_bank.remove(gone[self.prior_bank.contains(gone)])
         self.pending.keep(keep)
 
-    def _update(self, ids, xy, R, p, t, pend_ids, pend_xy) -> np.ndarray:
-        """Fuse this frame into the running filters (accepted flags returned) and, with the anchored
-        filter, into the pending landmarks' wide-prior filters, in one batch."""
+    def _update(self, ids, xy, sel_e, rows_e, sel_p, R, p, t) -> tuple[np.ndarray, np.ndarray | None]:
+        """Fuse this frame's observations ``sel_e`` (bank rows ``rows_e``) into the running filters
+        and, with the anchored filter, the pending ones ``sel_p`` into their wide-prior filters, in
+        one batch: (accepted flags of the running filters, prior-bank rows of ``sel_p`` or None)."""
         if isinstance(self.ekf, AnchoredInverseDepthEKF):
-            parts = [(self.ekf, ids, xy), (self.prior_bank, pend_ids, pend_xy)]
-            return AnchoredInverseDepthEKF.update_banks(parts, R, p, t)[0].accepted
-        if len(ids) == 0:
-            return np.zeros(0, bool)
-        return self.ekf.update(ids, xy).accepted
+            pend_ids = ids[sel_p]
+            rows_p = self.prior_bank.index_of(pend_ids)  # the prior bank holds exactly the pending landmarks
+            parts = [(self.ekf, ids[sel_e], rows_e, xy[sel_e]), (self.prior_bank, pend_ids, rows_p, xy[sel_p])]
+            return AnchoredInverseDepthEKF._update_banks_rows(parts, R, p, t)[0].accepted, rows_p
+        if len(sel_e) == 0:
+            return np.zeros(0, bool), None
+        return self.ekf.update(ids[sel_e], xy[sel_e]).accepted, None
 
     def _initialize(self, t, R, p):
         pend = self.pending
         fresh = pend.t_last == t
         reasons: dict = {}
-        if not np.any(fresh) or len(pend) == 0:
+        if len(pend) == 0 or not fresh.any():
             return 0, 0, reasons
         rows = np.flatnonzero(fresh & (pend.count >= 2))
+        if len(rows) == 0:
+            return 0, 0, reasons
         # multi-view triangulation over every buffered view; gates on its longest baseline
-        W1 = pend.xy.shape[1]
-        rays_cam = np.concatenate([pend.xy[rows], np.ones((len(rows), W1, 1))], 2)
-        rays_world = np.einsum("nkij,nkj->nki", pend.R[rows], rays_cam)
-        mask = np.arange(W1)[None, :] < pend.count[rows][:, None]
-        tri = triangulate_multiview(rays_world, pend.p[rows], mask, self.tri_config, sigma_xy=self.sigma_xy)
-        for code in np.unique(tri.reason):
-            reasons[Reject(code).name] = int(np.sum(tri.reason == code))
+        mask = np.arange(pend.xy.shape[1])[None, :] < pend.count[rows][:, None]
+        tri = triangulate_multiview(pend.ray[rows], pend.p[rows], mask, self.tri_config, sigma_xy=self.sigma_xy)
+        counts = np.bincount(tri.reason, minlength=len(Reject))
+        reasons = {Reject(code).name: int(counts[code]) for code in np.flatnonzero(counts)}
         ok = tri.ok
         timeout = pend.count[rows] >= self.config.init_max_frames
         start_tri = rows[ok]
@@ -348,15 +379,16 @@ class RangeEstimator:
         rho_tri = 1.0 / d_anchor
         srho_tri = self.config.tri_sigma_scale * tri.range_sigma[ok] / d_anchor**2
         self._start(start_tri, rho_tri, srho_tri, tri.p[ok], R, p)
-        if self.prior_bank is not None:  # already replayed from the wide prior, one frame at a time
+        if self.prior_bank is not None and len(start_prior):  # already replayed from the wide prior, one frame at a time
             self.prior_bank.move_to(self.ekf, pend.ids[start_prior])
             self._set_seen(pend.ids[start_prior], pend.t_last[start_prior])
-        else:
+        elif self.prior_bank is None:
             self._start(start_prior, None, None, None, R, p)
-        done = np.zeros(len(pend), bool)
-        done[start_tri] = True
-        done[start_prior] = True
-        self._keep_pending(~done)
+        if len(start_tri) or len(start_prior):
+            done = np.zeros(len(pend), bool)
+            done[start_tri] = True
+            done[start_prior] = True
+            self._keep_pending(~done)
         return len(start_tri), len(start_prior), reasons
 
     def _start(self, rows, rho, srho, p_world_tri, R, p) -> None:
@@ -403,10 +435,10 @@ class RangeEstimator:
         if len(self.ekf):
             bad = self.ekf.diverged | self.ekf.invalid
             gone = ((t - self.t_seen) > cfg.max_unseen_s) | bad
-            if np.any(bad):  # a track that is not a static point stays out (bounded memory: newest ids)
+            if bad.any():  # a track that is not a static point stays out (bounded memory: newest ids)
                 self._retired_now = self.ekf.ids[bad].copy()
                 self.retired = np.union1d(self.retired, self._retired_now)[-cfg.max_landmarks:]
-            if np.any(gone):
+            if gone.any():
                 self.drop(self.ekf.ids[gone])
         if len(self.pending):
             self._keep_pending((t - self.pending.t_last) <= cfg.max_unseen_s)

@@ -21,10 +21,13 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 
 import numpy as np
 
 from companion.config import require, require_finite
+from companion.core import jit
+from companion.core.jit import njit
 from companion.errors import InputError
 
 
@@ -201,6 +204,13 @@ def triangulate_multiview(
     if rays.ndim != 3 or rays.shape != C.shape or mask.shape != rays.shape[:2]:
         raise InputError(f"rays {rays.shape}, centers {C.shape} and mask {mask.shape} must be (N,K,3),(N,K,3),(N,K)")
     n, k, _ = rays.shape
+    if jit.ENABLED:  # compiled: the same gates track by track (_multiview_kernel)
+        out = TriangulationResult(np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n, np.int8))
+        _multiview_kernel(np.ascontiguousarray(rays), np.ascontiguousarray(C), np.ascontiguousarray(mask),
+                          float(config.min_baseline_m), math.radians(config.min_parallax_deg), float(config.min_depth_m),
+                          float(config.max_range_m), float(config.max_rel_sigma), float(sigma_xy),
+                          out.p, out.depth, out.range_sigma, out.parallax_rad, out.reason)
+        return out
     reason = np.zeros(n, dtype=np.int8)
     finite = np.all(np.isfinite(rays) | ~mask[..., None], (1, 2)) & np.all(np.isfinite(C) | ~mask[..., None], (1, 2))
     reason[~finite] = Reject.NON_FINITE
@@ -249,3 +259,103 @@ def triangulate_multiview(
         parallax_rad=parallax,
         reason=reason,
     )
+
+
+@njit
+def _multiview_kernel(rays, C, mask, min_baseline, min_parallax_rad, min_depth, max_range, max_rel_sigma, sigma_xy,
+                      p_out, depth_out, sigma_out, parallax_out, reason_out):
+    """:func:`triangulate_multiview` one track at a time (docs/derivations/triangulation.md § Multi-view):
+    X = (Σ A_k)⁻¹ Σ A_k C_k, A_k = I − r_k r_kᵀ over the used views, then the gates in the same order,
+    the first failing one named.  Outputs (zeros where rejected, parallax always) are written in place."""
+    n, k = mask.shape
+    for t in range(n):
+        # views used: masked in, and the whole track finite (else NON_FINITE, no view used)
+        finite = True
+        for j in range(k):
+            if mask[t, j]:
+                for i in range(3):
+                    finite &= math.isfinite(rays[t, j, i]) and math.isfinite(C[t, j, i])
+        reason = Reject.OK if finite else Reject.NON_FINITE
+        count, first, last = 0, 0, 0
+        for j in range(k):
+            if finite and mask[t, j]:
+                if count == 0:
+                    first = j
+                last = j
+                count += 1
+        # unit rays r_k, and S = Σ A_k, b = Σ A_k C_k
+        S = np.zeros((3, 3))
+        b = np.zeros(3)
+        r = np.zeros((k, 3))
+        baseline = 0.0
+        for j in range(k):
+            if not (finite and mask[t, j]):
+                continue
+            nr = math.sqrt(rays[t, j, 0] ** 2 + rays[t, j, 1] ** 2 + rays[t, j, 2] ** 2)
+            if nr > 0:
+                for i in range(3):
+                    r[j, i] = rays[t, j, i] / nr
+            for i in range(3):
+                for l in range(3):
+                    A_il = (1.0 if i == l else 0.0) - r[j, i] * r[j, l]
+                    S[i, l] += A_il
+                    b[i] += A_il * C[t, j, l]
+            d = math.sqrt((C[t, j, 0] - C[t, first, 0]) ** 2 + (C[t, j, 1] - C[t, first, 1]) ** 2
+                          + (C[t, j, 2] - C[t, first, 2]) ** 2)
+            baseline = max(baseline, d)  # longest baseline, from the first centre
+        if reason == Reject.OK and (count < 2 or baseline < min_baseline):
+            reason = Reject.SHORT_BASELINE
+        cos_par = r[first, 0] * r[last, 0] + r[first, 1] * r[last, 1] + r[first, 2] * r[last, 2]
+        parallax = math.acos(min(max(cos_par, -1.0), 1.0))  # first–last rays
+        if reason == Reject.OK and parallax < min_parallax_rad:
+            reason = Reject.LOW_PARALLAX
+        # X = S⁻¹ b by the adjugate (S is 3×3); |det S| ≤ 1e-12: all rays parallel
+        c00 = S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1]
+        c01 = S[1, 2] * S[2, 0] - S[1, 0] * S[2, 2]
+        c02 = S[1, 0] * S[2, 1] - S[1, 1] * S[2, 0]
+        det = S[0, 0] * c00 + S[0, 1] * c01 + S[0, 2] * c02
+        X = np.zeros(3)
+        if abs(det) > 1e-12:
+            c10 = S[0, 2] * S[2, 1] - S[0, 1] * S[2, 2]
+            c11 = S[0, 0] * S[2, 2] - S[0, 2] * S[2, 0]
+            c12 = S[0, 1] * S[2, 0] - S[0, 0] * S[2, 1]
+            c20 = S[0, 1] * S[1, 2] - S[0, 2] * S[1, 1]
+            c21 = S[0, 2] * S[1, 0] - S[0, 0] * S[1, 2]
+            c22 = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+            X[0] = (c00 * b[0] + c10 * b[1] + c20 * b[2]) / det
+            X[1] = (c01 * b[0] + c11 * b[1] + c21 * b[2]) / det
+            X[2] = (c02 * b[0] + c12 * b[1] + c22 * b[2]) / det
+        else:
+            if reason == Reject.OK:
+                reason = Reject.LOW_PARALLAX
+            for i in range(3):  # the reference solves with I in place of S
+                X[i] = b[i]
+        for j in range(k):  # depth along every used ray
+            if finite and mask[t, j] and reason == Reject.OK:
+                depth = (X[0] - C[t, j, 0]) * r[j, 0] + (X[1] - C[t, j, 1]) * r[j, 1] + (X[2] - C[t, j, 2]) * r[j, 2]
+                if depth < min_depth:
+                    reason = Reject.BEHIND_CAMERA
+        if count > 0:
+            rng = math.sqrt((X[0] - C[t, last, 0]) ** 2 + (X[1] - C[t, last, 1]) ** 2 + (X[2] - C[t, last, 2]) ** 2)
+        else:
+            rng = math.sqrt(X[0] ** 2 + X[1] ** 2 + X[2] ** 2)
+        if reason == Reject.OK and rng > max_range:
+            reason = Reject.TOO_FAR
+        range_sigma = math.sqrt(2.0) * rng * sigma_xy / max(math.sin(parallax), 1e-12)
+        if reason == Reject.OK and sigma_xy > 0 and range_sigma > max_rel_sigma * rng:
+            reason = Reject.TOO_UNCERTAIN
+        parallax_out[t] = parallax
+        reason_out[t] = reason
+        if reason == Reject.OK:
+            for i in range(3):
+                p_out[t, i] = X[i]
+            depth_out[t] = rng
+            sigma_out[t] = range_sigma
+
+
+@jit.register_warmup
+def warm_up() -> None:
+    """Compile (or load) :func:`_multiview_kernel` on one two-view track."""
+    rays = np.array([[[0.0, 0.0, 1.0], [-0.1, 0.0, 1.0]]])
+    C = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])
+    triangulate_multiview(rays, C, np.ones((1, 2), bool), TriangulationConfig(), sigma_xy=0.002)
