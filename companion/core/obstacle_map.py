@@ -650,14 +650,15 @@ class ObstacleMap:
         s_t = np.sqrt(np.maximum(np.trace(P, axis1=1, axis2=2) - uPu, 0.0) / 2.0 + s_pos**2 + (r_h * s_head) ** 2)
         return Remembered(self.keys[rows], self.p[rows].copy(), s_r, s_t, dt)
 # ---------------------------------------------------------------------- compiled kernels ---------
-# The arithmetic of the map's steps as loops over landmarks (docs/derivations/obstacle_map.md), used
-# when :data:`companion.core.jit.ENABLED`; the bookkeeping (rows, counts, concatenation) is shared
-# with the reference.  Each kernel evaluates the reference's expressions in the same order; where
-# the reference multiplies through BLAS (camera frame, fusion) the results agree to an ulp or so.
-# Two decisions are taken differently *at* the rounding edge only: positive definiteness (pivots
-# of a Cholesky factorization here, the smallest eigenvalue there: they differ only for a
-# covariance singular to working precision) and the fused covariance (Gauss–Jordan here, LAPACK
-# there: relative differences ~ cond · 1e-16).
+# Each step of the map (docs/derivations/obstacle_map.md) as one loop over landmarks, used when
+# :data:`companion.core.jit.ENABLED` (the methods and functions above dispatch; their numpy bodies are
+# the reference).  The kernels evaluate the reference's expressions in the same order, so the
+# decisions (entry, merge, found, seen through, retention, support) are the reference's: the support
+# test even repeats its float32 expansion |q|² + |p|² − 2 q·p, rounded as BLAS rounds it.  Where the
+# reference multiplies through BLAS or LAPACK the numbers agree to rounding: the camera frame and the depth σ (a fixed order of
+# summation here), the fused covariance of a merge (Gauss–Jordan here, LAPACK there: relative
+# differences ~ cond · 1e-16) and positive definiteness (the pivots of a Cholesky factorization here,
+# the smallest eigenvalue there: they can disagree only for a covariance singular to working precision).
 
 
 @_jit.njit
@@ -854,15 +855,18 @@ def _prune_k(o, u, p, t_seen, pv, t, min_score, radius, max_age):
 
 @_jit.njit
 def _support_k(p, rows, pv, radius_m, rel):
-    """:meth:`ObstacleMap.support`: map points within the support radius of each row, in
-    float32 by the reference's own expansion |q|² + |p|² − 2 q·p (the same roundings, the same counts)."""
+    """:meth:`ObstacleMap.support`: map points within the support radius of each row, by the
+    reference's own float32 expansion |q|² + |p|² − 2 q·p, rounded as numpy rounds it: |q|² summed
+    in order, q·p as BLAS's sgemm accumulates it on FMA hardware (x86-64 with FMA, ARMv8), a fused
+    multiply–add chain q2·p2 + (q1·p1 + q0·p0), each step rounded once to float32 (products of
+    float32 are exact in float64; a double rounding could differ only on an exact float32 tie)."""
     n = p.shape[0]
+    P64 = np.empty((n, 3))
     pp = np.empty(n, np.float32)
-    P32 = np.empty((n, 3), np.float32)
     for j in range(n):
-        for a in range(3):
-            P32[j, a] = np.float32(p[j, a])
-        pp[j] = P32[j, 0] * P32[j, 0] + P32[j, 1] * P32[j, 1] + P32[j, 2] * P32[j, 2]
+        x, y, z = np.float32(p[j, 0]), np.float32(p[j, 1]), np.float32(p[j, 2])
+        P64[j, 0], P64[j, 1], P64[j, 2] = x, y, z
+        pp[j] = x * x + y * y + z * z
     two = np.float32(2.0)
     count = np.zeros(rows.size, np.int64)
     for k in range(rows.size):
@@ -872,17 +876,18 @@ def _support_k(p, rows, pv, radius_m, rel):
             d0, d1, d2 = p[i, 0] - pv[0], p[i, 1] - pv[1], p[i, 2] - pv[2]
             radius = max(radius, rel * math.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
         lim = np.float32(radius * radius)
-        q0, q1, q2 = P32[i, 0], P32[i, 1], P32[i, 2]
-        qq = q0 * q0 + q1 * q1 + q2 * q2
+        q0, q1, q2 = P64[i, 0], P64[i, 1], P64[i, 2]
+        f0, f1, f2 = np.float32(q0), np.float32(q1), np.float32(q2)
+        qq = f0 * f0 + f1 * f1 + f2 * f2
         c = 0
         for j in range(n):
-            dot = q0 * P32[j, 0] + q1 * P32[j, 1] + q2 * P32[j, 2]
+            dot = np.float32(q0 * P64[j, 0])
+            dot = np.float32(q1 * P64[j, 1] + dot)
+            dot = np.float32(q2 * P64[j, 2] + dot)
             if (qq + pp[j]) - two * dot <= lim:
                 c += 1
         count[k] = c
     return count
-
-
 
 
 @_jit.njit
@@ -1108,28 +1113,9 @@ def _remembered_k(p, P, t_seen, live, pv, t, min_support, radius_m, rel, drift_m
     return rows, s_r, s_t, dt
 
 
-@_jit.register_warmup
-def _warm_up() -> None:
-    """Compile the map kernels on a tiny map: enter, merge, re-observe, absorb, prune, remember, forget."""
-    m = ObstacleMap(MapConfig(min_support=2, support_radius_rel=0.1))
-    R_wc = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # camera looking north
-    p_wc = np.zeros(3)
-    p = np.array([[10.0, 0.0, 0.0], [10.0, 0.3, 0.0], [10.0, -0.3, 0.1]])
-    ok = consistent_for_entry(np.array([1.0, 1.0, 2.0]), np.ones(3, bool), 10.0, min_count=1)
-    P = landmark_covariance(p[ok], p_wc, np.full(3, 0.2), 0.002)
-    m.observe(0.0, [1, 2, 3], p, P)
-    m.observe(0.1, [4, 5], p[:2] + 0.01, P[:2], live_keys=[4, 5])
-    m.check_view(0.1, R_wc, p_wc, 300.0, 300.0, 160.0, 120.0, 320, 240, np.array([[160.0, 120.0]]), np.array([10.0]),
-                 np.array([0.2]), live_keys=np.array([4]))
-    m.prune(0.1, p_wc)
-    m.remembered(0.2, p_wc)
-    m.forget([5])
-    points_on_current_rays(np.array([1, 4]), p[:2], np.array([10.0, 10.0]), np.array([4]), np.array([[0.0, 0.0, 1.0]]), R_wc, p_wc)
-
-
 @_jit.njit
-def _map_entries_k(ids, key_base, converged, valid, range_sigma, range_m, p_world, mean_nis, has_nis, max_rel_sigma, ratio, p_world_cam,
-                   bearing_sigma):
+def _map_entries_k(ids, key_base, converged, valid, range_sigma, range_m, p_world, mean_nis, has_nis, max_rel_sigma, ratio,
+                   p_world_cam, bearing_sigma):
     """:func:`map_entries_reference`: keys, the mask that may enter, the keys to forget and the entries' covariances."""
     n = ids.size
     keys = np.empty(n, np.int64)
@@ -1179,3 +1165,28 @@ def _live_view_k(ids, track_ids, track_uv, keys, good, p_world, range_sigma, ran
             uv[q, 0] = fx * ((track_uv[j, 0] - cx) / fx) + cx
             uv[q, 1] = fy * ((track_uv[j, 1] - cy) / fy) + cy
     return rows, uv, depth, sig, lkeys
+
+
+@_jit.register_warmup
+def _warm_up() -> None:
+    """Compile the map kernels on a tiny map: enter, merge, re-observe, absorb, prune, remember, forget."""
+    from companion.core.camera import CameraConfig, CameraModel
+
+    m = ObstacleMap(MapConfig(min_support=2, support_radius_rel=0.1))
+    R_wc = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # camera looking north
+    p_wc = np.zeros(3)
+    p = np.array([[10.0, 0.0, 0.0], [10.0, 0.3, 0.0], [10.0, -0.3, 0.1]])
+    ok = consistent_for_entry(np.array([1.0, 1.0, 2.0]), np.ones(3, bool), 10.0, min_count=1)
+    P = landmark_covariance(p[ok], p_wc, np.full(3, 0.2), 0.002)
+    m.observe(0.0, [1, 2, 3], p, P)
+    e = map_entries(np.array([1, 2]), 0, np.ones(2, bool), np.ones(2, bool), np.full(2, 0.2), np.full(2, 10.0), p[:2], p_wc, 0.002,
+                    MapConfig(max_entry_nis_ratio=5.0), np.ones(2))
+    live_view(np.array([1, 2]), np.array([2]), np.array([[160.0, 120.0]]), e.keys, e.good, p[:2], np.full(2, 0.2), np.full(2, 10.0),
+              R_wc, p_wc, CameraModel(CameraConfig.from_fov(320, 240, 60.0)))
+    m.observe(0.1, [4, 5], p[:2] + 0.01, P[:2], live_keys=[4, 5])
+    m.check_view(0.1, R_wc, p_wc, 300.0, 300.0, 160.0, 120.0, 320, 240, np.array([[160.0, 120.0]]), np.array([10.0]),
+                 np.array([0.2]), live_keys=np.array([4]))
+    m.prune(0.1, p_wc)
+    m.remembered(0.2, p_wc)
+    m.forget([5])
+    points_on_current_rays(np.array([1, 4]), p[:2], np.array([10.0, 10.0]), np.array([4]), np.array([[0.0, 0.0, 1.0]]), R_wc, p_wc)
