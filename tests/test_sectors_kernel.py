@@ -45,6 +45,14 @@ _INT_FIELDS = ("distances_cm", "state", "in_view", "fully_in_view", "obstacle_po
 _FLOAT_FIELDS = ("range_m", "sigma_m", "obstacle_bearing_rad")
 
 
+def sectors_kernel(p_body, range_sigma, converged, valid, hfov_rad, R_cam_body, config=SectorConfig(), *, roll_pitch_rad=None,
+                   velocity_body=None, vfov_rad=None, remembered_p_body=None, remembered_sigma=None,
+                   remembered_tangential_sigma=None, ground_height_m=None) -> S.Sectors:
+    """The kernel path of :func:`compute_sectors` whatever jit.ENABLED says (uncompiled without numba)."""
+    return S._sectors_kernel(p_body, range_sigma, converged, valid, hfov_rad, R_cam_body, config, roll_pitch_rad, velocity_body,
+                             vfov_rad, remembered_p_body, remembered_sigma, remembered_tangential_sigma, ground_height_m)
+
+
 def shipped_config() -> SectorConfig:
     from companion.io.config_files import load_companion_config
 
@@ -175,10 +183,7 @@ def test_kernel_equals_reference_on_seeded_scenes(name, config):
             ground_height_m=None if rng.random() < 0.2 else (math.nan if rng.random() < 0.1 else -ground),
         )
         args = (kw.pop("p_body"), kw.pop("range_sigma"), kw.pop("converged"), kw.pop("valid"), HFOV, cam, config)
-        k = S._sectors_kernel(S._sector_inputs(*args[:4], config, opt["roll_pitch_rad"], opt["velocity_body"],
-                                               kw.get("remembered_p_body"), kw.get("remembered_sigma"),
-                                               kw.get("remembered_tangential_sigma")),
-                              HFOV, cam, config, opt["vfov_rad"], opt["ground_height_m"])
+        k = sectors_kernel(*args, **opt, **kw)
         r = compute_sectors_reference(*args, **opt, **kw)
         assert_same_sectors(k, r, f"{name} scene {i}")
         seen["clear"] += int(np.sum(r.state == SectorState.CLEAR))
@@ -224,7 +229,7 @@ def test_kernel_equals_reference_on_rule_edges(variant):
         conv, val = np.ones(len(pts), bool), np.ones(len(pts), bool)
         opt = dict(vfov_rad=VFOV, ground_height_m=ground)
         r = compute_sectors_reference(pts, sig, conv, val, HFOV, 0.0, c, **opt)
-        k = S._sectors_kernel(S._sector_inputs(pts, sig, conv, val, c, None, None, None, None, None), HFOV, 0.0, c, VFOV, ground)
+        k = sectors_kernel(pts, sig, conv, val, HFOV, 0.0, c, **opt)
         assert_same_sectors(k, r, f"{variant}: {name}")
         moved = pts.copy()
         moved[0] += 1e-6 * np.asarray(nudge, float)
@@ -271,9 +276,7 @@ def test_kernel_edge_cases(case):
     args = (p, sig, conv, val, HFOV, 0.0, cfg)
     rp = (0.0, 0.0) if case == "far only" else (0.05, -0.1)  # level, so the far points lie in the band
     opt = dict(roll_pitch_rad=rp, velocity_body=[3.0, 0.0, 0.0], vfov_rad=VFOV, ground_height_m=-10.0)
-    k = S._sectors_kernel(S._sector_inputs(p, sig, conv, val, cfg, rp, opt["velocity_body"], kw.get("remembered_p_body"),
-                                           kw.get("remembered_sigma"), kw.get("remembered_tangential_sigma")),
-                          HFOV, 0.0, cfg, VFOV, -10.0)
+    k = sectors_kernel(*args, **opt, **kw)
     r = compute_sectors_reference(*args, **opt, **kw)
     assert_same_sectors(k, r, case)
     if case == "far only":
@@ -328,6 +331,22 @@ def test_kernel_equals_reference_on_a_flight(monkeypatch):
     assert len(frames) >= 70
     n_inferred, n_remembered, n_obstacle = np.sum(frames, axis=0)
     assert n_remembered > 0 and n_inferred > 0 and n_obstacle > 0, (n_inferred, n_remembered, n_obstacle)
+
+
+def test_kernel_helpers_equal_the_reference_bit_for_bit():
+    """The kernel path's level rotation (math instead of numpy) and view masks (cos / sin of the
+    reference's own bearings) are the reference's exactly."""
+    rng = np.random.default_rng(9)
+    for _ in range(2000):
+        roll, pitch = rng.normal(0, 0.5, 2)
+        R = S._R_level_body(roll, pitch)
+        assert np.array_equal(R, S.euler_zyx_to_R_scalar(roll, pitch, 0.0))
+        g = rng.uniform(-0.5, 0.5)
+        cam = mount_rotation(*rng.normal(0, 20, 3))
+        hfov, vfov = rng.uniform(0.3, 2.5), rng.uniform(0.3, 2.0)
+        ref = S.sector_view_masks(hfov, cam, roll_pitch_rad=(roll, pitch), flight_path_rad=g, vfov_rad=vfov)
+        ker = S._view_masks_kernel(math.tan(hfov / 2), math.tan(vfov / 2), True, R, cam, g)
+        assert np.array_equal(ref[0], ker[0]) and np.array_equal(ref[1], ker[1])
 
 
 def test_warm_up_is_registered():

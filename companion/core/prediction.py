@@ -32,6 +32,7 @@ from typing import Callable
 import numpy as np
 
 from companion.config import require, require_finite
+from companion.core import jit as _jit
 from companion.core.camera import CameraModel
 from companion.core.frames import is_orthonormal
 from companion.errors import InputError
@@ -154,16 +155,29 @@ def predict_pixels_detailed(
     if not isinstance(samples, int) or samples < 2:
         raise InputError(f"samples must be an integer >= 2, got {samples!r}")
     n = len(uv)
-
-    # Inverse-depth interval of every point.
-    rho_lo = np.full(n, 0.0 if math.isinf(depth_max) else 1.0 / depth_max)
-    rho_hi = np.full(n, 1.0 / depth_min)
+    d = sig = None
     if depth is not None:
         d = _per_point("depth", depth, n)
-        known = d > 0
         sig = np.zeros(n) if depth_sigma is None else _per_point("depth_sigma", depth_sigma, n)
         if np.any(sig < 0) or not np.all(np.isfinite(sig)):
             raise InputError("depth_sigma must be finite and >= 0")
+    if _jit.ENABLED:
+        return _predict_kernel(camera, uv, Rp, pp, Rc, pc, float(depth_min), float(depth_max), float(base_radius_px), d, sig,
+                               float(depth_sigma_k), float(max_radius_px), samples)
+    return _predict_reference(camera, uv, Rp, pp, Rc, pc, depth_min, depth_max, base_radius_px, d, sig, depth_sigma_k,
+                              max_radius_px, samples)
+
+
+def _predict_reference(camera, uv, Rp, pp, Rc, pc, depth_min, depth_max, base_radius_px, d, sig, depth_sigma_k, max_radius_px,
+                       samples) -> PixelPrediction:
+    """The pure-numpy reference of :func:`predict_pixels_detailed` on checked inputs (``d``, ``sig``:
+    the known depths and their σ, or None)."""
+    n = len(uv)
+    # Inverse-depth interval of every point.
+    rho_lo = np.full(n, 0.0 if math.isinf(depth_max) else 1.0 / depth_max)
+    rho_hi = np.full(n, 1.0 / depth_min)
+    if d is not None:
+        known = d > 0
         far = d + depth_sigma_k * sig
         near = np.maximum(d - depth_sigma_k * sig, depth_min * 1e-3)
         with np.errstate(divide="ignore"):
@@ -225,6 +239,150 @@ def predict_pixels_detailed(
     return PixelPrediction(uv=centre, radius=radius, uv_far=uv_far, uv_near=uv_near, status=status)
 
 
+def _predict_kernel(camera, uv, Rp, pp, Rc, pc, depth_min, depth_max, base_radius_px, d, sig, depth_sigma_k, max_radius_px,
+                    samples) -> PixelPrediction:
+    """:func:`predict_pixels_detailed` through the compiled kernel :func:`_predict_core` (same
+    window, segment ends and status as :func:`_predict_reference`, to rounding)."""
+    c = camera.config
+    n = len(uv)
+    distorted, k, s = _constants(c, samples)
+    # the undistorted rays of the previous pixels: the camera's own (cv2) with distortion, K⁻¹ uv inline without
+    xy = camera.pixels_to_normalized(uv) if distorted and n else _EMPTY2
+    known = d is not None
+    center, radius, uv_far, uv_near, status = _predict_core(
+        uv, xy, distorted, k, float(c.fx), float(c.fy), float(c.cx), float(c.cy), 10.0 * (c.width + c.height), Rc.T @ Rp,
+        Rc.T @ (pp - pc), depth_min, depth_max, base_radius_px, d if known else _EMPTY, sig if known else _EMPTY, known,
+        depth_sigma_k, max_radius_px, s)
+    return PixelPrediction(uv=center, radius=radius, uv_far=uv_far, uv_near=uv_near, status=status)
+
+
+_EMPTY = np.zeros(0)
+_EMPTY2 = np.zeros((0, 2))
+_CONSTANTS: dict = {}
+
+
+def _constants(config, samples: int):
+    """Per camera and sample count, computed once: has distortion, the 8 OpenCV coefficients, the ρ fractions."""
+    key = (config, samples)
+    got = _CONSTANTS.get(key)
+    if got is None:
+        k = np.zeros(8)
+        k[: len(config.distortion)] = config.distortion
+        got = _CONSTANTS[key] = (bool(config.has_distortion), k, np.linspace(0.0, 1.0, samples))
+        if len(_CONSTANTS) > 16:  # bounded (one camera per process; tests use a few)
+            _CONSTANTS.pop(next(iter(_CONSTANTS)))
+    return got
+
+
+@_jit.njit
+def _to_pixels(x, y, distorted, k, fx, fy, cx, cy):
+    """:meth:`CameraModel.normalized_to_pixels` of one point (OpenCV distortion, then K)."""
+    if distorted:
+        r2 = x * x + y * y
+        radial = (1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))) / (1 + r2 * (k[5] + r2 * (k[6] + r2 * k[7])))
+        xd = x * radial + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
+        yd = y * radial + k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
+        x, y = xd, yd
+    return fx * x + cx, fy * y + cy
+
+
+@_jit.njit
+def _predict_core(uv, xy_in, distorted, k, fx, fy, cx, cy, lim, R_rel, t_rel, depth_min, depth_max, base, d, sig, known_depth,
+                  depth_sigma_k, max_r, s):
+    """:func:`_predict_reference` per point (module docstring): the inverse-depth interval, the
+    segment P(ρ) ∝ R m + ρ t sampled at ``s``, its projectable samples' bounding box, the window
+    (centre, radius, capped), the segment ends, and the far-end window of a capped segment."""
+    n, K = uv.shape[0], s.size
+    center = np.empty((n, 2))
+    radius = np.empty(n)
+    uv_far = np.empty((n, 2))
+    uv_near = np.empty((n, 2))
+    status = np.zeros(n, np.int8)
+    rho = np.empty(K)
+    front = np.empty(K, np.bool_)
+    pu = np.empty(K)
+    pv = np.empty(K)
+    xs = np.empty(K)
+    ys = np.empty(K)
+    rho_lo0 = 0.0 if math.isinf(depth_max) else 1.0 / depth_max
+    rho_hi0 = 1.0 / depth_min
+    for i in range(n):
+        u0, v0 = uv[i, 0], uv[i, 1]
+        if distorted:
+            mx, my = xy_in[i, 0], xy_in[i, 1]
+        else:  # CameraModel.pixels_to_normalized without distortion
+            mx, my = (u0 - cx) / fx, (v0 - cy) / fy
+        rho_lo, rho_hi = rho_lo0, rho_hi0
+        if known_depth and d[i] > 0:
+            far = d[i] + depth_sigma_k * sig[i]
+            near = max(d[i] - depth_sigma_k * sig[i], depth_min * 1e-3)
+            rho_lo = 0.0 if math.isinf(far) else 1.0 / far
+            rho_hi = 0.0 if math.isinf(near) else 1.0 / near
+        # R m (m = (x, y, 1)), then each sample adds ρ t
+        a0 = mx * R_rel[0, 0] + my * R_rel[0, 1] + R_rel[0, 2]
+        a1 = mx * R_rel[1, 0] + my * R_rel[1, 1] + R_rel[1, 2]
+        a2 = mx * R_rel[2, 0] + my * R_rel[2, 1] + R_rel[2, 2]
+        any_front, all_front = False, True
+        hi_u, hi_v, lo_u, lo_v = -lim, -lim, lim, lim
+        first, last = -1, -1
+        for j in range(K):
+            rho[j] = rho_lo + (rho_hi - rho_lo) * s[j]
+            q0, q1, q2 = a0 + rho[j] * t_rel[0], a1 + rho[j] * t_rel[1], a2 + rho[j] * t_rel[2]
+            front[j] = q2 > 1e-3 * math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
+            zs = q2 if front[j] else 1.0
+            xs[j], ys[j] = q0 / zs, q1 / zs
+            if front[j]:
+                x_px, y_px = _to_pixels(xs[j], ys[j], distorted, k, fx, fy, cx, cy)
+                pu[j], pv[j] = min(max(x_px, -lim), lim), min(max(y_px, -lim), lim)
+                hi_u, hi_v = max(hi_u, pu[j]), max(hi_v, pv[j])
+                lo_u, lo_v = min(lo_u, pu[j]), min(lo_v, pv[j])
+                any_front = True
+                if first < 0:
+                    first = j
+                last = j
+            else:
+                pu[j], pv[j] = 0.0, 0.0
+                all_front = False
+        if any_front:
+            c_u, c_v = 0.5 * (hi_u + lo_u), 0.5 * (hi_v + lo_v)
+        else:
+            c_u, c_v = u0, v0
+        half = 0.0
+        for j in range(K):
+            if front[j]:
+                du, dv = pu[j] - c_u, pv[j] - c_v
+                half = max(half, math.sqrt(du * du + dv * dv))
+        r = half + base
+        st = 0
+        if r > max_r:
+            st = 1  # PRED_CAPPED
+        if any_front and not all_front:
+            st = 2  # PRED_PARTLY_BEHIND
+        if not any_front:
+            st = 3  # PRED_BEHIND
+        radius[i] = max_r if st >= 2 else min(r, max_r)
+        status[i] = st
+        if any_front:
+            uv_far[i, 0], uv_far[i, 1] = pu[first], pv[first]
+            uv_near[i, 0], uv_near[i, 1] = pu[last], pv[last]
+        else:
+            uv_far[i, 0], uv_far[i, 1] = u0, v0
+            uv_near[i, 0], uv_near[i, 1] = u0, v0
+        if any_front and st != 0:
+            # a segment longer than the window: centre it between the far end and the point ~2·(cap − base) px from it
+            dx, dy = xs[last] - xs[first], ys[last] - ys[first]
+            norm = fx * math.sqrt(dx * dx + dy * dy)
+            frac = min(1.0, 2.0 * (max_r - base) / (norm if norm > 0 else 1.0))
+            rho_s = rho[first] + (rho[last] - rho[first]) * frac
+            q0, q1, q2 = a0 + rho_s * t_rel[0], a1 + rho_s * t_rel[1], a2 + rho_s * t_rel[2]
+            if q2 > 1e-3 * math.sqrt(q0 * q0 + q1 * q1 + q2 * q2):
+                x_px, y_px = _to_pixels(q0 / q2, q1 / q2, distorted, k, fx, fy, cx, cy)
+                c_u = 0.5 * (uv_far[i, 0] + min(max(x_px, -lim), lim))
+                c_v = 0.5 * (uv_far[i, 1] + min(max(y_px, -lim), lim))
+        center[i, 0], center[i, 1] = c_u, c_v
+    return center, radius, uv_far, uv_near, status
+
+
 def predict_pixels(
     camera: CameraModel,
     uv_prev: np.ndarray,
@@ -282,3 +440,17 @@ def make_track_predictor(
         return p.uv, p.radius
 
     return predict
+
+
+@_jit.register_warmup
+def _warm_up() -> None:
+    """Compile the prediction kernel (pinhole and distorted cameras, with and without known depths)."""
+    from companion.core.camera import CameraConfig
+
+    R = np.eye(3)
+    uv = np.array([[100.0, 80.0], [10.0, 10.0]])
+    for dist in ((0.0,) * 5, (-0.2, 0.05, 0.001, 0.001, 0.0)):
+        cam = CameraModel(CameraConfig(width=320, height=240, fx=277.0, fy=277.0, cx=159.5, cy=119.5, distortion=dist))
+        predict_pixels_detailed(cam, uv, R, np.zeros(3), R, np.array([0.0, 0.1, 1.0]), 2.0, math.inf, 3.0)
+        predict_pixels_detailed(cam, uv, R, np.zeros(3), R, np.array([0.0, 0.1, 1.0]), 2.0, 50.0, 3.0, np.array([5.0, -1.0]),
+                                depth_sigma=np.array([0.5, 0.0]))

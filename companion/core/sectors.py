@@ -50,7 +50,7 @@ import numpy as np
 
 from companion.config import require, require_finite
 from companion.core import jit as _jit
-from companion.core.frames import euler_zyx_to_R, mount_rotation
+from companion.core.frames import euler_zyx_to_R, euler_zyx_to_R_scalar, mount_rotation
 from companion.errors import InputError
 
 #: OBSTACLE_DISTANCE holds 72 distances; 72 × 5° covers 360° (docs/derivations/sectors.md).
@@ -389,10 +389,11 @@ def compute_sectors(
 
     Bad points (NaN/inf, negative σ, zero range) are ignored and counted, never raised on.
     """
+    if _jit.ENABLED:
+        return _sectors_kernel(p_body, range_sigma, converged, valid, hfov_rad, R_cam_body, config, roll_pitch_rad, velocity_body,
+                               vfov_rad, remembered_p_body, remembered_sigma, remembered_tangential_sigma, ground_height_m)
     inp = _sector_inputs(p_body, range_sigma, converged, valid, config, roll_pitch_rad, velocity_body, remembered_p_body,
                          remembered_sigma, remembered_tangential_sigma)
-    if _jit.ENABLED:
-        return _sectors_kernel(inp, hfov_rad, R_cam_body, config, vfov_rad, ground_height_m)
     return _sectors_reference(inp, hfov_rad, R_cam_body, config, vfov_rad, ground_height_m)
 
 
@@ -903,56 +904,96 @@ _VIEW_OFFSETS = np.radians(np.linspace(-SECTOR_DEG / 2, SECTOR_DEG / 2, _SAMPLES
 
 
 def _kernel_config(config: SectorConfig) -> np.ndarray:
-    """The ``[sectors]`` numbers the kernel reads, packed (angles converted as the reference does)."""
-    got = _KERNEL_CONFIGS.get(config)
-    if got is None:
-        c = config
-        v = np.zeros(_K_SIZE)
-        v[[_K_MIN_M, _K_MAX_M, _K_SIGMA_K, _K_HALF_H, _K_TOUCH, _K_SPREAD_K, _K_REL_TOL, _K_NARROW_M, _K_VERT_WIN,
-           _K_VERT_GROUND, _K_MIN_EXTENT, _K_REACH, _K_CAP, _K_GROUND_MARGIN, _K_FWD_HALF]] = (
-            c.min_distance_m, c.max_distance_m, c.sigma_k, c.band_half_height_m, c.touching_distance_m,
-            c.remembered_spread_k, c.infer_rel_tol, c.infer_narrow_gap_m, c.infer_vertical_window_m,
-            c.infer_vertical_ground_margin_m, c.infer_vertical_min_extent_m, c.infer_vertical_reach_m, c.cap_above_m,
-            c.ground_margin_m, c.forward_half_width_deg)
-        v[_K_BAND_METRES] = c.band_mode == "metres"
-        v[_K_HALF_ANGLE_RAD] = math.radians(c.band_half_angle_deg)
-        v[_K_TAN_HALF_ANGLE] = math.tan(math.radians(c.band_half_angle_deg))
-        v[_K_N_OBS], v[_K_N_CLR], v[_K_NEAREST] = c.min_points_obstacle, c.min_points_clear, c.nearest_count
-        v[_K_VETO], v[_K_VERT], v[_K_ONE_SIDE] = c.unconverged_veto_clear, c.infer_vertical, c.infer_vertical_one_side
-        v[_K_MAX_SPREAD_RAD] = math.radians(c.remembered_max_spread_deg)
-        v[_K_DROP_SPREAD_RAD] = math.radians(c.remembered_drop_spread_deg)
-        v[_K_GAP], v[_K_NARROW_N] = c.infer_max_gap_sectors, c.infer_narrow_max_sectors
-        v[_K_MIN_CM], v[_K_MAX_CM] = c.min_distance_cm, c.max_distance_cm
-        v.flags.writeable = False
-        got = _KERNEL_CONFIGS[config] = v
-        if len(_KERNEL_CONFIGS) > 64:  # bounded: configs are few (one per process, a handful in tests)
-            _KERNEL_CONFIGS.pop(next(iter(_KERNEL_CONFIGS)))
-    return got
+    """The ``[sectors]`` numbers the kernel reads, packed (angles converted as the reference does);
+    computed once per config object."""
+    got = _KERNEL_CONFIGS.get(id(config))
+    if got is not None and got[0] is config:
+        return got[1]
+    c = config
+    v = np.zeros(_K_SIZE)
+    v[[_K_MIN_M, _K_MAX_M, _K_SIGMA_K, _K_HALF_H, _K_TOUCH, _K_SPREAD_K, _K_REL_TOL, _K_NARROW_M, _K_VERT_WIN,
+       _K_VERT_GROUND, _K_MIN_EXTENT, _K_REACH, _K_CAP, _K_GROUND_MARGIN, _K_FWD_HALF]] = (
+        c.min_distance_m, c.max_distance_m, c.sigma_k, c.band_half_height_m, c.touching_distance_m,
+        c.remembered_spread_k, c.infer_rel_tol, c.infer_narrow_gap_m, c.infer_vertical_window_m,
+        c.infer_vertical_ground_margin_m, c.infer_vertical_min_extent_m, c.infer_vertical_reach_m, c.cap_above_m,
+        c.ground_margin_m, c.forward_half_width_deg)
+    v[_K_BAND_METRES] = c.band_mode == "metres"
+    v[_K_HALF_ANGLE_RAD] = math.radians(c.band_half_angle_deg)
+    v[_K_TAN_HALF_ANGLE] = math.tan(math.radians(c.band_half_angle_deg))
+    v[_K_N_OBS], v[_K_N_CLR], v[_K_NEAREST] = c.min_points_obstacle, c.min_points_clear, c.nearest_count
+    v[_K_VETO], v[_K_VERT], v[_K_ONE_SIDE] = c.unconverged_veto_clear, c.infer_vertical, c.infer_vertical_one_side
+    v[_K_MAX_SPREAD_RAD] = math.radians(c.remembered_max_spread_deg)
+    v[_K_DROP_SPREAD_RAD] = math.radians(c.remembered_drop_spread_deg)
+    v[_K_GAP], v[_K_NARROW_N] = c.infer_max_gap_sectors, c.infer_narrow_max_sectors
+    v[_K_MIN_CM], v[_K_MAX_CM] = c.min_distance_cm, c.max_distance_cm
+    v.flags.writeable = False
+    _KERNEL_CONFIGS[id(config)] = (config, v)  # the config is kept alive with its id: no reuse while cached
+    if len(_KERNEL_CONFIGS) > 64:  # bounded: configs are few (one per process, a handful in tests)
+        _KERNEL_CONFIGS.pop(next(iter(_KERNEL_CONFIGS)))
+    return v
 
 
-_KERNEL_CONFIGS: dict[SectorConfig, np.ndarray] = {}
+_KERNEL_CONFIGS: dict[int, tuple[SectorConfig, np.ndarray]] = {}
+_STATES = tuple(SectorState)  # by value
+_EMPTY = np.zeros(0)
+_EMPTY_P = np.zeros((0, 3))
 
 
-def _sectors_kernel(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorConfig, vfov_rad, ground_height_m) -> Sectors:
-    """:func:`compute_sectors` through the compiled kernels (same checks and result as :func:`_sectors_reference`)."""
+def _sectors_kernel(p_body, range_sigma, converged, valid, hfov_rad, R_cam_body, config: SectorConfig, roll_pitch_rad, velocity_body,
+                    vfov_rad, remembered_p_body, remembered_sigma, remembered_tangential_sigma, ground_height_m) -> Sectors:
+    """:func:`compute_sectors` through the compiled kernels: the reference's checks (the same
+    errors, in the same order), then :func:`_join_points_k`, :func:`_view_masks_kernel`,
+    :func:`_usable_points_k` and :func:`_sectors_core`."""
+    p = np.asarray(p_body, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        if p.size == 0:
+            p = p.reshape(0, 3)
+        else:
+            raise InputError(f"p_body must have shape (N, 3), got {p.shape}")
+    n = p.shape[0]
+    sig = np.asarray(range_sigma, dtype=float).reshape(-1)
+    conv = np.asarray(converged, dtype=bool).reshape(-1)
+    val = np.asarray(valid, dtype=bool).reshape(-1)
+    for name, a in (("range_sigma", sig), ("converged", conv), ("valid", val)):
+        if a.shape[0] != n:
+            raise InputError(f"{name} has {a.shape[0]} entries for {n} points")
+    mp, ms, mt = _EMPTY_P, _EMPTY, _EMPTY
+    if remembered_p_body is not None:
+        mp = np.asarray(remembered_p_body, dtype=float).reshape(-1, 3)
+        m = mp.shape[0]
+        ms = np.asarray(remembered_sigma if remembered_sigma is not None else np.zeros(m), dtype=float).reshape(-1)
+        mt = np.asarray(remembered_tangential_sigma if remembered_tangential_sigma is not None else np.zeros(m), dtype=float).reshape(-1)
+        if ms.shape[0] != m or mt.shape[0] != m:
+            raise InputError(f"remembered_sigma / remembered_tangential_sigma need {m} entries each")
+    R_lb = _I3
+    if roll_pitch_rad is not None:
+        rp = tuple(float(a) for a in roll_pitch_rad)
+        if len(rp) != 2 or not all(math.isfinite(a) for a in rp):
+            raise InputError(f"roll_pitch_rad must be two finite angles, got {roll_pitch_rad!r}")
+        R_lb = euler_zyx_to_R_scalar(rp[0], rp[1], 0.0)  # = _R_level_body (the tests compare them bit for bit)
+    v_level = None if velocity_body is None else R_lb @ np.asarray(velocity_body, dtype=float).reshape(3)
+    gamma = _flight_path_angle(config, v_level)
     if not (isinstance(hfov_rad, (int, float)) and math.isfinite(hfov_rad) and 0 < hfov_rad < math.pi):
         raise InputError(f"hfov_rad must be in (0, pi), got {hfov_rad!r}")
     R_cb = _as_R_cam_body(R_cam_body)
     has_v = vfov_rad is not None
     tan_v = math.tan(float(vfov_rad) / 2) if has_v else 0.0
-    R_lb = inp.R_lb if inp.rp is not None else _I3
-    in_view, fully = _view_masks_kernel(math.tan(hfov_rad / 2), tan_v, has_v, R_lb, R_cb, float(inp.gamma))
+    in_view, fully = _view_masks_kernel(math.tan(hfov_rad / 2), tan_v, has_v, R_lb, R_cb, float(gamma))
     ground_known = ground_height_m is not None and math.isfinite(ground_height_m)
     cfg = _kernel_config(config)
-    usable, r, rejected = _usable_points_k(inp.p, inp.sig, inp.val)
+    if mp.shape[0]:
+        p, sig, conv, val, mem_tan = _join_points_k(p, sig, conv, val, mp, ms, mt)
+    else:
+        mem_tan = _EMPTY
+    usable, r, rejected = _usable_points_k(p, sig, val)
     # the levelled points by the reference's own product (BLAS): bit-identical p_level, so ties between
     # equal conservative ranges (copies of one remembered point) are broken the same way
-    p_level = np.where(usable[:, None], inp.p, 0.0) @ inp.R_lb.T
+    p_level = np.where(usable[:, None], p, 0.0) @ R_lb.T
     (dist, state, range_m, sigma_m, n_obs, n_clr, n_mem, inferred, used, ob_bearing, ob_cm, fwd_state, fwd_vals,
      near_p, near_vals, near_sector) = _sectors_core(
-        inp.p, inp.sig, inp.conv, usable, r, p_level, inp.n_live, inp.mem_tan, inp.R_lb, in_view, fully, float(inp.gamma),
-        math.tan(inp.gamma), float(ground_height_m) if ground_known else 0.0, ground_known, cfg)
-    forward = ForwardRange(SectorState(int(fwd_state)), float(fwd_vals[0]), float(fwd_vals[1]), float(fwd_vals[2]))
+        p, sig, conv, usable, r, p_level, n, mem_tan, R_lb, in_view, fully, float(gamma), math.tan(gamma),
+        float(ground_height_m) if ground_known else 0.0, ground_known, cfg)
+    forward = ForwardRange(_STATES[fwd_state], float(fwd_vals[0]), float(fwd_vals[1]), float(fwd_vals[2]))
     nearest = tuple(Obstacle3D((float(near_p[j, 0]), float(near_p[j, 1]), float(near_p[j, 2])), float(near_vals[j, 0]),
                                float(near_vals[j, 1]), int(near_sector[j])) for j in range(len(near_sector)))
     return Sectors(
@@ -966,6 +1007,30 @@ def _sectors_kernel(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorConf
 
 _I3 = np.eye(3)
 _I3.flags.writeable = False
+# the bearings of sector_view_masks (centres + offsets) and their cos / sin, by numpy as the reference computes them
+_VIEW_BETA = np.radians(np.arange(SECTOR_COUNT) * SECTOR_DEG)[:, None] + _VIEW_OFFSETS[None, :]
+_VIEW_COS, _VIEW_SIN = np.cos(_VIEW_BETA), np.sin(_VIEW_BETA)
+
+
+@_jit.njit
+def _join_points_k(p, sig, conv, val, mp, ms, mt):
+    """Live then remembered points as the reference joins them: remembered ones converged, valid when
+    finite with a finite σ_t ≥ 0; their σ_t (0 where not finite)."""
+    n, m = p.shape[0], mp.shape[0]
+    P = np.empty((n + m, 3))
+    S = np.empty(n + m)
+    C = np.empty(n + m, np.bool_)
+    V = np.empty(n + m, np.bool_)
+    mem_tan = np.empty(m)
+    for i in range(n):
+        P[i, 0], P[i, 1], P[i, 2], S[i], C[i], V[i] = p[i, 0], p[i, 1], p[i, 2], sig[i], conv[i], val[i]
+    for q in range(m):
+        i = n + q
+        P[i, 0], P[i, 1], P[i, 2], S[i], C[i] = mp[q, 0], mp[q, 1], mp[q, 2], ms[q], True
+        V[i] = (math.isfinite(mp[q, 0]) and math.isfinite(mp[q, 1]) and math.isfinite(mp[q, 2]) and math.isfinite(mt[q])
+                and mt[q] >= 0)
+        mem_tan[q] = mt[q] if math.isfinite(mt[q]) else 0.0
+    return P, S, C, V, mem_tan
 
 
 @_jit.njit
@@ -978,10 +1043,8 @@ def _view_masks_kernel(tan_h, tan_v, has_v, R_lb, R_cb, gamma):
     dl = np.empty(3)
     db = np.empty(3)
     for i in range(SECTOR_COUNT):
-        centre = (i * SECTOR_DEG) * _DEG2RAD
         for s in range(_VIEW_OFFSETS.size):
-            beta = centre + _VIEW_OFFSETS[s]
-            dl[0], dl[1], dl[2] = cg * math.cos(beta), cg * math.sin(beta), -sg
+            dl[0], dl[1], dl[2] = cg * _VIEW_COS[i, s], cg * _VIEW_SIN[i, s], -sg
             for j in range(3):  # levelled → body: d_level @ R_level_body
                 db[j] = dl[0] * R_lb[0, j] + dl[1] * R_lb[1, j] + dl[2] * R_lb[2, j]
             x = db[0] * R_cb[0, 0] + db[1] * R_cb[0, 1] + db[2] * R_cb[0, 2]
