@@ -229,6 +229,36 @@ def test_support_matches_the_float32_reference_far_from_the_origin(monkeypatch):
     assert np.any(exact != ref)  # the float32 rounding matters here: the test discriminates
 
 
+def _support_bruteforce(p, rows, pv, radius_m, rel):
+    """Every pair, numpy, the float32 expansion with sgemm's fused q·p chain (products exact in float64)."""
+    radius = np.full(rows.size, radius_m)
+    if rel > 0:
+        radius = np.maximum(radius, rel * np.linalg.norm(p[rows] - pv, axis=1))
+    P = p.astype(np.float32)
+    q = P[rows]
+    qq = np.sum(q * q, 1)
+    pp = np.sum(P * P, 1)
+    Q, R = q.astype(float)[:, None, :], P.astype(float)[None, :, :]
+    dot = (Q[..., 0] * R[..., 0]).astype(np.float32)
+    dot = (Q[..., 1] * R[..., 1] + dot).astype(np.float32)
+    dot = (Q[..., 2] * R[..., 2] + dot).astype(np.float32)
+    return np.count_nonzero((qq[:, None] + pp[None, :]) - np.float32(2.0) * dot <= (radius**2).astype(np.float32)[:, None], axis=1)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 30.0, 3000.0])
+def test_support_slab_counts_every_pair(scale):
+    """The kernel tests only a slab of points along one axis: its counts must be those of every pair
+    (clusters at every scale, points near the origin where the slab's rounding margin is thinnest)."""
+    rng = np.random.default_rng(int(scale * 10) + 1)
+    for trial in range(20):
+        centres = rng.normal(0, scale, (5, 3)) + rng.choice([0.0, 2000.0]) * rng.random(3)
+        p = np.concatenate([c + rng.normal(0, rng.uniform(0.05, 3.0), (80, 3)) for c in centres])
+        rows = np.sort(rng.choice(len(p), 150, replace=False))
+        pv = centres[0] + rng.normal(0, 10, 3)
+        for radius_m, rel in ((0.6, 0.15), (0.6, 0.0), (rng.uniform(0.01, 5.0), 0.0)):
+            np.testing.assert_array_equal(OM._support_k(p, rows, pv, radius_m, rel), _support_bruteforce(p, rows, pv, radius_m, rel))
+
+
 @pytest.mark.parametrize("case", ["empty map", "nothing in", "one landmark", "bad inputs", "absorb", "duplicate keys", "no live",
                                   "live_keys None"])
 def test_kernel_edge_cases(monkeypatch, case):

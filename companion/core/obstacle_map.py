@@ -258,7 +258,9 @@ def live_view(ids, track_ids, track_uv, keys, good, p_world, range_sigma, range_
         ids, tids = np.asarray(ids).reshape(-1), np.asarray(track_ids).reshape(-1)
         if ids.dtype.kind in "iu" and tids.dtype.kind in "iu":
             c = camera.config
-            pinhole = not c.has_distortion
+            pinhole = _PINHOLE.get(c)
+            if pinhole is None:  # once per camera
+                pinhole = _PINHOLE[c] = not c.has_distortion
             rows, uv, depth, sig, lkeys = _live_view_k(
                 ids.astype(np.int64), tids.astype(np.int64), np.asarray(track_uv, float).reshape(-1, 2), keys, good,
                 np.asarray(p_world, float).reshape(-1, 3), np.asarray(range_sigma, float).reshape(-1),
@@ -268,6 +270,9 @@ def live_view(ids, track_ids, track_uv, keys, good, p_world, range_sigma, range_
                 uv = camera.undistort_to_pinhole(np.asarray(track_uv, float)[rows])
             return uv, depth, sig, lkeys
     return live_view_reference(ids, track_ids, track_uv, keys, good, p_world, range_sigma, range_m, R_world_cam, p_world_cam, camera)
+
+
+_PINHOLE: dict = {}  # camera config -> no distortion (a handful of cameras per process)
 
 
 def live_view_reference(ids, track_ids, track_uv, keys, good, p_world, range_sigma, range_m, R_world_cam, p_world_cam, camera):
@@ -856,18 +861,38 @@ def _prune_k(o, u, p, t_seen, pv, t, min_score, radius, max_age):
 @_jit.njit
 def _support_k(p, rows, pv, radius_m, rel):
     """:meth:`ObstacleMap.support`: map points within the support radius of each row, by the
-    reference's own float32 expansion |q|² + |p|² − 2 q·p, rounded as numpy rounds it: |q|² summed
+    reference's own float32 expansion E = |q|² + |p|² − 2 q·p, rounded as numpy rounds it: |q|² summed
     in order, q·p as BLAS's sgemm accumulates it on FMA hardware (x86-64 with FMA, ARMv8), a fused
     multiply–add chain q2·p2 + (q1·p1 + q0·p0), each step rounded once to float32 (products of
-    float32 are exact in float64; a double rounding could differ only on an exact float32 tie)."""
+    float32 are exact in float64; a double rounding could differ only on an exact float32 tie).
+
+    Only the points within a slab along the axis of largest spread are tested: E is within
+    9 u (|q|² + |p|²) of the exact squared distance of the float32 points (u = 2⁻²⁴: two or three
+    roundings in each of |q|², |p|², q·p, their sum and difference), so a point farther along that
+    axis than √(r² + 16 u (|q|² + max |p|²)) cannot pass; the counts are those of testing every pair."""
     n = p.shape[0]
-    P64 = np.empty((n, 3))
+    X, Y, Z = np.empty(n), np.empty(n), np.empty(n)  # float32 coordinates, held exactly in float64
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    pp_max = 0.0
+    for j in range(n):
+        X[j], Y[j], Z[j] = np.float32(p[j, 0]), np.float32(p[j, 1]), np.float32(p[j, 2])
+        lo[0], hi[0] = min(lo[0], X[j]), max(hi[0], X[j])
+        lo[1], hi[1] = min(lo[1], Y[j]), max(hi[1], Y[j])
+        lo[2], hi[2] = min(lo[2], Z[j]), max(hi[2], Z[j])
+        pp_max = max(pp_max, X[j] * X[j] + Y[j] * Y[j] + Z[j] * Z[j])
+    axis = 0
+    for a in range(1, 3):
+        if hi[a] - lo[a] > hi[axis] - lo[axis]:
+            axis = a
+    key = X if axis == 0 else (Y if axis == 1 else Z)
+    order = np.argsort(key)
+    Xs, Ys, Zs, ks = X[order], Y[order], Z[order], key[order]
     pp = np.empty(n, np.float32)
     for j in range(n):
-        x, y, z = np.float32(p[j, 0]), np.float32(p[j, 1]), np.float32(p[j, 2])
-        P64[j, 0], P64[j, 1], P64[j, 2] = x, y, z
+        x, y, z = np.float32(Xs[j]), np.float32(Ys[j]), np.float32(Zs[j])
         pp[j] = x * x + y * y + z * z
     two = np.float32(2.0)
+    u = 2.0**-24
     count = np.zeros(rows.size, np.int64)
     for k in range(rows.size):
         i = rows[k]
@@ -876,16 +901,18 @@ def _support_k(p, rows, pv, radius_m, rel):
             d0, d1, d2 = p[i, 0] - pv[0], p[i, 1] - pv[1], p[i, 2] - pv[2]
             radius = max(radius, rel * math.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
         lim = np.float32(radius * radius)
-        q0, q1, q2 = P64[i, 0], P64[i, 1], P64[i, 2]
+        q0, q1, q2 = X[i], Y[i], Z[i]
         f0, f1, f2 = np.float32(q0), np.float32(q1), np.float32(q2)
         qq = f0 * f0 + f1 * f1 + f2 * f2
+        w = math.sqrt(float(lim) + 16.0 * u * (float(qq) + pp_max))
+        j0 = np.searchsorted(ks, key[i] - w)
+        j1 = np.searchsorted(ks, key[i] + w, side="right")
         c = 0
-        for j in range(n):
-            dot = np.float32(q0 * P64[j, 0])
-            dot = np.float32(q1 * P64[j, 1] + dot)
-            dot = np.float32(q2 * P64[j, 2] + dot)
-            if (qq + pp[j]) - two * dot <= lim:
-                c += 1
+        for j in range(j0, j1):
+            dot = np.float32(q0 * Xs[j])
+            dot = np.float32(q1 * Ys[j] + dot)
+            dot = np.float32(q2 * Zs[j] + dot)
+            c += ((qq + pp[j]) - two * dot) <= lim
         count[k] = c
     return count
 
