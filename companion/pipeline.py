@@ -59,7 +59,7 @@ from companion.core.estimator import RangeEstimator, RangeOutput
 from companion.core import jit
 from companion.interrupts import interrupt_in
 from companion.core.frames import R_to_euler_zyx
-from companion.core.obstacle_map import ObstacleMap, consistent_for_entry, landmark_covariance, points_on_current_rays, world_to_body
+from companion.core.obstacle_map import ObstacleMap, live_view, map_entries, points_on_current_rays, world_to_body
 from companion.core.prediction import make_track_predictor
 from companion.core.priority import detection_priority, live_points_per_sector
 from companion.core.sectors import SECTOR_COUNT, Sectors, SectorState, compute_sectors
@@ -353,31 +353,19 @@ class Pipeline:
         omap = self.map
         if omap is None:
             return None
-        keys = out.ids.astype(np.int64) + self._key_base
-        good = out.converged & out.valid & (out.range_sigma <= omap.config.max_rel_sigma * out.range)
-        if omap.config.max_entry_nis_ratio > 0 and out.mean_nis is not None:
-            inconsistent = good & ~consistent_for_entry(out.mean_nis, out.converged & out.valid, omap.config.max_entry_nis_ratio)
-            if np.any(inconsistent):  # not a point the map should keep: forget what it left there
-                omap.forget(keys[inconsistent])
-            good &= ~inconsistent
-        P = landmark_covariance(p_world[good], p_wc, out.range_sigma[good], self._bearing_sigma)
-        rej = omap.observe(t, keys[good], p_world[good], P, live_keys=keys)
+        e = map_entries(out.ids, self._key_base, out.converged, out.valid, out.range_sigma, out.range, p_world, p_wc,
+                        self._bearing_sigma, omap.config, out.mean_nis)
+        if len(e.forget):  # converged but inconsistent: not a point the map should keep, forget what it left there
+            omap.forget(e.forget)
+        rej = omap.observe(t, e.entry_keys, e.p_world, e.P_world, live_keys=e.keys)
         for why, n in rej.items():
             if n:
                 self.counters[f"map_rejected_{why}"] += n
         if len(out.retired_ids):
             omap.forget(np.asarray(out.retired_ids, np.int64) + self._key_base)
         # live converged landmarks seen in this frame: pinhole pixel, depth and its σ
-        live = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
-        live_keys = np.zeros(0, np.int64)
-        if len(out.ids) and len(tf.ids):
-            pos = np.minimum(np.searchsorted(tf.ids, out.ids), len(tf.ids) - 1)
-            seen = (tf.ids[pos] == out.ids) & good  # live landmarks with a point in the map
-            if np.any(seen):
-                depth = (p_world[seen] - p_wc) @ R_wc[:, 2]
-                sig = out.range_sigma[seen] * np.abs(depth) / np.maximum(out.range[seen], 1e-9)
-                live = self.camera.undistort_to_pinhole(tf.uv[pos[seen]]), depth, sig
-                live_keys = keys[seen]
+        *live, live_keys = live_view(out.ids, tf.ids, tf.uv, e.keys, e.good, p_world, out.range_sigma, out.range, R_wc, p_wc,
+                                     self.camera)
         c = self.camera_config
         vc = omap.check_view(t, R_wc, p_wc, c.fx, c.fy, c.cx, c.cy, c.width, c.height, *live, live_keys=live_keys)
         self.counters["map_found"] += vc.found

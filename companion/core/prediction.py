@@ -32,6 +32,7 @@ from typing import Callable
 import numpy as np
 
 from companion.config import require, require_finite
+from companion.core import jit as _jit
 from companion.core.camera import CameraModel
 from companion.core.frames import is_orthonormal
 from companion.errors import InputError
@@ -134,6 +135,13 @@ def predict_pixels_detailed(
     previous optical axis.  ``depth`` (N,) optional known depths: entries > 0 are used (± k·σ with
     ``depth_sigma``), entries ≤ 0 mean unknown (NaN is refused).  See the module docstring.
     """
+    if _jit.ENABLED:  # inputs checked in one kernel; anything it does not pass takes the reference's checks (which raise)
+        got = _checked_inputs(uv_prev, R_world_cam_prev, p_world_cam_prev, R_world_cam_cur, p_world_cam_cur, depth_min, depth_max,
+                              base_radius_px, depth, depth_sigma, max_radius_px, samples)
+        if got is not None:
+            uv, Rp, pp, Rc, pc, d, sig = got
+            return _predict_kernel(camera, uv, Rp, pp, Rc, pc, float(depth_min), float(depth_max), float(base_radius_px), d, sig,
+                                   float(depth_sigma_k), float(max_radius_px), samples)
     uv = np.asarray(uv_prev, dtype=float)
     if uv.ndim != 2 or uv.shape[1] != 2:
         raise InputError(f"uv_prev must have shape (N, 2), got {uv.shape}")
@@ -154,16 +162,29 @@ def predict_pixels_detailed(
     if not isinstance(samples, int) or samples < 2:
         raise InputError(f"samples must be an integer >= 2, got {samples!r}")
     n = len(uv)
-
-    # Inverse-depth interval of every point.
-    rho_lo = np.full(n, 0.0 if math.isinf(depth_max) else 1.0 / depth_max)
-    rho_hi = np.full(n, 1.0 / depth_min)
+    d = sig = None
     if depth is not None:
         d = _per_point("depth", depth, n)
-        known = d > 0
         sig = np.zeros(n) if depth_sigma is None else _per_point("depth_sigma", depth_sigma, n)
         if np.any(sig < 0) or not np.all(np.isfinite(sig)):
             raise InputError("depth_sigma must be finite and >= 0")
+    if _jit.ENABLED:
+        return _predict_kernel(camera, uv, Rp, pp, Rc, pc, float(depth_min), float(depth_max), float(base_radius_px), d, sig,
+                               float(depth_sigma_k), float(max_radius_px), samples)
+    return _predict_reference(camera, uv, Rp, pp, Rc, pc, depth_min, depth_max, base_radius_px, d, sig, depth_sigma_k,
+                              max_radius_px, samples)
+
+
+def _predict_reference(camera, uv, Rp, pp, Rc, pc, depth_min, depth_max, base_radius_px, d, sig, depth_sigma_k, max_radius_px,
+                       samples) -> PixelPrediction:
+    """The pure-numpy reference of :func:`predict_pixels_detailed` on checked inputs (``d``, ``sig``:
+    the known depths and their σ, or None)."""
+    n = len(uv)
+    # Inverse-depth interval of every point.
+    rho_lo = np.full(n, 0.0 if math.isinf(depth_max) else 1.0 / depth_max)
+    rho_hi = np.full(n, 1.0 / depth_min)
+    if d is not None:
+        known = d > 0
         far = d + depth_sigma_k * sig
         near = np.maximum(d - depth_sigma_k * sig, depth_min * 1e-3)
         with np.errstate(divide="ignore"):
@@ -225,6 +246,227 @@ def predict_pixels_detailed(
     return PixelPrediction(uv=centre, radius=radius, uv_far=uv_far, uv_near=uv_near, status=status)
 
 
+_NUMBER = (int, float, np.floating, np.integer)
+
+
+def _checked_inputs(uv_prev, R_prev, p_prev, R_cur, p_cur, depth_min, depth_max, base_radius_px, depth, depth_sigma, max_radius_px,
+                    samples):
+    """The inputs of :func:`predict_pixels_detailed` as arrays when they pass every check the
+    reference makes (shapes here, values in :func:`_inputs_ok_k`), else None."""
+    uv = np.asarray(uv_prev, dtype=float)
+    Rp, Rc = np.asarray(R_prev, dtype=float), np.asarray(R_cur, dtype=float)
+    pp, pc = np.asarray(p_prev, dtype=float), np.asarray(p_cur, dtype=float)
+    if uv.ndim != 2 or uv.shape[1] != 2 or Rp.shape != (3, 3) or Rc.shape != (3, 3) or pp.shape != (3,) or pc.shape != (3,):
+        return None
+    for v in (depth_min, base_radius_px, max_radius_px):
+        if not isinstance(v, _NUMBER) or not math.isfinite(v) or v < 0:
+            return None
+    if (depth_min <= 0 or not isinstance(depth_max, _NUMBER) or math.isnan(depth_max) or depth_max <= depth_min
+            or not isinstance(samples, int) or samples < 2):
+        return None
+    n = len(uv)
+    d = sig = None
+    if depth is not None:
+        d = np.asarray(depth, dtype=float)
+        d = np.full(n, float(d)) if d.ndim == 0 else d
+        sig = np.zeros(n) if depth_sigma is None else np.asarray(depth_sigma, dtype=float)
+        sig = np.full(n, float(sig)) if sig.ndim == 0 else sig
+        if d.shape != (n,) or sig.shape != (n,):
+            return None
+    if not _inputs_ok_k(uv, Rp, Rc, pp, pc, _EMPTY if d is None else d, _EMPTY if sig is None else sig):
+        return None
+    return uv, Rp, pp, Rc, pc, d, sig
+
+
+@_jit.njit
+def _inputs_ok_k(uv, Rp, Rc, pp, pc, d, sig):
+    """The reference's value checks at once: finite pixels, poses finite with rotations orthonormal
+    (|RᵀR − I| ≤ 1e-6 + 1e-5 δ, :func:`companion.core.frames.is_orthonormal`), depths not NaN, their σ finite ≥ 0."""
+    for i in range(uv.shape[0]):
+        if not (math.isfinite(uv[i, 0]) and math.isfinite(uv[i, 1])):
+            return False
+    for R in (Rp, Rc):
+        for a in range(3):
+            for b in range(3):
+                if not math.isfinite(R[a, b]):
+                    return False
+        for a in range(3):
+            for b in range(3):
+                rtr = R[0, a] * R[0, b] + R[1, a] * R[1, b] + R[2, a] * R[2, b]
+                if not abs(rtr - (1.0 if a == b else 0.0)) <= 1e-6 + (1e-5 if a == b else 0.0):
+                    return False
+    for a in range(3):
+        if not (math.isfinite(pp[a]) and math.isfinite(pc[a])):
+            return False
+    for i in range(d.size):
+        if math.isnan(d[i]) or not (math.isfinite(sig[i]) and sig[i] >= 0):
+            return False
+    return True
+
+
+def _predict_kernel(camera, uv, Rp, pp, Rc, pc, depth_min, depth_max, base_radius_px, d, sig, depth_sigma_k, max_radius_px,
+                    samples) -> PixelPrediction:
+    """:func:`predict_pixels_detailed` through the compiled kernel :func:`_predict_core` (same
+    window, segment ends and status as :func:`_predict_reference`, to rounding)."""
+    c = camera.config
+    n = len(uv)
+    distorted, k, s = _constants(c, samples)
+    # the undistorted rays of the previous pixels: the camera's own (cv2) with distortion, K⁻¹ uv inline without
+    xy = camera.pixels_to_normalized(uv) if distorted and n else _EMPTY2
+    known = d is not None
+    center, radius, uv_far, uv_near, status = _predict_core(
+        uv, xy, distorted, k, float(c.fx), float(c.fy), float(c.cx), float(c.cy), 10.0 * (c.width + c.height), Rc.T @ Rp,
+        Rc.T @ (pp - pc), depth_min, depth_max, base_radius_px, d if known else _EMPTY, sig if known else _EMPTY, known,
+        depth_sigma_k, max_radius_px, s)
+    return PixelPrediction(uv=center, radius=radius, uv_far=uv_far, uv_near=uv_near, status=status)
+
+
+_EMPTY = np.zeros(0)
+_EMPTY2 = np.zeros((0, 2))
+_CONSTANTS: dict = {}
+
+
+def _constants(config, samples: int):
+    """Per camera and sample count, computed once: has distortion, the 8 OpenCV coefficients, the ρ fractions."""
+    key = (config, samples)
+    got = _CONSTANTS.get(key)
+    if got is None:
+        k = np.zeros(8)
+        k[: len(config.distortion)] = config.distortion
+        got = _CONSTANTS[key] = (bool(config.has_distortion), k, np.linspace(0.0, 1.0, samples))
+        if len(_CONSTANTS) > 16:  # bounded (one camera per process; tests use a few)
+            _CONSTANTS.pop(next(iter(_CONSTANTS)))
+    return got
+
+
+@_jit.njit
+def _to_pixels(x, y, distorted, k, fx, fy, cx, cy):
+    """:meth:`CameraModel.normalized_to_pixels` of one point (OpenCV distortion, then K)."""
+    if distorted:
+        r2 = x * x + y * y
+        radial = (1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))) / (1 + r2 * (k[5] + r2 * (k[6] + r2 * k[7])))
+        xd = x * radial + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
+        yd = y * radial + k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
+        x, y = xd, yd
+    return fx * x + cx, fy * y + cy
+
+
+@_jit.njit
+def _project_samples(a0, a1, a2, rho_lo, rho_hi, s_j, t_rel, distorted, k, fx, fy, cx, cy, lim, rho, front, xs, ys, pu, pv):
+    """One ρ sample of every point: ρ, q = R m + ρ t, projectable (q_z > 1e-3 |q|), q_xy / q_z (q_z := 1
+    when not) and its pixel, clipped to ± ``lim`` (0 when not projectable).  Written as one loop over the
+    points without calls or branches but selects, so that it runs in SIMD lanes."""
+    n = a0.size
+    t0, t1, t2 = t_rel[0], t_rel[1], t_rel[2]
+    for i in range(n):
+        r = rho_lo[i] + (rho_hi[i] - rho_lo[i]) * s_j
+        q0, q1, q2 = a0[i] + r * t0, a1[i] + r * t1, a2[i] + r * t2
+        f = q2 > 1e-3 * math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
+        zs = q2 if f else 1.0
+        x, y = q0 / zs, q1 / zs
+        rho[i], front[i], xs[i], ys[i] = r, f, x, y
+        if distorted:
+            r2 = x * x + y * y
+            radial = (1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))) / (1 + r2 * (k[5] + r2 * (k[6] + r2 * k[7])))
+            xd = x * radial + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
+            yd = y * radial + k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
+            x, y = xd, yd
+        u, v = fx * x + cx, fy * y + cy
+        pu[i] = min(max(u, -lim), lim) if f else 0.0
+        pv[i] = min(max(v, -lim), lim) if f else 0.0
+
+
+@_jit.njit
+def _predict_core(uv, xy_in, distorted, k, fx, fy, cx, cy, lim, R_rel, t_rel, depth_min, depth_max, base, d, sig, known_depth,
+                  depth_sigma_k, max_r, s):
+    """:func:`_predict_reference` per point (module docstring): the inverse-depth interval, the
+    segment P(ρ) ∝ R m + ρ t sampled at ``s``, its projectable samples' bounding box, the window
+    (centre, radius, capped), the segment ends, and the far-end window of a capped segment."""
+    n, K = uv.shape[0], s.size
+    center = np.empty((n, 2))
+    radius = np.empty(n)
+    uv_far = np.empty((n, 2))
+    uv_near = np.empty((n, 2))
+    status = np.zeros(n, np.int8)
+    a0, a1, a2 = np.empty(n), np.empty(n), np.empty(n)
+    rho_lo, rho_hi = np.empty(n), np.empty(n)
+    rho_lo0 = 0.0 if math.isinf(depth_max) else 1.0 / depth_max
+    rho_hi0 = 1.0 / depth_min
+    for i in range(n):
+        if distorted:
+            mx, my = xy_in[i, 0], xy_in[i, 1]
+        else:  # CameraModel.pixels_to_normalized without distortion
+            mx, my = (uv[i, 0] - cx) / fx, (uv[i, 1] - cy) / fy
+        rho_lo[i], rho_hi[i] = rho_lo0, rho_hi0
+        if known_depth and d[i] > 0:
+            far = d[i] + depth_sigma_k * sig[i]
+            near = max(d[i] - depth_sigma_k * sig[i], depth_min * 1e-3)
+            rho_lo[i] = 0.0 if math.isinf(far) else 1.0 / far
+            rho_hi[i] = 0.0 if math.isinf(near) else 1.0 / near
+        # R m (m = (x, y, 1)); each sample adds ρ t
+        a0[i] = mx * R_rel[0, 0] + my * R_rel[0, 1] + R_rel[0, 2]
+        a1[i] = mx * R_rel[1, 0] + my * R_rel[1, 1] + R_rel[1, 2]
+        a2[i] = mx * R_rel[2, 0] + my * R_rel[2, 1] + R_rel[2, 2]
+    rho, front = np.empty((K, n)), np.empty((K, n), np.bool_)
+    xs, ys, pu, pv = np.empty((K, n)), np.empty((K, n)), np.empty((K, n)), np.empty((K, n))
+    for j in range(K):
+        _project_samples(a0, a1, a2, rho_lo, rho_hi, s[j], t_rel, distorted, k, fx, fy, cx, cy, lim, rho[j], front[j], xs[j], ys[j],
+                         pu[j], pv[j])
+    for i in range(n):
+        u0, v0 = uv[i, 0], uv[i, 1]
+        any_front, all_front = False, True
+        hi_u, hi_v, lo_u, lo_v = -lim, -lim, lim, lim
+        first, last = -1, -1
+        for j in range(K):
+            if front[j, i]:
+                hi_u, hi_v = max(hi_u, pu[j, i]), max(hi_v, pv[j, i])
+                lo_u, lo_v = min(lo_u, pu[j, i]), min(lo_v, pv[j, i])
+                any_front = True
+                if first < 0:
+                    first = j
+                last = j
+            else:
+                all_front = False
+        if any_front:
+            c_u, c_v = 0.5 * (hi_u + lo_u), 0.5 * (hi_v + lo_v)
+        else:
+            c_u, c_v = u0, v0
+        half2 = 0.0  # the largest squared distance: √ of the max = max of the √ (√ is monotonic, correctly rounded)
+        for j in range(K):
+            if front[j, i]:
+                du, dv = pu[j, i] - c_u, pv[j, i] - c_v
+                half2 = max(half2, du * du + dv * dv)
+        r = math.sqrt(half2) + base
+        st = 0
+        if r > max_r:
+            st = 1  # PRED_CAPPED
+        if any_front and not all_front:
+            st = 2  # PRED_PARTLY_BEHIND
+        if not any_front:
+            st = 3  # PRED_BEHIND
+        radius[i] = max_r if st >= 2 else min(r, max_r)
+        status[i] = st
+        if any_front:
+            uv_far[i, 0], uv_far[i, 1] = pu[first, i], pv[first, i]
+            uv_near[i, 0], uv_near[i, 1] = pu[last, i], pv[last, i]
+        else:
+            uv_far[i, 0], uv_far[i, 1] = u0, v0
+            uv_near[i, 0], uv_near[i, 1] = u0, v0
+        if any_front and st != 0:
+            # a segment longer than the window: centre it between the far end and the point ~2·(cap − base) px from it
+            dx, dy = xs[last, i] - xs[first, i], ys[last, i] - ys[first, i]
+            norm = fx * math.sqrt(dx * dx + dy * dy)
+            frac = min(1.0, 2.0 * (max_r - base) / (norm if norm > 0 else 1.0))
+            rho_s = rho[first, i] + (rho[last, i] - rho[first, i]) * frac
+            q0, q1, q2 = a0[i] + rho_s * t_rel[0], a1[i] + rho_s * t_rel[1], a2[i] + rho_s * t_rel[2]
+            if q2 > 1e-3 * math.sqrt(q0 * q0 + q1 * q1 + q2 * q2):
+                x_px, y_px = _to_pixels(q0 / q2, q1 / q2, distorted, k, fx, fy, cx, cy)
+                c_u = 0.5 * (uv_far[i, 0] + min(max(x_px, -lim), lim))
+                c_v = 0.5 * (uv_far[i, 1] + min(max(y_px, -lim), lim))
+        center[i, 0], center[i, 1] = c_u, c_v
+    return center, radius, uv_far, uv_near, status
+
+
 def predict_pixels(
     camera: CameraModel,
     uv_prev: np.ndarray,
@@ -282,3 +524,17 @@ def make_track_predictor(
         return p.uv, p.radius
 
     return predict
+
+
+@_jit.register_warmup
+def _warm_up() -> None:
+    """Compile the prediction kernel (pinhole and distorted cameras, with and without known depths)."""
+    from companion.core.camera import CameraConfig
+
+    R = np.eye(3)
+    uv = np.array([[100.0, 80.0], [10.0, 10.0]])
+    for dist in ((0.0,) * 5, (-0.2, 0.05, 0.001, 0.001, 0.0)):
+        cam = CameraModel(CameraConfig(width=320, height=240, fx=277.0, fy=277.0, cx=159.5, cy=119.5, distortion=dist))
+        predict_pixels_detailed(cam, uv, R, np.zeros(3), R, np.array([0.0, 0.1, 1.0]), 2.0, math.inf, 3.0)
+        predict_pixels_detailed(cam, uv, R, np.zeros(3), R, np.array([0.0, 0.1, 1.0]), 2.0, 50.0, 3.0, np.array([5.0, -1.0]),
+                                depth_sigma=np.array([0.5, 0.0]))

@@ -29,8 +29,9 @@ import math
 import cv2
 import numpy as np
 
+from companion.core import jit as _jit
 from companion.core.camera import CameraModel
-from companion.core.frames import euler_zyx_to_R
+from companion.core.frames import euler_zyx_to_R, euler_zyx_to_R_scalar
 from companion.core.sectors import SECTOR_COUNT, SectorConfig, sector_index
 from companion.errors import InputError
 
@@ -81,11 +82,24 @@ def detection_priority(
     rp = tuple(float(a) for a in roll_pitch_rad)
     if len(rp) != 2 or not all(math.isfinite(a) for a in rp):
         raise InputError(f"roll_pitch_rad must be two finite angles, got {roll_pitch_rad!r}")
-    R_lb = euler_zyx_to_R(rp[0], rp[1], 0.0)  # body → levelled
+    # body → levelled (the scalar form in the kernel path: the same matrix, bit for bit)
+    R_lb = euler_zyx_to_R_scalar(rp[0], rp[1], 0.0) if _jit.ENABLED else euler_zyx_to_R(rp[0], rp[1], 0.0)
     v_level = None if velocity_body is None else R_lb @ np.asarray(velocity_body, dtype=float).reshape(3)
     gamma, psi = flight_path(sectors, v_level)
 
     us, vs, rays = camera.grid_rays(stride)  # (N, 3) camera, cached per camera
+    lp = None
+    if live_points is not None:
+        lp = np.asarray(live_points).reshape(-1)
+        if lp.shape != (SECTOR_COUNT,):
+            raise InputError(f"live_points must have {SECTOR_COUNT} entries, got {lp.shape}")
+    if _jit.ENABLED:
+        small = _priority_grid_k(_writable(rays), len(us), len(vs), R_lb @ camera.R_cam_body.T, sectors.band_mode == "metres",
+                                 math.tan(gamma), sectors.band_half_height_m / band_range_m, gamma,
+                                 math.radians(sectors.band_half_angle_deg), psi is not None, 0.0 if psi is None else psi,
+                                 math.radians(path_half_width_deg), lp is not None,
+                                 _NO_LIVE if lp is None else lp.astype(float))
+        return small.astype(bool) if stride == 1 else _enlarge_k(small, stride, c.width, c.height).view(bool)
     d = rays @ (R_lb @ camera.R_cam_body.T).T  # camera → body → levelled
     horiz = np.hypot(d[:, 0], d[:, 1])
     up = -d[:, 2]
@@ -103,9 +117,6 @@ def detection_priority(
     if live_points is None:  # no previous frame: no sector has a live point yet
         want[:] = True
     else:
-        lp = np.asarray(live_points).reshape(-1)
-        if lp.shape != (SECTOR_COUNT,):
-            raise InputError(f"live_points must have {SECTOR_COUNT} entries, got {lp.shape}")
         want |= lp[sector_index(bearing)] <= 0
     small = (band & want).reshape(len(vs), len(us)).astype(np.uint8)
     if stride == 1:
@@ -117,6 +128,21 @@ def detection_priority(
     return big.view(bool)
 
 
+_NO_LIVE = np.zeros(SECTOR_COUNT)
+_WRITABLE: dict = {}
+
+
+def _writable(rays: np.ndarray) -> np.ndarray:
+    """A writable copy of a camera's cached grid rays, made once (numba loops over read-only arrays
+    run at half speed)."""
+    got = _WRITABLE.get(id(rays))
+    if got is None or got[0] is not rays:
+        got = _WRITABLE[id(rays)] = (rays, np.array(rays, float))
+        if len(_WRITABLE) > 16:
+            _WRITABLE.pop(next(iter(_WRITABLE)))
+    return got[1]
+
+
 def live_points_per_sector(sectors_prev) -> np.ndarray | None:
     """(72,) live (camera, not remembered) converged points behind each sector of a
     :class:`~companion.core.sectors.Sectors` (obstacle and clear), or None without one."""
@@ -124,3 +150,72 @@ def live_points_per_sector(sectors_prev) -> np.ndarray | None:
         return None
     live = np.asarray(sectors_prev.obstacle_points) - np.asarray(sectors_prev.remembered_points) + np.asarray(sectors_prev.clear_points)
     return np.maximum(live, 0)
+
+
+@_jit.njit
+def _priority_grid_k(rays, n_u, n_v, R_level_cam, metres, tan_gamma, tan_half, gamma, half_angle, has_psi, psi, half_width,
+                     has_live, live_points):
+    """:func:`detection_priority`'s grid answer (uint8 (n_v, n_u)) as one loop over the grid rays:
+    in the levelled frame the ray is in the band and wanted (near the direction of travel, or in a
+    sector without a live point in the previous frame); the same expressions as the reference."""
+    small = np.zeros((n_v, n_u), np.uint8)
+    for i in range(n_v):
+        for j in range(n_u):
+            q = i * n_u + j
+            x, y, z = rays[q, 0], rays[q, 1], rays[q, 2]
+            d0 = R_level_cam[0, 0] * x + R_level_cam[0, 1] * y + R_level_cam[0, 2] * z
+            d1 = R_level_cam[1, 0] * x + R_level_cam[1, 1] * y + R_level_cam[1, 2] * z
+            d2 = R_level_cam[2, 0] * x + R_level_cam[2, 1] * y + R_level_cam[2, 2] * z
+            horiz = np.hypot(d0, d1)
+            up = -d2
+            if metres:
+                band = abs(up / max(horiz, 1e-9) - tan_gamma) <= tan_half
+            else:
+                band = abs(math.atan2(up, horiz) - gamma) <= half_angle
+            if not band:
+                continue
+            want = True
+            if has_live:  # without a previous frame every column is wanted
+                bearing = math.atan2(d1, d0)
+                if has_psi:
+                    want = abs((bearing - psi + math.pi) % (2 * math.pi) - math.pi) <= half_width
+                if not want:
+                    want = live_points[np.int64(np.rint(bearing * (180.0 / math.pi) / 5.0)) % SECTOR_COUNT] <= 0
+            small[i, j] = want
+    return small
+
+
+@_jit.njit
+def _enlarge_k(small, stride, width, height):
+    """The grid answer enlarged to (height, width) uint8 as the reference's ``cv2.resize``
+    (INTER_NEAREST, an integer factor: pixel x takes sample x // stride) and replicated border give:
+    each row built once, then copied to the rows of its block (element loops: numba's slice
+    assignment is slow)."""
+    n_v, n_u = small.shape
+    big = np.empty((height, width), np.uint8)
+    col = np.empty(width, np.int64)
+    for x in range(width):
+        col[x] = min(x // stride, n_u - 1)
+    for y in range(height):
+        i = min(y // stride, n_v - 1)
+        if y > 0 and i == min((y - 1) // stride, n_v - 1):
+            for x in range(width):
+                big[y, x] = big[y - 1, x]
+        else:
+            for x in range(width):
+                big[y, x] = small[i, col[x]]
+    return big
+
+
+@_jit.register_warmup
+def _warm_up() -> None:
+    """Compile the priority kernel on a small camera (metres and degrees bands, with and without travel)."""
+    import dataclasses
+
+    from companion.core.camera import CameraConfig
+
+    cam = CameraModel(CameraConfig.from_fov(64, 48, 60.0))
+    for mode in ("metres", "degrees"):
+        cfg = dataclasses.replace(SectorConfig(), band_mode=mode)
+        detection_priority(cam, cfg, velocity_body=(3.0, 0.0, 0.0), live_points=np.zeros(SECTOR_COUNT, np.int64))
+        detection_priority(cam, cfg, stride=1)
