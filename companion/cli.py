@@ -310,6 +310,15 @@ def cmd_run(args) -> int:
     log.info("camera %d×%d, fx %.1f fy %.1f, filter %s, outputs: OBSTACLE_DISTANCE %.0f Hz to the autopilot%s",
              cam.width, cam.height, cam.fx, cam.fy, cfg.estimator.filter, cfg.outputs.autopilot_obstacle_distance_hz,
              f", {cfg.outputs.gcs_obstacle_distance_hz:.0f} Hz to the ground station" if args.gcs else "")
+    # compile (or load from the cache) the kernels before the link and the camera open: a simulator
+    # or an autopilot sees the companion only once it can process frames at full speed
+    from companion.core import jit
+
+    t0 = time.perf_counter()
+    if jit.warm_up():
+        log.info("%s ready in %.1f s", jit.describe(), time.perf_counter() - t0)
+    else:
+        log.info("%s", jit.describe())
     link = gcs = source = None
     stop = threading.Event()
 
