@@ -859,7 +859,7 @@ def _prune_k(o, u, p, t_seen, pv, t, min_score, radius, max_age):
 
 
 @_jit.njit
-def _support_k(p, rows, pv, radius_m, rel):
+def _support_k(p, rows, pv, radius_m, rel, stop_at=0):
     """:meth:`ObstacleMap.support`: map points within the support radius of each row, by the
     reference's own float32 expansion E = |q|² + |p|² − 2 q·p, rounded as numpy rounds it: |q|² summed
     in order, q·p as BLAS's sgemm accumulates it on FMA hardware (x86-64 with FMA, ARMv8), a fused
@@ -869,7 +869,8 @@ def _support_k(p, rows, pv, radius_m, rel):
     Only the points within a slab along the axis of largest spread are tested: E is within
     9 u (|q|² + |p|²) of the exact squared distance of the float32 points (u = 2⁻²⁴: two or three
     roundings in each of |q|², |p|², q·p, their sum and difference), so a point farther along that
-    axis than √(r² + 16 u (|q|² + max |p|²)) cannot pass; the counts are those of testing every pair."""
+    axis than √(r² + 16 u (|q|² + max |p|²)) cannot pass; the counts are those of testing every pair.
+    ``stop_at`` > 0: a count stops there (enough to decide ``count >= stop_at``)."""
     n = p.shape[0]
     X, Y, Z = np.empty(n), np.empty(n), np.empty(n)  # float32 coordinates, held exactly in float64
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
@@ -887,6 +888,9 @@ def _support_k(p, rows, pv, radius_m, rel):
     key = X if axis == 0 else (Y if axis == 1 else Z)
     order = np.argsort(key)
     Xs, Ys, Zs, ks = X[order], Y[order], Z[order], key[order]
+    at = np.empty(n, np.int64)  # position of each point in the sorted order
+    for j in range(n):
+        at[order[j]] = j
     pp = np.empty(n, np.float32)
     for j in range(n):
         x, y, z = np.float32(Xs[j]), np.float32(Ys[j]), np.float32(Zs[j])
@@ -908,48 +912,69 @@ def _support_k(p, rows, pv, radius_m, rel):
         j0 = np.searchsorted(ks, key[i] - w)
         j1 = np.searchsorted(ks, key[i] + w, side="right")
         c = 0
-        for j in range(j0, j1):
+        a = at[i]  # the point itself (inside its slab): visit outwards from it, nearest along the axis first
+        right, left = a, a - 1
+        while right < j1 or left >= j0:
+            if right < j1 and (left < j0 or right - a <= a - left):
+                j = right
+                right += 1
+            else:
+                j = left
+                left -= 1
             dot = np.float32(q0 * Xs[j])
             dot = np.float32(q1 * Ys[j] + dot)
             dot = np.float32(q2 * Zs[j] + dot)
-            c += ((qq + pp[j]) - two * dot) <= lim
+            if ((qq + pp[j]) - two * dot) <= lim:
+                c += 1
+                if c == stop_at:
+                    break
         count[k] = c
     return count
 
 
 @_jit.njit
-def _sorted_keys(keys):
-    """An index of the map's keys for :func:`_row_of`: their sort order and the sorted keys."""
-    order = np.argsort(keys)
-    return order, keys[order]
+def _sorted_order(a):
+    """Indices sorting ``a`` (the identity when it is already non-decreasing, as the pipeline's keys are)."""
+    for i in range(1, a.size):
+        if a[i] < a[i - 1]:
+            return np.argsort(a)
+    return np.arange(a.size)
 
 
 @_jit.njit
-def _row_of(order, sorted_keys, key):
-    """Row holding ``key``, −1 if none; of equal keys the first row (the stable order of
-    :meth:`ObstacleMap._rows`: the map never holds a key twice, but a caller may pass one twice)."""
-    n = sorted_keys.size
+def _first_rows(map_keys, queries):
+    """(len(queries),) the first row holding each query key, −1 if none: the rows
+    :meth:`ObstacleMap._rows` finds (its stable order makes the first of equal keys win), found by
+    one pass over the map with a binary search in the (sorted) queries."""
+    m = queries.size
+    rows = np.full(m, -1, np.int64)
+    if m == 0:
+        return rows
+    order = _sorted_order(queries)
+    sq = queries[order]
+    for r in range(map_keys.size):
+        key = map_keys[r]
+        j = np.searchsorted(sq, key)
+        while j < m and sq[j] == key:
+            if rows[order[j]] < 0:
+                rows[order[j]] = r
+            j += 1
+    return rows
+
+
+@_jit.njit
+def _contains(sorted_keys, key):
     j = np.searchsorted(sorted_keys, key)
-    if j >= n or sorted_keys[j] != key:
-        return -1
-    row = order[j]
-    j += 1
-    while j < n and sorted_keys[j] == key:
-        row = min(row, order[j])
-        j += 1
-    return row
+    return j < sorted_keys.size and sorted_keys[j] == key
 
 
 @_jit.njit
 def _rows_of_k(map_keys, keys):
     """Rows (ascending, each once) holding any of ``keys`` (:meth:`ObstacleMap.forget`)."""
     hit = np.zeros(map_keys.size, np.bool_)
-    if keys.size:
-        order, sk = _sorted_keys(map_keys)
-        for k in range(keys.size):
-            r = _row_of(order, sk, keys[k])
-            if r >= 0:
-                hit[r] = True
+    for r in _first_rows(map_keys, keys):
+        if r >= 0:
+            hit[r] = True
     return np.flatnonzero(hit)
 
 
@@ -967,19 +992,17 @@ def _observe_k(map_keys, map_p, map_P, map_t, map_o, map_u, keys_in, p_in, P_in,
     if live_is_keys:
         live_keys = keys
     n, m = map_keys.size, keys.size
-    order, sk = _sorted_keys(map_keys)
     live = np.zeros(n, np.bool_)
-    for k in range(live_keys.size):
-        r = _row_of(order, sk, live_keys[k])
+    for r in _first_rows(map_keys, live_keys):
         if r >= 0:
             live[r] = True
-    sl = np.sort(live_keys)
+    sl = live_keys[_sorted_order(live_keys)]
+    held = _first_rows(map_keys, keys)
     key_live = np.zeros(m, np.bool_)
     new = np.ones(m, np.bool_)
     for k in range(m):
-        j = min(np.searchsorted(sl, keys[k]), sl.size - 1)
-        key_live[k] = sl.size > 0 and sl[j] == keys[k]  # np.isin(keys, live_keys)
-        r = _row_of(order, sk, keys[k])
+        key_live[k] = _contains(sl, keys[k])  # np.isin(keys, live_keys)
+        r = held[k]
         if r >= 0:
             new[k] = False
             for a in range(3):
@@ -1094,12 +1117,13 @@ def _check_view_k(map_keys, p, P, t_seen, o, u, live, R, p_world_cam, fx, fy, cx
     absorbed = np.zeros(map_keys.size, np.bool_)
     into = np.full(k, -1, np.int64)  # the live point's own row that absorbs a found point
     if n_found and has_live_keys:
-        order, sk = _sorted_keys(map_keys)
+        fq = np.flatnonzero(found)
+        target = _first_rows(map_keys, live_keys[best[fq]])
         gain = np.zeros(k, np.int64)
-        for q in range(k):  # o of the absorbed points read before any is added (np.add.at)
-            if found[q]:
-                into[q] = _row_of(order, sk, live_keys[best[q]])
-                gain[q] = o[rows[q]] + 1
+        for f in range(fq.size):  # o of the absorbed points read before any is added (np.add.at)
+            q = fq[f]
+            into[q] = target[f]
+            gain[q] = o[rows[q]] + 1
         for q in range(k):
             if into[q] >= 0:
                 o[into[q]] += gain[q]
@@ -1117,7 +1141,7 @@ def _remembered_k(p, P, t_seen, live, pv, t, min_support, radius_m, rel, drift_m
     σ_r = √(uᵀPu + σ_drift²), σ_t = √((tr P − uᵀPu)/2 + σ_drift² + (r_h σ_ψ)²) and the time since seen."""
     rows = np.flatnonzero(~live)
     if min_support > 1 and rows.size:
-        rows = rows[_support_k(p, rows, pv, radius_m, rel) >= min_support]
+        rows = rows[_support_k(p, rows, pv, radius_m, rel, min_support) >= min_support]
     n = rows.size
     s_r = np.empty(n)
     s_t = np.empty(n)
