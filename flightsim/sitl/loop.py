@@ -55,7 +55,8 @@ from flightsim.fly import EPS_T, Flight, StreamSchedule, camera_toml, open_video
 from flightsim.hostile import HostileInjector
 from flightsim.scenario import Scenario
 from flightsim.sitl.config import SitlConfig, SitlError
-from flightsim.sitl.process import CompanionProcess, companion_command, companion_rss_kib, cpu_seconds
+from flightsim.sitl.process import (CompanionProcess, companion_command, companion_rss_kib, cpu_seconds,
+                                    process_cpu_seconds)
 from flightsim.tlog import TlogWriter
 
 log = logging.getLogger(__name__)
@@ -108,6 +109,7 @@ class Run:
         self.hostile_cfg = cfg.hostile
         self.injector: HostileInjector | None = None
         self.blackout_dropped: collections.Counter[str] = collections.Counter()  # vehicle messages not sent in blackouts
+        self.companion_cpu_loop: float | None = None  # the companion's CPU over the flight loop (Linux /proc), s
         self.rss: list[list[float]] = []  # [simulation s, wall s since the loop started, companion VmRSS kiB]
         self._next_rss = 0.0
         self.endpoint: UdpEndpoint | None = None
@@ -442,6 +444,7 @@ class Run:
         self.pending: collections.deque = collections.deque()
         self.wall0 = time.perf_counter()
         cpu0 = cpu_seconds()
+        comp0 = None if self.companion is None else process_cpu_seconds(self.companion.pid)
         next_alive_check = 0.0
         while self.ahead or self._physics_one():
             state, frame, spec = self.ahead.popleft()
@@ -459,6 +462,8 @@ class Run:
         self.frames_unsent += len(self.pending)  # captured too late in the flight to be delivered
         self.wall_loop = time.perf_counter() - self.wall0
         self.cpu_loop = cpu_seconds() - cpu0
+        comp1 = None if self.companion is None else process_cpu_seconds(self.companion.pid)
+        self.companion_cpu_loop = None if comp0 is None or comp1 is None else comp1 - comp0
         if not self.lockstep:  # the last messages still on their way
             self._pace(self.t_now + cfg.tail_s, self.wall0)
         while self.inbox:  # arrived after the last step: counted, no longer answered
