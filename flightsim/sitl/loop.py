@@ -24,9 +24,12 @@ on the companion) and builds the telemetry of those steps, in step order, as if 
 in between; a change of the stream schedule (a stream request handled, or a new companion's
 HEARTBEAT restart) first rewinds the telemetry model and the schedule to the step at which it
 happens and that step is built again, so the random draws and messages are those of the
-step-by-step loop (``telemetry_ahead`` in the summary counts both).  After the acknowledgement
-only the requests and the sending are left before the next frame goes out; on two cores the
-processes overlap; no fixed sleeps lie in this path.  Determinism rests on loopback ordering: a
+step-by-step loop (``telemetry_ahead`` in the summary counts both).  Frames are rendered in that
+window too: with avoidance the physics may not run past the companion's answer, so a frame captured
+by the steps computed after an acknowledgement is only posed then, and rendered (with its truth)
+during the next frame's wait (``Flight.capture(defer=True)``; the pixels do not depend on when).
+After the acknowledgement only the requests, the physics steps up to the next frame's delivery
+and the sending are left before the next frame goes out; on two cores the processes overlap; no fixed sleeps lie in this path.  Determinism rests on loopback ordering: a
 datagram sent before the frame (or the acknowledgement) is queued at the receiver before the
 frame (acknowledgement) is — true of Linux loopback, where ``sendto`` delivers before it returns.
 
@@ -329,7 +332,9 @@ class Run:
         state = fl.physics_step()
         if state is None:
             return False
-        frame = fl.capture(state) if fl.frame_due(state) else None
+        # lockstep: the frame is rendered (and its truth taken) while the companion works
+        # (_run_ahead), not between its acknowledgement and the next frame (Flight.capture)
+        frame = fl.capture(state, defer=self.lockstep) if fl.frame_due(state) else None
         if frame is not None and self.video is not None:
             w0 = time.perf_counter()
             self.video.write(frame.image)
@@ -358,6 +363,7 @@ class Run:
                 break
         if self.cfg.build_ahead:
             self._speculate()
+        self.flight.finish_frames()  # render the frames captured since the last acknowledgement, too
 
     def _speculate(self) -> None:
         """Lockstep, while the companion works: advance the telemetry model and build the stream
