@@ -358,15 +358,18 @@ class Flight:
         frame = self.renderer.render(R_wc, p_wc, v_world_cam=state.v_ned, w_cam=self.R_cam_body @ state.pqr,
                                      frame_index=index, depth=False)
         w1 = time.perf_counter()
-        tt = target_truth(sc.world, p_wc, R_wc, cam_cfg)
+        if sc.world.targets:
+            tt = target_truth(sc.world, p_wc, R_wc, cam_cfg)
+            t_range, t_visible = tt.range_m, (tt.visible if tt.visible is not None else np.zeros(len(tt.names), bool))
+        else:  # what target_truth gives for a world without targets
+            t_range, t_visible = np.zeros(0), np.zeros(0, bool)
         sector_all, in_view = sector_truth_360(sc.world, R_wb, state.p_ned, cam_cfg, meta.sector_max_distance_m)
         truth = self.truth
         for key, val in (("t_s", meta.epoch_s + t), ("t_sim_s", t), ("p_ned", state.p_ned), ("v_ned", state.v_ned),
                          ("rpy", state.rpy), ("pqr", state.pqr), ("R_world_body", R_wb), ("R_world_cam", R_wc),
                          ("p_world_cam", p_wc),
                          ("sector_m", np.where(in_view, sector_all, np.nan)), ("sector_all_m", sector_all), ("in_view", in_view),
-                         ("target_range_m", tt.range_m),
-                         ("target_visible", tt.visible if tt.visible is not None else np.zeros(len(tt.names), bool))):
+                         ("target_range_m", t_range), ("target_visible", t_visible)):
             truth[key].append(np.asarray(val))
         self.timing["render"] += w1 - w0
         self.timing["truth"] += time.perf_counter() - w1
