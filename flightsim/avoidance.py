@@ -170,6 +170,13 @@ def _closest_between_segments(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1
     return best
 
 
+def _isclose(x: float, y: float) -> bool:
+    """``np.isclose(x, y)`` (rtol 1e-5, atol 1e-8) for two floats."""
+    if math.isfinite(x) and math.isfinite(y):
+        return abs(x - y) <= 1e-08 + 1e-05 * abs(y)
+    return x == y
+
+
 # ------------------------------------------------------------------------------------ models ----
 class NoAvoidance:
     """``model = "none"``: the pilot's demand passes unchanged."""
@@ -266,6 +273,9 @@ class ArduPilotAvoidance(NoAvoidance):
     BOUNDARY_MIN_M = 0.6
     FILT_RESET_S = 1.0
     ACCEL_CLAMP = 1.0  # AC_AVOID_ACCEL_CMSS_MAX, m/s²
+    #: (cos, sin) of each boundary point's bearing, 45k + 22.5° (math.radians as the loop computed it)
+    _EDGE_CS = tuple((math.cos(math.radians(k * 45.0 + 0.5 * 45.0)), math.sin(math.radians(k * 45.0 + 0.5 * 45.0)))
+                     for k in range(8))
 
     @property
     def margin_m(self) -> float:
@@ -284,6 +294,8 @@ class ArduPilotAvoidance(NoAvoidance):
         self._t_prev: float | None = None
         self._accel_mem: np.ndarray | None = None
         self._accel_mem_t = -math.inf
+        self._faces_version = 0
+        self._geometry_cache: tuple | None = None  # (faces version, valid faces, boundary, obstacles arrays)
 
     # -- proximity ----------------------------------------------------------------------------
     def _face_of(self, angle_deg: float) -> int:
@@ -299,6 +311,7 @@ class ArduPilotAvoidance(NoAvoidance):
             self.face_filt[f] += alpha * (d - self.face_filt[f])
         self.face_raw[f] = d
         self.face_t[f] = t
+        self._faces_version += 1  # the boundary and the obstacles derived from the faces are stale
 
     def _handle(self, t: float, msg) -> None:
         typ = msg.get_type()
@@ -339,18 +352,38 @@ class ArduPilotAvoidance(NoAvoidance):
     def boundary_body(self, t: float, ok: np.ndarray | None = None) -> np.ndarray:
         """(8, 2) boundary points (forward, right) in the body frame, m; point k on the edge between
         faces k and k+1 (bearing 45k + 22.5°).  ``ok``: :meth:`valid_faces` at ``t`` if already known."""
-        n = self.N_FACES
         ok = self.valid_faces(t) if ok is None else ok
-        d = np.where(ok, self.face_filt, np.inf)
-        pts = np.empty((n, 2))
+        return self._geometry(ok)[0].copy()
+
+    def _geometry(self, ok: np.ndarray) -> tuple[np.ndarray, tuple | None]:
+        """(boundary points, obstacles arrays or None) of the faces as they are, with valid faces
+        ``ok``: computed once per change of the faces or of their validity (read-only arrays)."""
+        key = ok.tobytes()
+        c = self._geometry_cache
+        if c is not None and c[0] == self._faces_version and c[1] == key:
+            return c[2], c[3]
+        pts = self._boundary(ok)
+        pts.flags.writeable = False
+        obst = self._obstacles_from(ok, pts)
+        if obst is not None:
+            for arr in obst:
+                arr.flags.writeable = False
+        self._geometry_cache = (self._faces_version, key, pts, obst)
+        return pts, obst
+
+    def _boundary(self, ok: np.ndarray) -> np.ndarray:
+        """The boundary points of :meth:`boundary_body` for valid faces ``ok`` (computed)."""
+        n = self.N_FACES
+        d = np.where(ok, self.face_filt, np.inf).tolist()  # Python floats: the same values, cheaper scalars
+        pts = []
         for k in range(n):
             dk = min(d[k], d[(k + 1) % n])
-            if not np.isfinite(dk):  # "cup": a face without data next to a valid one takes its distance
+            if not math.isfinite(dk):  # "cup": a face without data next to a valid one takes its distance
                 dk = min(d[(k - 1) % n], d[(k + 2) % n])
-            dk = self.BOUNDARY_DEFAULT_M if not np.isfinite(dk) else max(dk, self.BOUNDARY_MIN_M)
-            b = math.radians(k * self.FACE_DEG + 0.5 * self.FACE_DEG)
-            pts[k] = dk * math.cos(b), dk * math.sin(b)
-        return pts
+            dk = self.BOUNDARY_DEFAULT_M if not math.isfinite(dk) else max(dk, self.BOUNDARY_MIN_M)
+            c, s = self._EDGE_CS[k]
+            pts.append((dk * c, dk * s))
+        return np.array(pts)
 
     def boundary_points(self, t: float) -> np.ndarray:
         ok = self.valid_faces(t)
@@ -358,24 +391,41 @@ class ArduPilotAvoidance(NoAvoidance):
 
     def obstacles_body(self, t: float) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(segment start, end, closest point to the vehicle) of each face's obstacle in use."""
-        n = self.N_FACES
-        ok = self.valid_faces(t)
-        if not np.any(ok):
+        used = self._obstacles_arrays(t)
+        if used is None:
             return []
-        pts = self.boundary_body(t, ok)
-        out = []
-        zero = np.zeros(2)
-        for f in range(n):
-            if ok[(f - 1) % n] or ok[f] or ok[(f + 1) % n]:
-                a, b = pts[(f - 1) % n], pts[f]
-                out.append((a, b, _closest_on_segment(a, b, zero)))
-        return out
+        A, B, C = used
+        return list(zip(A.copy(), B.copy(), C.copy()))
+
+    def _obstacles_arrays(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """:meth:`obstacles_body` as three (K, 2) arrays (starts, ends, closest points), None without
+        data.  The closest points are :func:`_closest_on_segment`'s, all faces at once: ``np.vecdot``
+        gives each row numpy's own 2-vector dot (``a @ b``, bit for bit), the clamp is done on the
+        same floats in Python."""
+        return self._geometry(self.valid_faces(t))[1]
+
+    def _obstacles_from(self, ok: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        n = self.N_FACES
+        okl = ok.tolist()
+        if not any(okl):
+            return None
+        faces = [f for f in range(n) if okl[(f - 1) % n] or okl[f] or okl[(f + 1) % n]]
+        A = pts[[(f - 1) % n for f in faces]]
+        B = pts[faces]
+        AB = B - A
+        L2 = np.vecdot(AB, AB).tolist()
+        PA = np.vecdot(np.subtract(0.0, A), AB).tolist()  # (p − a)·ab with p = 0
+        U = [0.0 if l2 <= 0 else min(max(pa / l2, 0.0), 1.0) for pa, l2 in zip(PA, L2)]
+        C = A + np.array(U)[:, None] * AB
+        return A, B, C
 
     # -- velocity -------------------------------------------------------------------------------
     def _limit(self, t, p_ned, v_ned, yaw, v_des) -> tuple[float, float, float]:
         cfg = self.config
         dt = 0.0 if self._t_prev is None else max(t - self._t_prev, 0.0)
         self._t_prev = t
+        if cfg.avoid_behave == "slide":
+            return self._limit_slide(t, yaw, v_des, dt)
         obstacles = self.obstacles_body(t)
         if not obstacles:
             return tuple(float(x) for x in v_des)
@@ -423,6 +473,84 @@ class ArduPilotAvoidance(NoAvoidance):
         out = body_to_ned(v, yaw)
         out = self._limit_accel(v_des[:2], out, t, dt)
         return float(out[0]), float(out[1]), float(v_des[2])
+
+    def _limit_slide(self, t: float, yaw: float, v_des: np.ndarray, dt: float) -> tuple[float, float, float]:
+        """:meth:`_limit` with ``avoid_behave = "slide"`` (the default), the same arithmetic on all the
+        faces' obstacles at once where it does not depend on the order: the distances (numpy's
+        hypot per row), the unit vectors and stopping speeds; each obstacle's clip still sees the
+        velocity the previous clips left (its dot product is numpy's, ``np.vecdot`` of that velocity
+        with every remaining obstacle, recomputed after a clip), so the result is bit for bit the
+        loop's (tests/test_avoidance.py keeps the loop as the reference)."""
+        cfg = self.config
+        used = self._obstacles_arrays(t)
+        if used is None:
+            return tuple(float(x) for x in v_des)
+        C = used[2]
+        a = self.ACCEL_CLAMP
+        kp, margin = cfg.pos_kp, cfg.avoid_margin_m
+        vd0, vd1 = float(v_des[0]), float(v_des[1])
+        cb, sb = math.cos(-yaw), math.sin(-yaw)  # ned_to_body = body_to_ned at −yaw
+        v0, v1 = cb * vd0 - sb * vd1, sb * vd0 + cb * vd1
+        moving = float(np.hypot(v0, v1)) > 0
+        NO = np.hypot(C[:, 0], C[:, 1])
+        nol = NO.tolist()
+        backups: list[np.ndarray] = []
+        for k, no in enumerate(nol):
+            breach = margin - no
+            if breach > cfg.avoid_backup_dz_m and no > 0:
+                back = sqrt_controller(breach, kp, 0.4 * a, dt)
+                backups.append(-C[k] / no * back)
+        if moving:
+            idx = [k for k, no in enumerate(nol) if no > 0]
+            if idx:
+                N = C[idx] / NO[idx, None]  # each obstacle's unit vector (o / |o|)
+                vmax = [sqrt_controller(max(nol[k] - margin, 0.0), kp, a, dt) for k in idx]
+                v = np.array([v0, v1])
+                i = 0
+                while i < len(idx):
+                    S = np.vecdot(v, N[i:]).tolist()  # v · n of the velocity as it is now
+                    for j, sj in enumerate(S):
+                        if sj > vmax[i + j]:  # the first clip from here on: v changes, the rest see the new v
+                            v = v + N[i + j] * (vmax[i + j] - sj)
+                            i += j + 1
+                            break
+                    else:
+                        break
+                v0, v1 = v.tolist()
+        if backups and cfg.avoid_backup_spd_mps > 0:
+            b = self._combine_backups(backups)
+            nb = float(np.hypot(*b))
+            if nb > cfg.avoid_backup_spd_mps:
+                b *= cfg.avoid_backup_spd_mps / nb
+            vv = [v0, v1]
+            for i in range(2):
+                if b[i] > 0:
+                    vv[i] = max(vv[i], b[i])
+                elif b[i] < 0:
+                    vv[i] = min(vv[i], b[i])
+            v0, v1 = float(vv[0]), float(vv[1])
+        c, s = math.cos(yaw), math.sin(yaw)
+        o0, o1 = c * v0 - s * v1, s * v0 + c * v1  # body_to_ned
+        o0, o1 = self._limit_accel_xy(vd0, vd1, o0, o1, t, dt)
+        return o0, o1, float(v_des[2])
+
+    def _limit_accel_xy(self, i0: float, i1: float, o0: float, o1: float, t: float, dt: float) -> tuple[float, float]:
+        """:meth:`_limit_accel` on floats (``np.allclose`` spelled out: |x − y| ≤ 1e-8 + 1e-5·|y|
+        between finite values, equality otherwise)."""
+        amax = self.config.avoid_accel_max_mss
+        if amax <= 0 or (_isclose(i0, o0) and _isclose(i1, o1)):
+            return o0, o1
+        if self._accel_mem is None or t - self._accel_mem_t > 0.2:
+            self._accel_mem = np.array([i0, i1])
+        m0, m1 = self._accel_mem.tolist()
+        d0, d1 = o0 - m0, o1 - m1
+        ndv = float(np.hypot(d0, d1))
+        if ndv > amax * dt and ndv > 0:
+            k = amax * dt / ndv
+            o0, o1 = m0 + d0 * k, m1 + d1 * k
+        self._accel_mem = np.array([o0, o1])
+        self._accel_mem_t = t
+        return o0, o1
 
     def _clip(self, v: np.ndarray, o: np.ndarray, no: float, kp: float, a: float, dt: float) -> np.ndarray:
         """``AC_Avoid::limit_velocity_2D``: cut the component towards ``o`` to the stopping speed."""

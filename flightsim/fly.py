@@ -31,6 +31,7 @@ are written under temporary names and renamed onto theirs together when the flig
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import io
 import json
@@ -173,11 +174,34 @@ class StreamSchedule:
         return out
 
 
-@dataclasses.dataclass(frozen=True)
 class CapturedFrame:
-    index: int
-    t_s: float  # capture (mid-exposure) time, simulation clock
-    image: np.ndarray  # (H, W) uint8
+    """A camera frame of the frame grid: ``index``, capture (mid-exposure) time ``t_s`` on the
+    simulation clock and ``image`` ((H, W) uint8).
+
+    A frame captured with ``Flight.capture(defer=True)`` holds only the pose it is rendered from;
+    its image (and its truth row) is made by :meth:`Flight.finish_frames` or, at the latest, on
+    the first access to :attr:`image` — the pixels are the same whenever that happens (the
+    renderer draws each frame from its own pose and frame index alone)."""
+
+    __slots__ = ("index", "t_s", "_image", "_flight")
+
+    def __init__(self, index: int, t_s: float, image: np.ndarray | None = None, flight: "Flight | None" = None):
+        if image is None and flight is None:
+            raise ValueError("a CapturedFrame needs its image or the Flight that renders it")
+        self.index, self.t_s, self._image, self._flight = index, t_s, image, flight
+
+    @property
+    def rendered(self) -> bool:
+        return self._image is not None
+
+    @property
+    def image(self) -> np.ndarray:
+        if self._image is None:
+            self._flight.finish_frames(self.index)
+        return self._image
+
+    def __repr__(self) -> str:
+        return f"CapturedFrame(index={self.index}, t_s={self.t_s!r}, {'rendered' if self.rendered else 'not rendered yet'})"
 
 
 class Flight:
@@ -209,6 +233,7 @@ class Flight:
         self.n_frames = int(math.floor(meta.duration_s * meta.fps + 1e-9)) + 1
         self.next_frame = 0
         self.frame_times: list[float] = []  # capture times (simulation clock) of the frames so far
+        self._unfinished: collections.deque = collections.deque()  # (CapturedFrame, state) captured with defer, in order
         self.truth: dict[str, list] = {k: [] for k in TRUTH_FIELDS if k not in ("sector_max_m", "target_names", "target_p_world")}
         self.state = None
         self.step_index = -1
@@ -296,37 +321,62 @@ class Flight:
         return (state is not None and self.next_frame < self.n_frames
                 and state.time_s + EPS_T >= self.next_frame / self.sc.meta.fps)
 
-    def capture(self, state=None) -> CapturedFrame:
-        """Render the due frame from the true camera pose at ``state`` (default: the newest physics
-        step) and record its truth."""
-        sc, meta = self.sc, self.sc.meta
+    def capture(self, state=None, *, defer: bool = False) -> CapturedFrame:
+        """Take the due frame at ``state`` (default: the newest physics step): render it from the
+        true camera pose and record its truth — now, or with ``defer`` when
+        :meth:`finish_frames` (or the first access to its image) asks for it.  Frames are finished
+        in capture order, so the truth rows and the pixels do not depend on when that happens
+        (``flightsim sitl`` renders the frames captured between two acknowledgements while the
+        companion works)."""
         state = self.state if state is None else state
+        out = CapturedFrame(self.next_frame, state.time_s, None, self)
+        self._unfinished.append((out, state))
+        self.frame_times.append(state.time_s)
+        self.next_frame += 1
+        if not defer:
+            self.finish_frames(out.index)
+        return out
+
+    def finish_frames(self, upto: int | None = None) -> int:
+        """Render and record the truth of the deferred frames, oldest first, up to frame index
+        ``upto`` (None: all of them); returns how many were finished."""
+        n = 0
+        while self._unfinished and (upto is None or self._unfinished[0][0].index <= upto):
+            frame, state = self._unfinished.popleft()
+            frame._image = self._render_frame(frame.index, state)
+            n += 1
+        return n
+
+    def _render_frame(self, index: int, state) -> np.ndarray:
+        """Frame ``index`` from the true camera pose at ``state``: its image; its truth row is appended."""
+        sc, meta = self.sc, self.sc.meta
         cam_cfg = sc.camera
         t = state.time_s
         w0 = time.perf_counter()
         R_wb = state.R_world_body
         R_wc, p_wc = self.cam.camera_pose(R_wb, state.p_ned)
         frame = self.renderer.render(R_wc, p_wc, v_world_cam=state.v_ned, w_cam=self.R_cam_body @ state.pqr,
-                                     frame_index=self.next_frame, depth=False)
+                                     frame_index=index, depth=False)
         w1 = time.perf_counter()
-        tt = target_truth(sc.world, p_wc, R_wc, cam_cfg)
+        if sc.world.targets:
+            tt = target_truth(sc.world, p_wc, R_wc, cam_cfg)
+            t_range, t_visible = tt.range_m, (tt.visible if tt.visible is not None else np.zeros(len(tt.names), bool))
+        else:  # what target_truth gives for a world without targets
+            t_range, t_visible = np.zeros(0), np.zeros(0, bool)
         sector_all, in_view = sector_truth_360(sc.world, R_wb, state.p_ned, cam_cfg, meta.sector_max_distance_m)
         truth = self.truth
         for key, val in (("t_s", meta.epoch_s + t), ("t_sim_s", t), ("p_ned", state.p_ned), ("v_ned", state.v_ned),
                          ("rpy", state.rpy), ("pqr", state.pqr), ("R_world_body", R_wb), ("R_world_cam", R_wc),
                          ("p_world_cam", p_wc),
                          ("sector_m", np.where(in_view, sector_all, np.nan)), ("sector_all_m", sector_all), ("in_view", in_view),
-                         ("target_range_m", tt.range_m),
-                         ("target_visible", tt.visible if tt.visible is not None else np.zeros(len(tt.names), bool))):
+                         ("target_range_m", t_range), ("target_visible", t_visible)):
             truth[key].append(np.asarray(val))
         self.timing["render"] += w1 - w0
         self.timing["truth"] += time.perf_counter() - w1
-        out = CapturedFrame(self.next_frame, t, frame.image)
-        self.frame_times.append(t)
-        self.next_frame += 1
-        return out
+        return frame.image
 
     def truth_arrays(self) -> dict[str, np.ndarray]:
+        self.finish_frames()  # a frame captured but never asked for still has its truth row
         tt0 = target_truth(self.sc.world, np.zeros(3))
         arrays = {k: np.array(v) for k, v in self.truth.items()}
         arrays["sector_max_m"] = np.array(self.sc.meta.sector_max_distance_m)

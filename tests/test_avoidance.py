@@ -611,3 +611,129 @@ def test_turned_sideways_by_the_avoidance_the_quad_never_flies_faster_than_the_d
             v_cmd_max_h = max(v_cmd_max_h, float(np.hypot(*fl.vehicle.v_cmd[:2])))
     assert v_cmd_max_h == pytest.approx(6.0, abs=0.05)
     assert v_max_h <= 1.08 * v_cmd_max_h, (v_max_h, v_cmd_max_h)
+
+
+# ------------------------------------------------------------ the slide path against the loop ---
+class _LoopArduPilot(ArduPilotAvoidance):
+    """ArduPilotAvoidance as it was written first: one obstacle at a time, numpy 2-vectors (the
+    reference the vectorised slide path and the cached boundary must equal bit for bit)."""
+
+    def boundary_body(self, t, ok=None):
+        n = self.N_FACES
+        ok = self.valid_faces(t) if ok is None else ok
+        d = np.where(ok, self.face_filt, np.inf)
+        pts = np.empty((n, 2))
+        for k in range(n):
+            dk = min(d[k], d[(k + 1) % n])
+            if not np.isfinite(dk):
+                dk = min(d[(k - 1) % n], d[(k + 2) % n])
+            dk = self.BOUNDARY_DEFAULT_M if not np.isfinite(dk) else max(dk, self.BOUNDARY_MIN_M)
+            b = math.radians(k * self.FACE_DEG + 0.5 * self.FACE_DEG)
+            pts[k] = dk * math.cos(b), dk * math.sin(b)
+        return pts
+
+    def obstacles_body(self, t):
+        def closest_on_segment(a, b, p):
+            ab = b - a
+            L2 = float(ab @ ab)
+            u = 0.0 if L2 <= 0 else min(max(float((p - a) @ ab) / L2, 0.0), 1.0)
+            return a + u * ab
+
+        n = self.N_FACES
+        ok = self.valid_faces(t)
+        if not np.any(ok):
+            return []
+        pts = self.boundary_body(t, ok)
+        out = []
+        zero = np.zeros(2)
+        for f in range(n):
+            if ok[(f - 1) % n] or ok[f] or ok[(f + 1) % n]:
+                a, b = pts[(f - 1) % n], pts[f]
+                out.append((a, b, closest_on_segment(a, b, zero)))
+        return out
+
+    def _limit(self, t, p_ned, v_ned, yaw, v_des):
+        from flightsim.avoidance import ned_to_body, body_to_ned
+
+        cfg = self.config
+        dt = 0.0 if self._t_prev is None else max(t - self._t_prev, 0.0)
+        self._t_prev = t
+        obstacles = self.obstacles_body(t)
+        if not obstacles:
+            return tuple(float(x) for x in v_des)
+        a = self.ACCEL_CLAMP
+        kp, margin = cfg.pos_kp, cfg.avoid_margin_m
+        v_in = ned_to_body(v_des[:2], yaw)
+        v = v_in.copy()
+        backups = []
+        moving = float(np.hypot(*v_in)) > 0
+        for _s, _e, o in obstacles:
+            no = float(np.hypot(*o))
+            breach = margin - no
+            if breach > cfg.avoid_backup_dz_m and no > 0:
+                back = sqrt_controller(breach, kp, 0.4 * a, dt)
+                backups.append(-o / no * back)
+            if not moving or no <= 0:
+                continue
+            n_hat = o / no
+            vmax = sqrt_controller(max(no - cfg.avoid_margin_m, 0.0), kp, a, dt)
+            s = float(v @ n_hat)
+            v = v + n_hat * (vmax - s) if s > vmax else v
+        if backups and cfg.avoid_backup_spd_mps > 0:
+            b = self._combine_backups(backups)
+            nb = float(np.hypot(*b))
+            if nb > cfg.avoid_backup_spd_mps:
+                b *= cfg.avoid_backup_spd_mps / nb
+            for i in range(2):
+                if b[i] > 0:
+                    v[i] = max(v[i], b[i])
+                elif b[i] < 0:
+                    v[i] = min(v[i], b[i])
+        out = body_to_ned(v, yaw)
+        v_in, v_out = v_des[:2], out
+        amax = cfg.avoid_accel_max_mss
+        if not (amax <= 0 or np.allclose(v_in, v_out)):
+            if self._accel_mem is None or t - self._accel_mem_t > 0.2:
+                self._accel_mem = v_in.copy()
+            dv = v_out - self._accel_mem
+            ndv = float(np.hypot(*dv))
+            if ndv > amax * dt and ndv > 0:
+                v_out = self._accel_mem + dv * (amax * dt / ndv)
+            self._accel_mem = v_out.copy()
+            self._accel_mem_t = t
+        return float(v_out[0]), float(v_out[1]), float(v_des[2])
+
+
+@pytest.mark.parametrize("cfg", [AvoidanceConfig(model="ardupilot"), EXACT,
+                                 AvoidanceConfig(model="ardupilot", avoid_margin_m=4.0, avoid_backup_dz_m=0.0, prx_filt_hz=1.0)],
+                         ids=["shipped", "no-filter-no-accel-limit", "wide-margin-backups"])
+def test_ardupilot_slide_path_equals_the_obstacle_by_obstacle_loop(cfg):
+    """Random ranges (near, far, unknown, clear), headings and demands: the velocity let through,
+    the obstacles and the boundary are bit for bit those of the loop over obstacles."""
+    rng = np.random.default_rng(7)
+    fast, ref = ArduPilotAvoidance(cfg), _LoopArduPilot(cfg)
+    t, n_diff_inputs, clipped = 0.0, 0, 0
+    for step in range(3000):
+        t += 1.0 / 120.0
+        if step % 4 == 0 and rng.random() < 0.8:
+            d = rng.choice([np.nan, np.inf, 0.5, 1.5, 2.5, 6.0, 15.0], 72, p=[0.3, 0.1, 0.1, 0.1, 0.15, 0.15, 0.1])
+            d = np.where(np.isfinite(d), d * rng.uniform(0.8, 1.2, 72), d)
+            msg = od(d)
+            arrival = t + rng.uniform(0.0, 0.02)
+            fast.receive(arrival, msg)
+            ref.receive(arrival, msg)
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        v_des = rng.normal(0.0, 4.0, 3) * (rng.random() < 0.9)
+        p = rng.normal(0, 10, 3)
+        a = fast.limit(t, p, v_des, yaw, v_des)
+        b = ref.limit(t, p, v_des, yaw, v_des)
+        assert a == b, (step, a, b)
+        assert all(type(x) is float for x in a)
+        clipped += not np.allclose(a[:2], v_des[:2])
+        n_diff_inputs += 1
+        if step % 50 == 0:
+            ob_a, ob_b = fast.obstacles_body(t), ref.obstacles_body(t)
+            assert len(ob_a) == len(ob_b)
+            assert all(np.array_equal(x, y) for u, w in zip(ob_a, ob_b) for x, y in zip(u, w))
+            assert np.array_equal(fast.boundary_points(t), ref.boundary_points(t))
+    assert clipped > 300  # the avoidance did limit the demand often enough for the comparison to mean something

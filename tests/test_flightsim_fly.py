@@ -166,3 +166,48 @@ def test_cli_exit_codes(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         flightsim_main(["fly"])
     assert e.value.code == 2
+
+
+def test_deferred_capture_gives_the_same_frames_and_truth(tmp_path):
+    """Flight.capture(defer=True) poses a frame and renders it (with its truth row) later, oldest
+    first: the images and truth.npz arrays are those of capturing step by step, however the
+    rendering is interleaved with the physics (sitl renders while the companion works)."""
+    from flightsim.fly import Flight
+
+    sc = load_scenario(variant(tmp_path, "quad_approach", {"duration_s": "2.0"}))
+
+    def fly_frames(defer: bool, finish_every: int):
+        fl = Flight(sc)
+        frames, k = [], 0
+        while (st := fl.step()) is not None:
+            if fl.frame_due(st):
+                frames.append(fl.capture(st, defer=defer))
+            k += 1
+            if finish_every and k % finish_every == 0:
+                fl.finish_frames()
+        images = [f.image for f in frames]  # the rest on access
+        return images, fl.truth_arrays()
+
+    ref_img, ref_truth = fly_frames(False, 0)
+    for every in (0, 3, 7):
+        img, truth = fly_frames(True, every)
+        assert len(img) == len(ref_img) == 61
+        assert all(np.array_equal(a, b) for a, b in zip(img, ref_img))
+        assert truth.keys() == ref_truth.keys()
+        for key in truth:
+            assert np.array_equal(truth[key], ref_truth[key], equal_nan=truth[key].dtype.kind == "f"), key
+
+
+def test_deferred_frame_renders_the_older_ones_first(tmp_path):
+    from flightsim.fly import Flight
+
+    fl = Flight(load_scenario(variant(tmp_path, "quad_approach", {"duration_s": "0.5"})))
+    frames = []
+    while (st := fl.step()) is not None:
+        if fl.frame_due(st):
+            frames.append(fl.capture(st, defer=True))
+    assert len(frames) == 16 and not any(f.rendered for f in frames)
+    frames[4].image  # noqa: B018 - the access renders frames 0..4, in order
+    assert [f.rendered for f in frames[:6]] == [True] * 5 + [False]
+    assert fl.finish_frames(9) == 5 and fl.finish_frames() == 6 and fl.finish_frames() == 0
+    assert len(fl.truth_arrays()["t_sim_s"]) == 16

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import re
 import socket
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -156,6 +157,31 @@ def test_published_ranges_agree_with_truth(lockstep_runs):
         # no phantom beside the mast (a yaw-jitter smear of its sector once put one in ~4 of 10 messages)
         assert (score["rates"]["false_obstacle_clear_cells"] or 0.0) <= 0.05
         assert (out / "score.json").is_file() and (out / "score.md").is_file()
+
+
+def test_cpu_of_both_processes_per_frame(lockstep_runs):
+    """sitl.json: the CPU of the simulator's loop and of the companion over the same loop, per frame."""
+    _scen, s, _out, _b, _ = lockstep_runs
+    cpu, per = s["cpu_s"], s["cpu_ms_per_frame"]
+    if sys.platform.startswith("linux"):
+        assert 0 < cpu["companion_loop"] <= cpu["companion"]  # the loop is part of the process's life
+        assert per["companion"] == pytest.approx(1000 * cpu["companion_loop"] / s["frames"], abs=0.01)
+    assert per["simulator"] == pytest.approx(1000 * cpu["simulator_loop"] / s["frames"], abs=0.01)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc")
+def test_process_cpu_seconds_reads_proc():
+    import os
+    import time as _time
+
+    from flightsim.sitl.process import cpu_seconds, process_cpu_seconds
+
+    c0 = _time.process_time()
+    while _time.process_time() - c0 < 0.05:  # burn some CPU
+        pass
+    mine = process_cpu_seconds(os.getpid())
+    assert mine is not None and abs(mine - cpu_seconds()) < 0.05  # clock ticks (10 ms) apart
+    assert process_cpu_seconds(2**22 + 12345) is None  # no such process
 
 
 def test_lockstep_is_deterministic(lockstep_runs):

@@ -375,3 +375,24 @@ def test_damaged_texture_cache_file_is_rebuilt(tmp_path, monkeypatch):
     np.testing.assert_array_equal(tex.ground[0], T.build_world_textures(world).ground[0])
     with np.load(path) as arrays:  # replaced by a good file
         assert "ground/0" in arrays.files
+
+
+@pytest.mark.parametrize("distortion", [(0.0, 0.0, 0.0, 0.0, 0.0), (-0.28, 0.09, 0.0012, -0.0008, -0.01)])
+def test_directions_in_image_equal_the_polygon_test_of_every_point(distortion):
+    """The bounding-box shortcut of the in-image test (sector and target truth) gives exactly
+    OpenCV's pointPolygonTest verdict for every direction, on and near the outline too."""
+    import cv2
+
+    from flightsim.world.truth import _directions_in_image, _image_border_normalized
+
+    cam = CameraConfig(width=320, height=240, fx=277.1, fy=277.1, cx=159.5, cy=119.5, distortion=distortion)
+    rng = np.random.default_rng(3)
+    d = np.concatenate([rng.normal(0, 1, (20000, 3)),  # every way, behind the camera too
+                        np.c_[rng.uniform(-1, 1, (20000, 2)), np.ones(20000)]])  # in front, across the edges
+    border = _image_border_normalized(cam)  # points on the outline itself and just beside it
+    d = np.concatenate([d, np.c_[border, np.ones(len(border))], np.c_[border * 1.0000001, np.ones(len(border))]])
+    poly = border.astype(np.float32).reshape(-1, 1, 2)
+    ref = np.array([z > 1e-9 and cv2.pointPolygonTest(poly, (float(x / z), float(y / z)), False) >= 0 for x, y, z in d])
+    got = _directions_in_image(cam, d)
+    assert np.array_equal(got, ref)
+    assert 0.05 < ref.mean() < 0.6

@@ -200,9 +200,14 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
         "realtime_factor": round(sim_s / run.wall_loop, 3) if run.wall_loop > 0 else None,
         "timing_s": timing,  # wall seconds per part of the simulator (ipc_wait_ack: waiting for the companion)
         "sim_work_s": round(sim_work, 3),
-        "cpu_s": {  # user + system CPU: the simulator's flight loop (all its threads) and the whole companion process
-            "simulator_loop": _round_or_none(run.cpu_loop),
-            "companion": None if run.companion is None else _round_or_none(run.companion.cpu_s)},
+        "cpu_s": {  # user + system CPU: the simulator's flight loop (all its threads), the whole companion process
+            "simulator_loop": _round_or_none(run.cpu_loop),  # and the companion over the same loop (Linux /proc; None elsewhere)
+            "companion": None if run.companion is None else _round_or_none(run.companion.cpu_s),
+            "companion_loop": _round_or_none(run.companion_cpu_loop)},
+        "cpu_ms_per_frame": {  # the two above over the loop, per frame sent: which side limits lockstep
+            "simulator": _round_or_none(1000 * run.cpu_loop / run.frames_sent, 2) if run.frames_sent else None,
+            "companion": (_round_or_none(1000 * run.companion_cpu_loop / run.frames_sent, 2)
+                          if run.frames_sent and run.companion_cpu_loop is not None else None)},
         "companion": None if run.companion is None else {
             "command": run.cmd, "pid": run.companion.pid, "exit_code": run.companion.exit_code,
             "killed": run.companion.killed, "log": str(run.companion.log_path)},

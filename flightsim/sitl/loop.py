@@ -24,9 +24,12 @@ on the companion) and builds the telemetry of those steps, in step order, as if 
 in between; a change of the stream schedule (a stream request handled, or a new companion's
 HEARTBEAT restart) first rewinds the telemetry model and the schedule to the step at which it
 happens and that step is built again, so the random draws and messages are those of the
-step-by-step loop (``telemetry_ahead`` in the summary counts both).  After the acknowledgement
-only the requests and the sending are left before the next frame goes out; on two cores the
-processes overlap; no fixed sleeps lie in this path.  Determinism rests on loopback ordering: a
+step-by-step loop (``telemetry_ahead`` in the summary counts both).  Frames are rendered in that
+window too: with avoidance the physics may not run past the companion's answer, so a frame captured
+by the steps computed after an acknowledgement is only posed then, and rendered (with its truth)
+during the next frame's wait (``Flight.capture(defer=True)``; the pixels do not depend on when).
+After the acknowledgement only the requests, the physics steps up to the next frame's delivery
+and the sending are left before the next frame goes out; on two cores the processes overlap; no fixed sleeps lie in this path.  Determinism rests on loopback ordering: a
 datagram sent before the frame (or the acknowledgement) is queued at the receiver before the
 frame (acknowledgement) is — true of Linux loopback, where ``sendto`` delivers before it returns.
 
@@ -55,7 +58,8 @@ from flightsim.fly import EPS_T, Flight, StreamSchedule, camera_toml, open_video
 from flightsim.hostile import HostileInjector
 from flightsim.scenario import Scenario
 from flightsim.sitl.config import SitlConfig, SitlError
-from flightsim.sitl.process import CompanionProcess, companion_command, companion_rss_kib, cpu_seconds
+from flightsim.sitl.process import (CompanionProcess, companion_command, companion_rss_kib, cpu_seconds,
+                                    process_cpu_seconds)
 from flightsim.tlog import TlogWriter
 
 log = logging.getLogger(__name__)
@@ -108,6 +112,7 @@ class Run:
         self.hostile_cfg = cfg.hostile
         self.injector: HostileInjector | None = None
         self.blackout_dropped: collections.Counter[str] = collections.Counter()  # vehicle messages not sent in blackouts
+        self.companion_cpu_loop: float | None = None  # the companion's CPU over the flight loop (Linux /proc), s
         self.rss: list[list[float]] = []  # [simulation s, wall s since the loop started, companion VmRSS kiB]
         self._next_rss = 0.0
         self.endpoint: UdpEndpoint | None = None
@@ -327,7 +332,9 @@ class Run:
         state = fl.physics_step()
         if state is None:
             return False
-        frame = fl.capture(state) if fl.frame_due(state) else None
+        # lockstep: the frame is rendered (and its truth taken) while the companion works
+        # (_run_ahead), not between its acknowledgement and the next frame (Flight.capture)
+        frame = fl.capture(state, defer=self.lockstep) if fl.frame_due(state) else None
         if frame is not None and self.video is not None:
             w0 = time.perf_counter()
             self.video.write(frame.image)
@@ -356,6 +363,7 @@ class Run:
                 break
         if self.cfg.build_ahead:
             self._speculate()
+        self.flight.finish_frames()  # render the frames captured since the last acknowledgement, too
 
     def _speculate(self) -> None:
         """Lockstep, while the companion works: advance the telemetry model and build the stream
@@ -442,6 +450,7 @@ class Run:
         self.pending: collections.deque = collections.deque()
         self.wall0 = time.perf_counter()
         cpu0 = cpu_seconds()
+        comp0 = None if self.companion is None else process_cpu_seconds(self.companion.pid)
         next_alive_check = 0.0
         while self.ahead or self._physics_one():
             state, frame, spec = self.ahead.popleft()
@@ -459,6 +468,8 @@ class Run:
         self.frames_unsent += len(self.pending)  # captured too late in the flight to be delivered
         self.wall_loop = time.perf_counter() - self.wall0
         self.cpu_loop = cpu_seconds() - cpu0
+        comp1 = None if self.companion is None else process_cpu_seconds(self.companion.pid)
+        self.companion_cpu_loop = None if comp0 is None or comp1 is None else comp1 - comp0
         if not self.lockstep:  # the last messages still on their way
             self._pace(self.t_now + cfg.tail_s, self.wall0)
         while self.inbox:  # arrived after the last step: counted, no longer answered

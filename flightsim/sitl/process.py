@@ -131,3 +131,16 @@ def companion_rss_kib(pid: int) -> int | None:
     except (OSError, ValueError, IndexError):
         pass
     return None
+
+
+def process_cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds of a running process ``pid`` so far (Linux ``/proc/PID/stat``
+    utime + stime, all its threads); None if unavailable.  Read at the start and the end of the
+    flight loop it gives the companion's CPU over the loop alone (without its start-up)."""
+    try:
+        with open(f"/proc/{int(pid)}/stat", encoding="ascii", errors="replace") as fh:
+            text = fh.read()
+        fields = text[text.rindex(")") + 2:].split()  # after "pid (comm) ": state is field 3
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None

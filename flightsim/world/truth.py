@@ -73,6 +73,20 @@ def _image_border_normalized(config: CameraConfig, samples: int = 64) -> np.ndar
     return CameraModel(config).pixels_to_normalized(border)
 
 
+@functools.lru_cache(maxsize=16)
+def _image_border_polygon(config: CameraConfig) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """The image outline as OpenCV takes it (float32 contour) and its bounding box (x0, x1, y0, y1)."""
+    poly = _image_border_normalized(config).astype(np.float32).reshape(-1, 1, 2)
+    poly.flags.writeable = False
+    xy = poly.reshape(-1, 2)
+    return poly, (float(xy[:, 0].min()), float(xy[:, 0].max()), float(xy[:, 1].min()), float(xy[:, 1].max()))
+
+
+@functools.lru_cache(maxsize=16)
+def _camera_model(config: CameraConfig) -> CameraModel:
+    return CameraModel(config)  # holds nothing but the (frozen) config's arrays
+
+
 def _directions_in_image(config: CameraConfig, d_cam: np.ndarray) -> np.ndarray:
     """Boolean (N,): camera-frame directions in front of the camera whose pixel lies in the image."""
     d_cam = np.asarray(d_cam, float).reshape(-1, 3)
@@ -80,18 +94,26 @@ def _directions_in_image(config: CameraConfig, d_cam: np.ndarray) -> np.ndarray:
     out = np.zeros(len(d_cam), bool)
     if not np.any(front):
         return out
-    poly = _image_border_normalized(config).astype(np.float32).reshape(-1, 1, 2)
+    poly, (bx0, bx1, by0, by1) = _image_border_polygon(config)
     xy = d_cam[front, :2] / d_cam[front, 2:3]
-    out[front] = [cv2.pointPolygonTest(poly, (float(x), float(y)), False) >= 0 for x, y in xy]
+    # OpenCV tests the point in float32: one outside the outline's bounding box is outside (-1)
+    # without asking it (most of the sectors in front of a narrow camera)
+    x32, y32 = xy.astype(np.float32).T.tolist()
+    out[front] = [bx0 <= x <= bx1 and by0 <= y <= by1 and cv2.pointPolygonTest(poly, (x, y), False) >= 0
+                  for x, y in zip(x32, y32)]
     return out
+
+
+_BEARINGS = np.radians(np.arange(N_SECTORS) * (360.0 / N_SECTORS))  # sector_bearings_body(), for internal use
+_BEARINGS.flags.writeable = False
 
 
 def sectors_seen(R_world_body: np.ndarray, p_world_body: np.ndarray, camera_config: CameraConfig) -> np.ndarray:
     """(72,) bool: sectors whose centre bearing (horizontal, at the camera's height) is in the image."""
     yaw = _yaw(R_world_body)
-    model = CameraModel(camera_config)
+    model = _camera_model(camera_config)
     R_world_cam, _ = model.camera_pose(np.asarray(R_world_body, float), np.asarray(p_world_body, float))
-    b = yaw + sector_bearings_body()
+    b = yaw + _BEARINGS
     d_world = np.stack([np.cos(b), np.sin(b), np.zeros_like(b)], 1)
     return _directions_in_image(camera_config, d_world @ R_world_cam)
 
@@ -137,7 +159,7 @@ def sector_truth(
         raise InputError(f"max_distance_m must be > 0, got {max_distance_m}")
     yaw = _yaw(R_world_body)
     half = math.radians(SECTOR_WIDTH_DEG / 2.0)
-    centres = yaw + sector_bearings_body()
+    centres = yaw + _BEARINGS
     out = np.full(N_SECTORS, np.inf)
     if world.obstacles:
         edges = centres - half  # edge k is the left edge of sector k and the right edge of sector k-1
