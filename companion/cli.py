@@ -9,7 +9,15 @@ with nothing at the output path (the ranges so far in ``OUT.partial``).
 
 from __future__ import annotations
 
-import argparse
+import os
+
+# One thread for the BLAS behind numpy (set before numpy is imported): the companion's matrices are
+# tiny, and an idle OpenBLAS worker spinning on a second core burns CPU the onboard computer needs
+# (several seconds per minute of flight were measured). A value set by the user is kept.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402 (after the thread settings)
 import dataclasses
 import logging
 import math
