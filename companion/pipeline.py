@@ -380,6 +380,8 @@ class Pipeline:
         if gray is None:
             res.reason = f"bad frame: {why}"
             return
+        if not gray.flags.writeable:  # e.g. a frame viewed in a receive buffer: the compiled kernels are
+            gray = gray.copy()  # specialized for writable arrays (a read-only one would compile anew, mid-flight)
         if not math.isfinite(t):
             res.reason = "bad frame: time not finite"
             return

@@ -719,3 +719,24 @@ def test_a_signal_surfacing_inside_a_compiled_call_stops_the_process_not_the_ran
     res = p.process(Frame(2, 1.0 + 2 / FPS, flight.render(1.0 + 2 / FPS)), now=1.1)
     assert not res.ok and res.restart == "internal error" and p.counters["internal_errors"] == 1
     assert interrupt_in(ValueError("x")) is None
+
+
+def test_read_only_frames_compile_no_new_kernels():
+    """A frame viewed in a receive buffer is read-only; numba specializes on that, so such a frame would
+    compile every image kernel anew in the middle of a flight (tens of seconds: the process test over the
+    simulator transport saw no range within 20 s). The pipeline hands the kernels a writable copy."""
+    from companion.core import jit, lk_kernel, ncc_kernels
+
+    if not jit.ENABLED:
+        pytest.skip("compiled kernels are off (numba missing or COMPANION_KERNELS=numpy)")
+    import numba
+
+    flight, tel, p = make_pipeline()
+    feed_telemetry(tel, flight, 0.0, 2.0)
+    for k in range(4):
+        t = 1.0 + k / FPS
+        g = flight.render(t)
+        g.setflags(write=False)
+        assert p.process(Frame(k, t, g), now=t + 0.02).ok
+    for kernel in (ncc_kernels.score_peaks, ncc_kernels.scale_fit, lk_kernel._lk_kernel):
+        assert all(t.mutable for sig in kernel.signatures for t in sig if isinstance(t, numba.types.Array)), kernel.signatures
