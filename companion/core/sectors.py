@@ -392,9 +392,11 @@ def compute_sectors(
     if _jit.ENABLED:
         return _sectors_kernel(p_body, range_sigma, converged, valid, hfov_rad, R_cam_body, config, roll_pitch_rad, velocity_body,
                                vfov_rad, remembered_p_body, remembered_sigma, remembered_tangential_sigma, ground_height_m)
-    inp = _sector_inputs(p_body, range_sigma, converged, valid, config, roll_pitch_rad, velocity_body, remembered_p_body,
-                         remembered_sigma, remembered_tangential_sigma)
-    return _sectors_reference(inp, hfov_rad, R_cam_body, config, vfov_rad, ground_height_m)
+    return compute_sectors_reference(
+        p_body, range_sigma, converged, valid, hfov_rad, R_cam_body, config, roll_pitch_rad=roll_pitch_rad,
+        velocity_body=velocity_body, vfov_rad=vfov_rad, remembered_p_body=remembered_p_body,
+        remembered_sigma=remembered_sigma, remembered_tangential_sigma=remembered_tangential_sigma,
+        ground_height_m=ground_height_m)
 
 
 def compute_sectors_reference(
