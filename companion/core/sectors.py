@@ -441,7 +441,8 @@ class _SectorInputs(NamedTuple):
 
 def _sector_inputs(p_body, range_sigma, converged, valid, config: SectorConfig, roll_pitch_rad, velocity_body, remembered_p_body,
                    remembered_sigma, remembered_tangential_sigma) -> _SectorInputs:
-    """Checks and joins the inputs of :func:`compute_sectors` (both paths); raises :class:`InputError` on bad shapes."""
+    """Checks and joins the inputs of :func:`compute_sectors` for the reference (the kernel path,
+    :func:`_sectors_kernel`, makes the same checks); raises :class:`InputError` on bad shapes."""
     p = np.asarray(p_body, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3:
         if p.size == 0:
@@ -887,11 +888,13 @@ def _combine_conservative(a: np.ndarray, b: np.ndarray, max_distance_cm: int) ->
 
 # ---------------------------------------------------------------------- compiled kernel ----------
 # The same rules as :func:`_sectors_reference`, as loops over points and sectors in one numba
-# kernel (docs/derivations/sectors.md); used when :data:`companion.core.jit.ENABLED`.  It agrees
-# with the reference to float rounding: the products by R_level_body are summed in a fixed order
-# here and by BLAS there (≤ 1 ulp apart), so a sector decision could differ only for a point within
-# an ulp of a sector edge, the band edge or a centimetre boundary.  The tests compare every integer
-# and flag array exactly on seeded and recorded scenes.
+# kernel (docs/derivations/sectors.md); used when :data:`companion.core.jit.ENABLED`.  The levelled
+# points are the reference's own (the same BLAS product), so ranges, heights and ties are
+# bit-identical; what is computed otherwise agrees to an ulp: the bearing (libm's atan2 here,
+# numpy's loop there), the view directions and the body coordinates of spread copies (a fixed order
+# of summation here, BLAS there).  A sector decision could therefore differ only for a point within
+# an ulp of a sector edge; the tests compare every integer and flag array exactly on seeded scenes,
+# points placed on every rule's edge and a flight through the pipeline.
 
 _S_UNKNOWN, _S_OBSTACLE, _S_CLEAR = int(SectorState.UNKNOWN), int(SectorState.OBSTACLE), int(SectorState.CLEAR)  # plain ints for numba
 _DEG2RAD = math.pi / 180.0  # = numpy's radians() factor (NPY_PI / 180)
