@@ -361,6 +361,12 @@ def cmd_run(args) -> int:
             n = max(1, lw["rounds"])
             log.info("lockstep rounds: %d, wall %.3f s working (%.1f ms per round), %.3f s waiting for frames",
                      lw["rounds"], lw["work_s"], 1000 * lw["work_s"] / n, lw["wait_s"])
+            stages = ", ".join(f"{k} {1000 * lw[f'{k}_cpu_s'] / n:.1f}" for k in ("track", "estimate", "map", "sectors")
+                               if f"{k}_cpu_s" in lw)
+            log.info("lockstep CPU per round: %.1f ms in the loop's thread: pipeline %.1f ms (%s), the rest %.1f ms "
+                     "(frame receive, MAVLink in and out, telemetry, reporter, acknowledgement)",
+                     1000 * lw["cpu_s"] / n, 1000 * lw["pipeline_cpu_s"] / n, stages or "-",
+                     1000 * (lw["cpu_s"] - lw["pipeline_cpu_s"]) / n)
         return EXIT_OK
     finally:
         for s, h in old.items():

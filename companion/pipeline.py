@@ -795,7 +795,8 @@ class Companion:
         self._status_t = clock()
         self._errors_logged = 0
         self._lockstep_started = False
-        self.lockstep_wall: collections.Counter[str] = collections.Counter()  # rounds, wall s waiting / working
+        # rounds; wall s waiting / working; this thread's CPU s per round, of which the pipeline's and its stages'
+        self.lockstep_wall: collections.Counter[str] = collections.Counter()
 
     # -- helpers ------------------------------------------------------------------------------------
     def _send(self, msgs) -> None:
@@ -895,6 +896,7 @@ class Companion:
         w0 = time.perf_counter()
         f = self.source.read(timeout=timeout)
         w1 = time.perf_counter()
+        c1 = time.thread_time()
         self.lockstep_wall["wait_s"] += w1 - w0
         if f is None:
             return False
@@ -921,10 +923,14 @@ class Companion:
             clock.work(res.processing_s)
             status = "processed" if res.ok else "rejected"
             self._publish(res)
+            self.lockstep_wall["pipeline_cpu_s"] += res.cpu_s
+            for stage, cpu in res.stage_cpu_s.items():
+                self.lockstep_wall[f"{stage}_cpu_s"] += cpu
         self._tick(clock())
         self._done(f, status)
         self.lockstep_wall["rounds"] += 1
         self.lockstep_wall["work_s"] += time.perf_counter() - w1
+        self.lockstep_wall["cpu_s"] += time.thread_time() - c1
         return True
 
     def _tick(self, now: float) -> None:

@@ -112,6 +112,12 @@ def test_companion_requested_streams_and_got_timesync(lockstep_runs):
     log = (out / "companion.log").read_text()
     m = re.search(r"TIMESYNC: (\d+) requests, (\d+) answers accepted", log)
     assert m and int(m.group(2)) >= 2, log[-2000:]
+    # the loop's CPU per round, with the pipeline's share and its stages (what limits lockstep speed)
+    m = re.search(r"lockstep CPU per round: ([\d.]+) ms in the loop's thread: pipeline ([\d.]+) ms "
+                  r"\(track ([\d.]+), estimate ([\d.]+), map ([\d.]+), sectors ([\d.]+)\), the rest ([\d.]+) ms", log)
+    assert m, log[-2000:]
+    total, pipe, *stages, rest = (float(g) for g in m.groups())
+    assert 0 < pipe <= total and sum(stages) <= pipe + 0.25 and abs(total - pipe - rest) <= 0.15
 
 
 def test_companion_stopped_cleanly(lockstep_runs):
