@@ -38,6 +38,13 @@ class TelemetryConfig:
     attitude_noise_deg: float = 0.02  # white noise on each reported angle
     gyro_bias_deg_s: float = 0.05  # bound of the constant per-axis gyro bias (uniform ±)
     gyro_noise_deg_s: float = 0.01  # σ of the white gyro rate noise
+    # The autopilot's attitude estimator pulls the gyro-integrated attitude back towards its references
+    # (gravity for roll and pitch, compass / GNSS heading for yaw): a first-order correction of the error
+    # with these time constants, so the error settles near τ·bias instead of growing with flight time.
+    # 0 = no correction: the error is the gyro bias integrated for the whole flight (a harsher case,
+    # harmless in flights of a minute; a 30-minute flight would report tens of degrees of roll error).
+    attitude_tilt_tau_s: float = 0.0  # roll/pitch correction time constant, s (0 = none)
+    attitude_yaw_tau_s: float = 0.0  # yaw correction time constant, s (0 = none)
     position_noise_m: float = 0.0  # σ of the Gauss–Markov position error per axis
     position_noise_tau_s: float = 30.0  # its correlation time
     velocity_noise_mps: float = 0.0  # σ of the white velocity noise per axis
@@ -49,8 +56,8 @@ class TelemetryConfig:
         for name in ("attitude_rate_hz", "position_rate_hz", "global_rate_hz"):
             require_finite(name, getattr(self, name), positive=True)
             require(getattr(self, name) <= 400, f"{name} must be <= 400 Hz")
-        for name in ("attitude_noise_deg", "gyro_bias_deg_s", "gyro_noise_deg_s", "position_noise_m",
-                     "velocity_noise_mps", "latency_s", "boot_time_s"):
+        for name in ("attitude_noise_deg", "gyro_bias_deg_s", "gyro_noise_deg_s", "attitude_tilt_tau_s",
+                     "attitude_yaw_tau_s", "position_noise_m", "velocity_noise_mps", "latency_s", "boot_time_s"):
             require_finite(name, getattr(self, name), nonnegative=True)
         require_finite("position_noise_tau_s", self.position_noise_tau_s, positive=True)
         require(self.latency_s < 1.0, f"latency_s must be < 1 s, got {self.latency_s}")
@@ -87,10 +94,21 @@ class TelemetryModel:
         self.t = t
         # white rate noise of density σ·√dt_ref: sample its step average (σ per sample at 1/dt)
         self.gyro_noise = np.radians(cfg.gyro_noise_deg_s) * self.rng.standard_normal(3)
-        self.w_err = self.w_err + state.R_world_body @ (self.gyro_bias + self.gyro_noise) * dt
+        self.w_err = self._corrected(self.w_err, dt) + state.R_world_body @ (self.gyro_bias + self.gyro_noise) * dt
         if cfg.position_noise_m > 0:
             a = math.exp(-dt / cfg.position_noise_tau_s)
             self.pos_err = a * self.pos_err + cfg.position_noise_m * math.sqrt(1 - a * a) * self.rng.standard_normal(3)
+
+    def _corrected(self, w_err: np.ndarray, dt: float) -> np.ndarray:
+        """The world-frame attitude error (rotation vector, NED axes) after ``dt`` of the estimator's
+        correction: the north and east components (tilt) decay with ``attitude_tilt_tau_s``, the down
+        component (heading) with ``attitude_yaw_tau_s``; a τ of 0 leaves its components alone."""
+        cfg = self.config
+        if cfg.attitude_tilt_tau_s <= 0 and cfg.attitude_yaw_tau_s <= 0:
+            return w_err
+        a_tilt = math.exp(-dt / cfg.attitude_tilt_tau_s) if cfg.attitude_tilt_tau_s > 0 else 1.0
+        a_yaw = math.exp(-dt / cfg.attitude_yaw_tau_s) if cfg.attitude_yaw_tau_s > 0 else 1.0
+        return w_err * np.array([a_tilt, a_tilt, a_yaw])
 
     def snapshot(self) -> tuple:
         """The error states and the random generator's state, for :meth:`restore` (the SITL

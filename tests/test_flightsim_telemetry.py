@@ -75,6 +75,32 @@ def test_gyro_bias_drifts_the_attitude_as_modelled(tmp_path):
     np.testing.assert_allclose(rates - truth, np.broadcast_to(tm.gyro_bias, truth.shape), atol=1e-6)
 
 
+def test_attitude_correction_bounds_the_drift_of_a_long_flight():
+    """With the estimator's correction the world-frame error settles at τ·(R b) per axis (tilt on
+    the north/east components, heading on down) instead of growing with flight time."""
+    import types
+
+    level = np.eye(3)
+    def run(cfg, seconds, dt=0.02):
+        tm = TelemetryModel(cfg, 7, mavlink.MAV_TYPE_QUADROTOR)
+        for k in range(int(seconds / dt) + 1):
+            tm.advance(types.SimpleNamespace(time_s=k * dt, R_world_body=level))
+        return tm
+
+    base = dict(attitude_noise_deg=0.0, gyro_bias_deg_s=0.05, gyro_noise_deg_s=0.0)
+    free = run(TelemetryConfig(**base), 600.0)
+    np.testing.assert_allclose(free.w_err, free.gyro_bias * 600.0, rtol=1e-6)  # uncorrected: the bias integrated
+    held = run(TelemetryConfig(**base, attitude_tilt_tau_s=20.0, attitude_yaw_tau_s=60.0), 600.0)
+    b = held.gyro_bias
+    np.testing.assert_allclose(held.w_err, [20.0 * b[0], 20.0 * b[1], 60.0 * b[2]], rtol=0.02)
+    assert np.degrees(np.abs(held.w_err[:2])).max() <= 1.0 and np.degrees(abs(held.w_err[2])) <= 3.0
+    # over a few seconds (a landmark's life) it still drifts at the bias rate, as the companion models it
+    short = run(TelemetryConfig(**base, attitude_tilt_tau_s=20.0, attitude_yaw_tau_s=60.0), 1.0)
+    np.testing.assert_allclose(short.w_err, short.gyro_bias * 1.0, rtol=0.03)
+    with pytest.raises(ConfigError, match="attitude_tilt_tau_s"):
+        TelemetryConfig(attitude_tilt_tau_s=-1.0)
+
+
 def test_same_seed_same_bytes(tmp_path):
     cfg = TelemetryConfig(position_noise_m=0.5, velocity_noise_mps=0.1)
     a, _, _ = fly(tmp_path, cfg, seed=5, seconds=1.0, name="a.tlog")
