@@ -323,8 +323,10 @@ def cmd_run(args) -> int:
     from companion.core import jit
 
     t0 = time.perf_counter()
-    if jit.warm_up():
-        log.info("%s ready in %.1f s", jit.describe(), time.perf_counter() - t0)
+    if jit.ENABLED:
+        log.info("%s (the first start after an install compiles them: a minute or more)", jit.WARMUP_STARTED)
+        jit.warm_up()
+        log.info("%s; %s %.1f s", jit.describe(), jit.WARMUP_DONE, time.perf_counter() - t0)
     else:
         log.info("%s", jit.describe())
     link = gcs = source = None

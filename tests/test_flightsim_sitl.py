@@ -365,3 +365,38 @@ def test_udp_endpoint_learns_its_peer_and_survives_garbage():
     finally:
         peer.close()
         ep.close()
+
+
+def _slow_start_command(real_command, started_then_sleep_s: float):
+    """companion_command wrapped: the child first logs that it is compiling its kernels and sleeps (a
+    first start after an install), then runs the real companion."""
+    from companion.core import jit
+
+    def command(*args, **kwargs):
+        real = real_command(*args, **kwargs)
+        script = (f"import os, sys, time; print({jit.WARMUP_STARTED!r}, flush=True); time.sleep({started_then_sleep_s}); "
+                  "os.execv(sys.argv[1], sys.argv[1:])")
+        return [sys.executable, "-c", script, *real]
+    return command
+
+
+def test_a_first_start_compiling_its_kernels_is_waited_for(tmp_path, monkeypatch):
+    import flightsim.sitl.loop as loop
+
+    monkeypatch.setattr(loop, "companion_command", _slow_start_command(loop.companion_command, 4.0))
+    cfg = SitlConfig(connect_timeout_s=2.0)  # shorter than the "compilation": only the compile wait lets it through
+    s = run_sitl(short_scenario(tmp_path, 1.0), tmp_path / "slow", config=cfg, score=False)
+    assert s["companion_exit_code"] == 0 and s["frames"] > 0
+
+
+def test_a_companion_compiling_for_ever_is_given_up(tmp_path, monkeypatch):
+    import time
+
+    import flightsim.sitl.loop as loop
+
+    monkeypatch.setattr(loop, "companion_command", _slow_start_command(loop.companion_command, 120.0))
+    cfg = SitlConfig(connect_timeout_s=1.0, compile_timeout_s=3.0)
+    t0 = time.monotonic()
+    with pytest.raises(SitlError, match="did not connect to the camera frames"):
+        run_sitl(short_scenario(tmp_path, 1.0), tmp_path / "never", config=cfg, score=False)
+    assert time.monotonic() - t0 < 30

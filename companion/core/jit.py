@@ -65,6 +65,12 @@ def register_warmup(fn: Callable[[], None]) -> Callable[[], None]:
     return fn
 
 
+#: Log lines of ``companion run`` around :func:`warm_up`: a supervisor (the simulator's SITL harness)
+#: that sees the first without the second knows the companion is compiling, not hung.
+WARMUP_STARTED = "loading the compiled kernels"
+WARMUP_DONE = "kernels ready in"
+
+
 def warm_up() -> int:
     """Compile (or load from the disk cache) every registered kernel now; returns how many warm-ups ran."""
     if not ENABLED:

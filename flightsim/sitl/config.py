@@ -19,6 +19,7 @@ class SitlConfig:
     frame_latency_s: float = 0.0  # a frame leaves at least this long after its capture, s
     frame_wait_max_s: float = 0.1  # ... and at most this long, even if the ATTITUDE that brackets it has not been sent, s
     connect_timeout_s: float = 60.0  # the companion must connect to the frame transport within this long (wall), s
+    compile_timeout_s: float = 1200.0  # ... not counting a first start's kernel compilation, up to this long (wall), s
     ack_timeout_s: float = 30.0  # lockstep: a frame not acknowledged within this long (wall) is a failure, s
     stop_timeout_s: float = 5.0  # SIGTERM, then SIGKILL after this long (wall), s
     tail_s: float = 0.5  # realtime: keep listening this long (wall) after the flight for the last messages, s
@@ -32,7 +33,7 @@ class SitlConfig:
         require_finite("frame_latency_s", self.frame_latency_s, nonnegative=True)
         require_finite("frame_wait_max_s", self.frame_wait_max_s, nonnegative=True)
         require(self.frame_wait_max_s >= self.frame_latency_s, "frame_wait_max_s must be >= frame_latency_s")
-        for name in ("connect_timeout_s", "ack_timeout_s", "stop_timeout_s"):
+        for name in ("connect_timeout_s", "compile_timeout_s", "ack_timeout_s", "stop_timeout_s"):
             require_finite(name, getattr(self, name), positive=True)
         require_finite("tail_s", self.tail_s, nonnegative=True)
         require(isinstance(self.hostile, HostileConfig), "hostile must be a HostileConfig")

@@ -265,13 +265,26 @@ class Run:
         return mavlink.MAVLink_system_time_message(int(round((self.epoch + t) * 1e6)), self.flight.tm.time_boot_ms(t))
 
     def _wait_for_companion(self) -> None:
+        """Wait for the companion's frame connection: ``connect_timeout_s`` once it is ready to connect.
+        While its log says it is compiling its kernels (a first start: minutes on a small computer or a
+        busy machine) the clock restarts, up to ``compile_timeout_s`` in all."""
         timeout = self.cfg.connect_timeout_s * (5 if self.attach else 1)
-        deadline = time.monotonic() + timeout
+        t0 = time.monotonic()
+        deadline = t0 + timeout
+        compiling_logged = False
         while not self.server.wait_client(timeout=0.1):
             if self.companion is not None and not self.companion.alive():
                 raise self.companion.failure(f"the companion exited with code {self.companion.proc.returncode} "
                                              "before connecting")
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if self.companion is not None and now - t0 < self.cfg.compile_timeout_s and self.companion.compiling():
+                if not compiling_logged:
+                    compiling_logged = True
+                    log.info("the companion is compiling its kernels (first start); waiting up to %.0f s",
+                             self.cfg.compile_timeout_s)
+                deadline = now + timeout
+                continue
+            if now > deadline:
                 what = f"the companion did not connect to the camera frames ({self.server.address}) within {timeout:.0f} s"
                 raise self.companion.failure(what) if self.companion is not None else SitlError(what)
         log.info("companion connected to the camera frames (%s)", self.server.address)

@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from companion.core import jit
 from flightsim.sitl.config import SitlError
 
 log = logging.getLogger(__name__)
@@ -62,6 +63,15 @@ class CompanionProcess:
         except OSError:
             return ""
         return "\n".join("    " + ln for ln in text[-lines:])
+
+    def compiling(self) -> bool:
+        """True while the companion's log says it is compiling its kernels (started, not ready)."""
+        try:
+            self._log.flush()
+            text = self.log_path.read_text(errors="replace")
+        except OSError:
+            return False
+        return jit.WARMUP_STARTED in text and jit.WARMUP_DONE not in text
 
     def failure(self, what: str) -> SitlError:
         tail = self.tail()
