@@ -6,7 +6,7 @@ over points and sectors in numba kernels; used when :data:`companion.core.jit.EN
 reference's input checks, packs the configuration (:func:`_kernel_config`) and calls
 :func:`_join_points_k`, :func:`_view_masks_kernel`, :func:`_usable_points_k` and :func:`_sectors_core`;
 :func:`_infer_between_k`, :func:`_infer_narrow_k` and :func:`_vertical_pick_k` are the compiled forms of
-its inference rules.
+the inference rules of :mod:`companion.core.sectors_infer`.
 
 The levelled points are the reference's own (the same BLAS product, computed by the caller), so
 ranges, heights and ties are bit-identical; what is computed otherwise agrees to an ulp: the
