@@ -1,7 +1,8 @@
 """Compiled kernels of the local obstacle map (docs/derivations/obstacle_map.md, docs/derivations/compute.md).
 
 Each step of the map as one loop over landmarks, used when :data:`companion.core.jit.ENABLED`: the
-methods and functions of :mod:`companion.core.obstacle_map` dispatch here, and their numpy bodies are the reference
+methods of :class:`companion.core.obstacle_map.ObstacleMap` and the functions of
+:mod:`companion.core.obstacle_map_landmarks` dispatch here, and their numpy bodies are the reference
 (tests/test_obstacle_map_kernel.py compares the two).  The kernels evaluate the reference's
 expressions in the same order, so the decisions (entry, merge, found, seen through, retention,
 support) are the reference's: the support test even repeats its float32 expansion
@@ -577,7 +578,8 @@ def _live_view_k(ids, track_ids, track_uv, keys, good, p_world, range_sigma, ran
 def _warm_up() -> None:
     """Compile the map kernels on a tiny map: enter, merge, re-observe, absorb, prune, remember, forget.
 
-    The calls of :mod:`companion.core.obstacle_map` on ``MapConfig(min_support=2, support_radius_rel=0.1)``,
+    The calls of :class:`companion.core.obstacle_map.ObstacleMap` and
+    :mod:`companion.core.obstacle_map_landmarks` on ``MapConfig(min_support=2, support_radius_rel=0.1)``,
     with the argument types they pass (the configuration's floats and ints as literals)."""
     R_wc = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # camera looking north
     p_wc = np.zeros(3)
