@@ -6,7 +6,7 @@ the tests compare the two on the same inputs (float rounding only: scores to ~1e
 dot products summed in another order than OpenCV's / einsum's —, scale fits to ~1e-5).
 
 * :func:`template_stats` — grey-level variance and structure-tensor λmin/λmax of each template
-  (reference: the variance in ``match_templates`` and :func:`~companion.core.ncc.template_eigen_ratio`).
+  (reference: the variance in ``match_templates`` and :func:`~companion.core.ncc_templates.template_eigen_ratio`).
 * :func:`score_peaks` — eq. 13 over each point's search window, the best cell (eq. 14), its four
   neighbours and the second-peak test (reference: ``_score_group`` + ``_ambiguous``).
 * :func:`scale_fit` — the inverse-compositional Gauss–Newton scale + translation fit of
