@@ -10,8 +10,9 @@ that refuses edges.
   of :mod:`companion.core.ncc`);
 * :func:`_check_pts` — the point arrays' shape and finiteness check the matcher's entry points share.
 
-Used by :mod:`companion.core.ncc` (which re-exports the public names); the compiled form of
-:func:`template_eigen_ratio` is ``template_stats`` in :mod:`companion.core.ncc_kernels`.
+Used by :mod:`companion.core.ncc` (which re-exports the public names) and
+:mod:`companion.core.ncc_scale`; the compiled form of :func:`template_eigen_ratio` is
+``template_stats`` in :mod:`companion.core.ncc_kernels`.
 """
 
 from __future__ import annotations
