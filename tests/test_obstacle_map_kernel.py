@@ -29,6 +29,7 @@ import pytest
 
 from companion.core import jit
 from companion.core import obstacle_map as OM
+from companion.core import obstacle_map_kernels as OMK
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.frames import euler_zyx_to_R
 from companion.core.obstacle_map import MapConfig, ObstacleMap
@@ -256,7 +257,7 @@ def test_support_slab_counts_every_pair(scale):
         rows = np.sort(rng.choice(len(p), 150, replace=False))
         pv = centres[0] + rng.normal(0, 10, 3)
         for radius_m, rel in ((0.6, 0.15), (0.6, 0.0), (rng.uniform(0.01, 5.0), 0.0)):
-            np.testing.assert_array_equal(OM._support_k(p, rows, pv, radius_m, rel), _support_bruteforce(p, rows, pv, radius_m, rel))
+            np.testing.assert_array_equal(OMK._support_k(p, rows, pv, radius_m, rel), _support_bruteforce(p, rows, pv, radius_m, rel))
 
 
 @pytest.mark.parametrize("case", ["empty map", "nothing in", "one landmark", "bad inputs", "absorb", "duplicate keys", "no live",
@@ -391,7 +392,7 @@ def test_entry_checks_agree_on_clear_cut_covariances():
     Ps += [np.diag([1.0, 2.0, 0.0]), np.zeros((3, 3)), np.diag([1.0, -1e-3, 1.0]), np.eye(3)]
     P = np.array(Ps)
     p = np.zeros((len(P), 3))
-    ok, n_bad, n_not_pd = OM._entry_checks_k(p, P)
+    ok, n_bad, n_not_pd = OMK._entry_checks_k(p, P)
     eig = np.linalg.eigvalsh(P)[:, 0]
     np.testing.assert_array_equal(ok, eig > 0)
     assert n_bad == 0 and n_not_pd == np.count_nonzero(eig <= 0) and 0 < n_not_pd < len(P)
@@ -470,5 +471,5 @@ def test_update_map_equals_reference_on_a_flight(monkeypatch):
 
 
 def test_warm_up_is_registered():
-    assert OM._warm_up in jit._WARMUPS
-    OM._warm_up()
+    assert OMK._warm_up in jit._WARMUPS
+    OMK._warm_up()

@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from companion.core import jit
-from companion.core.ekf_anchored import BEHIND, GATED, LOOM_NAN, LOOM_NONPOSITIVE, UPDATED
+from companion.core.ekf_anchored_model import BEHIND, GATED, LOOM_NAN, LOOM_NONPOSITIVE, UPDATED
 from companion.core.jit import njit
 
 #: h_z at or below this: the point is behind the camera (BEHIND), as in the reference

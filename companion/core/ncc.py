@@ -42,18 +42,10 @@ and since each frame's match becomes the next frame's template, that bias would 
 along a track; Lucas–Kanade is exact for whole-pixel shifts and within a few hundredths of a
 pixel otherwise.
 
-Scale change (looming, docs/derivations/looming.md).  For each accepted match of two frames, :func:`estimate_scale`
-refines a scale + translation warp of the patch: I_cur(p_cur + s·x + d) ≈ a·I_prev(p_prev + x) + b
-over x in a (2·scale_half+1)² grid, by inverse-compositional Gauss–Newton on the zero-mean,
-unit-norm patches (gain/offset invariant like eq. 13), vectorized over points.  With f̂ the
-normalized template, J = [∇f̂·x, ∇f̂] projected off the mean and off f̂ (the directions the
-normalization removes), the step is Δ = (JᵀJ)⁻¹ Jᵀ (ĝ − f̂) and the warp is composed with the
-inverse of the step: s ← s/(1 + Δs), d ← d − s Δd/(1 + Δs).  σ_s is the scale entry of
-σ_r² (JᵀJ)⁻¹, σ_r² the residual variance per pixel (both frames' noise and the model error),
-inflated by ``scale_sigma_factor`` for the pixels' correlation (bilinear resampling, blur), plus
-``scale_sigma_slope`` · |s − 1| in quadrature (resampling a patch by s is not exactly the scene
-seen from closer: on band-limited texture scaled by a known s the error grows ~0.06 |s − 1|
-beyond the residual σ).  At most ``max_scale_points`` fits per call (cost bound), the matches with
+Scale change (looming, docs/derivations/looming.md).  For each accepted match of two frames,
+:func:`estimate_scale` (:mod:`companion.core.ncc_scale`, which states the fit) measures the patch's
+scale change s = size now / size before and its σ by a Gauss–Newton fit of a scale + translation
+warp.  At most ``max_scale_points`` fits per call (cost bound), the matches with
 the least parallax first (image motion farthest below the median: the focus of expansion, where
 looming is needed).  The
 scale is NaN where it cannot be measured: rejected match, window not inside both frames, flat or
@@ -66,6 +58,12 @@ Cost: windows up to ``batch_search_half`` px are scored for all points at once i
 (:func:`_ncc_batch`, ~2× cheaper than one OpenCV call per point at these sizes); larger windows
 take one ``cv2.matchTemplate`` per point (the only per-point Python loop).  Everything else —
 template extraction, argmax, second-peak test, sub-pixel step — is vectorized over points.
+
+Layout: this module holds the matcher (:func:`match_ncc`, :func:`match_templates`: windows, scores,
+verdicts); template extraction and the edge test are in :mod:`companion.core.ncc_templates`, the
+Lucas–Kanade sub-pixel step in :mod:`companion.core.ncc_subpixel`, the scale fit in
+:mod:`companion.core.ncc_scale` (public names importable from here) and the compiled kernels in
+:mod:`companion.core.ncc_kernels`.
 """
 
 from __future__ import annotations
@@ -78,8 +76,11 @@ import numpy as np
 from companion.config import require, require_finite
 from companion.core import jit
 from companion.core import ncc_kernels as _kernels
-from companion.core.lk_kernel import lk_track
 from companion.core.harris import as_gray_u8
+# template extraction and the scale fit, re-exported: every public name stays importable from here
+from companion.core.ncc_scale import estimate_scale
+from companion.core.ncc_subpixel import _lk_refine, _lk_refine_frames
+from companion.core.ncc_templates import _check_pts, extract_scaled_templates, extract_templates, template_eigen_ratio
 from companion.errors import InputError
 
 #: Verdicts in :attr:`NCCResult.reason` (int8).
@@ -192,20 +193,6 @@ class NCCResult:
             self.scale_sigma = np.full(n, np.nan)
 
 
-def _check_pts(name: str, pts, n: int | None = None) -> np.ndarray:
-    a = np.asarray(pts, dtype=float)
-    if a.size == 0 and (n is None or n == 0):
-        return np.zeros((0, 2))
-    if a.ndim != 2 or a.shape[1] != 2:
-        raise InputError(f"{name} must have shape (N, 2), got {a.shape}")
-    if n is not None and len(a) != n:
-        raise InputError(f"{name} has {len(a)} rows, expected {n}")
-    bad = ~np.all(np.isfinite(a), 1)
-    if np.any(bad):
-        raise InputError(f"{name} contains NaN or inf (rows {np.flatnonzero(bad)[:5].tolist()})")
-    return a
-
-
 def _search_half(config: NCCConfig, search_radius, n: int) -> np.ndarray:
     if search_radius is None:
         return np.full(n, config.search_half, np.int64)
@@ -217,40 +204,6 @@ def _search_half(config: NCCConfig, search_radius, n: int) -> np.ndarray:
     if not np.all(np.isfinite(r)) or np.any(r < 0):
         raise InputError("search_radius must be finite and >= 0")
     return np.clip(np.ceil(r - 1e-9), 1, config.max_search_half).astype(np.int64)
-
-
-def extract_templates(image: np.ndarray, pts: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cut templates around the pixels nearest to ``pts`` (one vectorized gather).
-
-    Each template is (2·half+3)²: the (2·half+1)² patch that is matched plus a 1-px rim used
-    only for the template gradients of the sub-pixel step.  Returns ``templates`` (N, T+2, T+2)
-    uint8 (zeros where they do not fit), ``frac`` (N, 2) = pts − rounded pts (the sub-pixel
-    offset carried over to the match) and ``inside`` (N,) bool (template and rim fit).
-    """
-    image = as_gray_u8(image, "image")
-    pts = _check_pts("pts", pts)
-    h_img, w_img = image.shape
-    r = half + 1
-    q = np.rint(pts).astype(np.int64)
-    inside = (q[:, 0] >= r) & (q[:, 0] <= w_img - 1 - r) & (q[:, 1] >= r) & (q[:, 1] <= h_img - 1 - r)
-    frac = pts - q
-    templates = _patches(image, q, r)
-    templates[~inside] = 0
-    return templates, frac, inside
-
-
-def _patches(image: np.ndarray, centres: np.ndarray, r: int) -> np.ndarray:
-    """(N, 2r+1, 2r+1) copies of the patches around integer ``centres`` (u, v), clamped to the image.
-
-    Indexing a sliding-window view copies whole blocks, ~6× faster than gathering every pixel.
-    """
-    H, W = image.shape
-    size = 2 * r + 1
-    if H < size or W < size:
-        return np.zeros((len(centres), size, size), image.dtype)
-    x = np.clip(centres[:, 0] - r, 0, W - size)
-    y = np.clip(centres[:, 1] - r, 0, H - size)
-    return np.lib.stride_tricks.sliding_window_view(image, (size, size))[y, x]
 
 
 def _ncc_batch(img: np.ndarray, tpl: np.ndarray, centres: np.ndarray, sb: int, h: int) -> np.ndarray:
@@ -296,71 +249,6 @@ def _ncc_batch(img: np.ndarray, tpl: np.ndarray, centres: np.ndarray, sb: int, h
     den = np.sqrt(np.maximum(var, 0.0))
     ok = den > 1e-3
     return np.where(ok, num / np.where(ok, den, 1.0), 0.0).astype(np.float32)
-
-
-def _lk_refine(templates: np.ndarray, img: np.ndarray, peak: np.ndarray, h: int, iterations: int) -> np.ndarray:
-    """Sub-pixel offsets (M, 2) of stored templates (M, T+2, T+2) around their integer NCC peaks.
-
-    Used when the frame the templates were cut from is no longer available (a track that missed
-    a frame).  Lucas–Kanade, inverse-compositional form: minimizes Σ (ĝ(x + δ) − f̂(x))² over the
-    translation δ, with f̂, ĝ the zero-mean, unit-norm template and current patch (the
-    normalization of eq. 13, so the step has the same gain/offset invariance as the score).  The
-    template gradients (from the 1-px rim) and the 2×2 normal matrix are computed once; each
-    iteration resamples the current patch bilinearly at the grid + δ and takes a Gauss–Newton
-    step; |δ| ≤ 1 px.  Exact (δ = 0) for an integer shift.
-    """
-    m = len(peak)
-    tpl = templates.astype(np.float32)
-    f = tpl[:, 1:-1, 1:-1]
-    f = f - f.mean(axis=(1, 2), keepdims=True)
-    nf = np.sqrt(np.einsum("nij,nij->n", f, f))[:, None, None]
-    nf = np.where(nf > 1e-6, nf, np.float32(1.0))
-    f = f / nf
-    gx = (tpl[:, 1:-1, 2:] - tpl[:, 1:-1, :-2]) * (0.5 / nf)
-    gy = (tpl[:, 2:, 1:-1] - tpl[:, :-2, 1:-1]) * (0.5 / nf)
-    axx = np.einsum("nij,nij->n", gx, gx)
-    axy = np.einsum("nij,nij->n", gx, gy)
-    ayy = np.einsum("nij,nij->n", gy, gy)
-    det = axx * ayy - axy * axy
-    solvable = det > 1e-6 * np.maximum(axx * ayy, 1e-30)
-    det = np.where(solvable, det, 1.0)
-
-    patch = _patches(img, peak, h + 1).astype(np.float32)  # (M, t+2, t+2)
-    d = np.zeros((m, 2), np.float32)
-    for it in range(iterations):
-        if it == 0:
-            g = patch[:, 1:-1, 1:-1]
-        else:
-            dx = d[:, 0, None, None]
-            dy = d[:, 1, None, None]
-            c = patch[:, :, 1:-1]
-            hor = c + np.abs(dx) * (np.where(dx >= 0, patch[:, :, 2:], patch[:, :, :-2]) - c)
-            c = hor[:, 1:-1, :]
-            g = c + np.abs(dy) * (np.where(dy >= 0, hor[:, 2:, :], hor[:, :-2, :]) - c)
-        g = g - g.mean(axis=(1, 2), keepdims=True)
-        ng = np.sqrt(np.einsum("nij,nij->n", g, g))[:, None, None]
-        res = g / np.where(ng > 1e-6, ng, np.float32(1.0)) - f
-        bx = np.einsum("nij,nij->n", gx, res)
-        by = np.einsum("nij,nij->n", gy, res)
-        step = np.stack([(ayy * bx - axy * by) / det, (axx * by - axy * bx) / det], 1)
-        d = np.clip(d - np.where(solvable[:, None], step, 0.0), -1.0, 1.0)
-    return d.astype(np.float64)
-
-
-def _lk_refine_frames(
-    img_prev: np.ndarray, img_cur: np.ndarray, pts_prev: np.ndarray, guess: np.ndarray, h: int, iterations: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-pixel match of ``pts_prev`` (exact sub-pixel points of ``img_prev``) starting from ``guess``.
-
-    One ``cv2.calcOpticalFlowPyrLK`` for all points (single level, window = the template,
-    bilinear interpolation of both frames, so the template sits exactly on the sub-pixel point).
-    Returns the refined points and a mask of those that converged within 1 px of the guess.
-    """
-    # lk_track is the compiled copy of cv2.calcOpticalFlowPyrLK (same floats on x86; calls OpenCV
-    # itself when kernels are off): companion/core/lk_kernel.py
-    nxt, status = lk_track(img_prev, img_cur, pts_prev, guess, h, iterations, 0.01)
-    ok = status & np.all(np.isfinite(nxt), 1) & np.all(np.abs(nxt - guess) <= 1.0, 1)
-    return nxt, ok
 
 
 def match_templates(
@@ -596,26 +484,6 @@ def _score_group(grp, as_batch, run, templates, img_cur, c, s, lo, hi, h, config
     found[grp] = np.stack([origin[:, 0] + bj, origin[:, 1] + bi], 1)
 
 
-def template_eigen_ratio(templates: np.ndarray) -> np.ndarray:
-    """λmin/λmax of the structure tensor M = Σ ∇I ∇Iᵀ of each template (N,), in [0, 1].
-
-    ``templates`` (N, T+2, T+2): the matched patch plus its 1-px rim, which the central
-    differences use so that every pixel of the T×T patch contributes.  1 for an isotropic corner,
-    0 for a straight edge (and for a flat patch).
-    """
-    t = np.asarray(templates, np.float32)
-    gx = t[:, 1:-1, 2:] - t[:, 1:-1, :-2]  # 2·∂I/∂u; the factor cancels in the ratio
-    gy = t[:, 2:, 1:-1] - t[:, :-2, 1:-1]
-    a = np.einsum("nij,nij->n", gx, gx, dtype=np.float64)
-    b = np.einsum("nij,nij->n", gx, gy, dtype=np.float64)
-    c = np.einsum("nij,nij->n", gy, gy, dtype=np.float64)
-    half_tr = 0.5 * (a + c)
-    disc = np.sqrt(np.maximum(0.25 * (a - c) ** 2 + b * b, 0.0))
-    lmax = half_tr + disc
-    lmin = np.maximum(half_tr - disc, 0.0)
-    return np.where(lmax > 0, lmin / np.where(lmax > 0, lmax, 1.0), 0.0)
-
-
 def _ambiguous(flat_stack: np.ndarray, m: int, bi: np.ndarray, bj: np.ndarray, best: np.ndarray, config: NCCConfig) -> np.ndarray:
     """True where a second local maximum ≥ best − margin lies ≥ min_separation from the best.
 
@@ -703,141 +571,3 @@ def match_ncc(
         s0 = None if scale_pred is None else scale_pred[g]
         res.scale[g], res.scale_sigma[g] = estimate_scale(img_prev, img_cur, pts_prev[g], res.pts[g], config, s0)
     return res
-
-
-def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples (float32) of float32 image ``img`` at (x, y) (equal shapes (N, ...)), border
-    replicated: one ``cv2.remap`` (for a float32 image its bilinear weights are not quantized)."""
-    shape = x.shape
-    X = np.ascontiguousarray(x, np.float32).reshape(shape[0], -1)
-    Y = np.ascontiguousarray(y, np.float32).reshape(shape[0], -1)
-    step = 32000  # cv2.remap wants fewer than SHRT_MAX rows
-    out = [cv2.remap(img, X[i : i + step], Y[i : i + step], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-           for i in range(0, len(X), step)]
-    return (out[0] if len(out) == 1 else np.concatenate(out)).reshape(shape)
-
-
-def extract_scaled_templates(image: np.ndarray, pts: np.ndarray, half: int, scale: np.ndarray):
-    """Templates like :func:`extract_templates` (with rim) resampled at scale change ``scale`` (N,):
-    pixel y of the template is the image at pts + y/scale (bilinear), i.e. the patch as it will look
-    after growing by ``scale``.  Centred on the sub-pixel point, so ``frac`` is 0."""
-    image = as_gray_u8(image, "image")
-    pts = _check_pts("pts", pts)
-    scale = np.asarray(scale, float).reshape(len(pts))
-    H, W = image.shape
-    r = half + 1
-    off = np.arange(-r, r + 1, dtype=float)
-    ext = r / scale + 1.0
-    inside = (pts[:, 0] - ext >= 0) & (pts[:, 0] + ext <= W - 1) & (pts[:, 1] - ext >= 0) & (pts[:, 1] + ext <= H - 1)
-    X = pts[:, 0, None, None] + off[None, None, :] / scale[:, None, None]
-    Y = pts[:, 1, None, None] + off[None, :, None] / scale[:, None, None]
-    X, Y = np.broadcast_arrays(X, Y)
-    tpl = np.clip(np.rint(_bilinear(image.astype(np.float32), X, Y)), 0, 255).astype(np.uint8)
-    tpl[~inside] = 0
-    return tpl, np.zeros((len(pts), 2)), inside
-
-
-def estimate_scale(img_prev, img_cur, pts_prev, pts_cur, config: NCCConfig, scale0=None) -> tuple[np.ndarray, np.ndarray]:
-    """Scale change s (N,) of the patches at ``pts_prev`` (in ``img_prev``) matched at ``pts_cur``
-    (in ``img_cur``) and its σ (N,), NaN where not measurable (module docstring).  ``scale0`` (N,):
-    starting scale (default 1)."""
-    img_prev = as_gray_u8(img_prev, "img_prev")
-    img_cur = as_gray_u8(img_cur, "img_cur")
-    pts_prev = _check_pts("pts_prev", pts_prev)
-    n = len(pts_prev)
-    pts_cur = _check_pts("pts_cur", pts_cur, n)
-    nan = np.full(n, np.nan)
-    if n == 0:
-        return nan, nan.copy()
-    h = config.scale_half
-    smax = 1.0 + config.max_scale_change
-    H, W = img_prev.shape
-    s = np.ones(n) if scale0 is None else np.clip(np.asarray(scale0, float).reshape(n), 1.0 / smax, smax)
-    mp, mc = h + 2.0, h * smax + 2.0  # margins of the template (with its rim) and of the warped window
-
-    def fits(p, m):
-        return (p[:, 0] >= m) & (p[:, 0] <= W - 1 - m) & (p[:, 1] >= m) & (p[:, 1] <= H - 1 - m)
-
-    ok = fits(pts_prev, mp) & fits(pts_cur, mc)
-    f32 = np.float32
-    if jit.ENABLED:
-        return _kernels.scale_fit(img_prev, img_cur, pts_prev, pts_cur, s, ok, h,
-                                  config.scale_iterations, smax, config.scale_sigma_factor, config.scale_sigma_slope)
-    # template with a 1-px rim at the exact sub-pixel point, its gradients, normalization
-    off = np.arange(-h - 1, h + 2, dtype=f32)
-    Xt = pts_prev[:, 0, None, None].astype(f32) + off[None, None, :]
-    Yt = pts_prev[:, 1, None, None].astype(f32) + off[None, :, None]
-    T = _bilinear(img_prev.astype(f32), *np.broadcast_arrays(Xt, Yt))
-    npx = (2 * h + 1) ** 2
-    f = T[:, 1:-1, 1:-1].reshape(n, npx)
-    gx = (T[:, 1:-1, 2:] - T[:, 1:-1, :-2]).reshape(n, npx) * f32(0.5)
-    gy = (T[:, 2:, 1:-1] - T[:, :-2, 1:-1]).reshape(n, npx) * f32(0.5)
-    f = f - f.mean(1, keepdims=True)
-    nf = np.sqrt(_rowdot(f, f))
-    ok &= nf > 1e-3 * np.sqrt(npx)
-    nf = np.where(nf > 0, nf, f32(1.0))[:, None]
-    f /= nf
-    gx /= nf
-    gy /= nf
-    grid = off[1:-1]
-    xx = np.broadcast_to(grid[None, :], (2 * h + 1, 2 * h + 1)).reshape(-1)
-    yy = np.broadcast_to(grid[:, None], (2 * h + 1, 2 * h + 1)).reshape(-1)
-    J = np.stack([gx * xx + gy * yy, gx, gy], 1)  # (n, 3, npx): ∂/∂(s, dx, dy)
-    J -= J.mean(2, keepdims=True)
-    J -= (J @ f[:, :, None]) * f[:, None, :]  # off f̂: the gain is free
-    A = (J @ np.swapaxes(J, 1, 2)).astype(np.float64)
-    # symmetric 3×3 inverse by cofactors (cheaper than np.linalg for small stacks)
-    cof = np.empty_like(A)
-    cof[:, 0, 0] = A[:, 1, 1] * A[:, 2, 2] - A[:, 1, 2] ** 2
-    cof[:, 0, 1] = A[:, 0, 2] * A[:, 1, 2] - A[:, 0, 1] * A[:, 2, 2]
-    cof[:, 0, 2] = A[:, 0, 1] * A[:, 1, 2] - A[:, 0, 2] * A[:, 1, 1]
-    cof[:, 1, 1] = A[:, 0, 0] * A[:, 2, 2] - A[:, 0, 2] ** 2
-    cof[:, 1, 2] = A[:, 0, 2] * A[:, 0, 1] - A[:, 0, 0] * A[:, 1, 2]
-    cof[:, 2, 2] = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] ** 2
-    cof[:, 1, 0], cof[:, 2, 0], cof[:, 2, 1] = cof[:, 0, 1], cof[:, 0, 2], cof[:, 1, 2]
-    detA = A[:, 0, 0] * cof[:, 0, 0] + A[:, 0, 1] * cof[:, 0, 1] + A[:, 0, 2] * cof[:, 0, 2]
-    tr = A[:, 0, 0] + A[:, 1, 1] + A[:, 2, 2]
-    ok &= detA > 1e-9 * np.maximum(tr, 1e-30) ** 3
-    A_inv = cof / np.where(ok, detA, 1.0)[:, None, None]
-    AJ = (A_inv.astype(f32) @ J)  # (n, 3, npx): the Gauss–Newton step is AJ · r
-    img_c = img_cur.astype(f32)
-    d = np.zeros((n, 2))
-    step_s = np.zeros(n)
-    r = np.zeros((n, npx), f32)
-    step_s = np.full(n, np.inf)
-
-    def gauss_newton(k):
-        """One step on rows ``k`` (index array or slice; updates s, d, step_s, r, ok in place)."""
-        c = (pts_cur[k] + d[k]).astype(f32)
-        sf = s[k].astype(f32)[:, None]
-        g = _bilinear(img_c, c[:, 0, None] + sf * xx[None, :], c[:, 1, None] + sf * yy[None, :])
-        g -= g.mean(1, keepdims=True)
-        ng = np.sqrt(_rowdot(g, g))
-        ok[k] &= ng > 1e-3 * np.sqrt(npx)
-        r[k] = g / np.where(ng > 0, ng, f32(1.0))[:, None] - f[k]
-        delta = (AJ[k] @ r[k][:, :, None])[:, :, 0].astype(np.float64)
-        one = 1.0 + delta[:, 0]
-        ok[k] &= one > 0.5
-        one = np.where(one > 0.5, one, 1.0)
-        step_s[k] = delta[:, 0]
-        d[k] = d[k] - s[k][:, None] * delta[:, 1:] / one[:, None]
-        s[k] = np.clip(s[k] / one, 1.0 / smax, smax)
-
-    for _ in range(config.scale_iterations):
-        gauss_newton(slice(None))  # every row (a slice: no copies)
-    for _ in range(2):  # a poor start (a track's first fit, a sudden change): two more steps where not settled
-        k = np.flatnonzero(ok & (np.abs(step_s) >= 0.002 * s))
-        if len(k) == 0:
-            break
-        gauss_newton(k)
-    ok &= np.abs(step_s) < 0.01 * s
-    var_r = _rowdot(r, r).astype(np.float64) / max(npx - 5, 1)
-    sigma = np.hypot(config.scale_sigma_factor * np.sqrt(np.maximum(var_r * A_inv[:, 0, 0], 0.0)) * s,
-                     config.scale_sigma_slope * np.abs(s - 1.0))
-    ok &= (np.abs(s - 1.0) <= config.max_scale_change) & (sigma <= config.max_scale_sigma) & np.isfinite(s) & np.isfinite(sigma)
-    return np.where(ok, s, np.nan), np.where(ok, sigma, np.nan)
-
-
-def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise dot products of (N, K) arrays, (N,)."""
-    return (a[:, None, :] @ b[:, :, None])[:, 0, 0]

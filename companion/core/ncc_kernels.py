@@ -1,16 +1,17 @@
 """Compiled kernels of the NCC matcher (docs/derivations/compute.md; seed 004 eq. 13–14).
 
-Loop forms of the numpy reference in :mod:`companion.core.ncc`, one pass per point instead of a
-few dozen array operations per frame.  Each kernel states which reference function it replaces;
+Loop forms of the numpy reference in :mod:`companion.core.ncc` (and :mod:`~companion.core.ncc_templates`,
+:mod:`~companion.core.ncc_scale`), one pass per point instead of a few dozen array operations per
+frame.  Each kernel states which reference function it replaces;
 the tests compare the two on the same inputs (float rounding only: scores to ~1e-4 — float32
 dot products summed in another order than OpenCV's / einsum's —, scale fits to ~1e-5).
 
 * :func:`template_stats` — grey-level variance and structure-tensor λmin/λmax of each template
-  (reference: the variance in ``match_templates`` and :func:`~companion.core.ncc.template_eigen_ratio`).
+  (reference: the variance in ``match_templates`` and :func:`~companion.core.ncc_templates.template_eigen_ratio`).
 * :func:`score_peaks` — eq. 13 over each point's search window, the best cell (eq. 14), its four
   neighbours and the second-peak test (reference: ``_score_group`` + ``_ambiguous``).
 * :func:`scale_fit` — the inverse-compositional Gauss–Newton scale + translation fit of
-  :func:`~companion.core.ncc.estimate_scale` (docs/derivations/looming.md).
+  :func:`~companion.core.ncc_scale.estimate_scale` (docs/derivations/looming.md).
 """
 
 from __future__ import annotations
@@ -257,7 +258,7 @@ def _sample_grid(img, ix, wx, iy, wy, out):
 @njit
 def scale_fit(img_prev, img_cur, pts_prev, pts_cur, s0, ok_in, h, iterations, smax, sigma_factor, sigma_slope):
     """Scale change s and its σ per point (NaN where not measurable): the Gauss–Newton fit of
-    :func:`companion.core.ncc.estimate_scale`, one point at a time (same steps, same tests).
+    :func:`companion.core.ncc_scale.estimate_scale`, one point at a time (same steps, same tests).
 
     ``img_prev``/``img_cur`` uint8 frames; ``pts_prev``/``pts_cur`` (N, 2); ``s0`` (N,) start;
     ``ok_in`` (N,) the points whose windows fit both frames; ``h`` the half-size of the fitted

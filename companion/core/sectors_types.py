@@ -1,0 +1,283 @@
+"""The sector ring's constants and types (docs/derivations/sectors.md): 72 sectors of 5°, the
+``[sectors]`` table (:class:`SectorConfig`), the result of :func:`companion.core.sectors.compute_sectors`
+(:class:`Sectors`, :class:`ForwardRange`, :class:`Obstacle3D`) and the operations on published sectors
+that result needs (:func:`sector_index`, :class:`SectorRanking`, :func:`rotate_sectors`).
+
+Shared by the numpy reference (:mod:`companion.core.sectors`, which re-exports every public name
+defined here), its inference rules (:mod:`companion.core.sectors_infer`) and the compiled kernels
+(:mod:`companion.core.sectors_kernels`); it imports none of them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+
+import numpy as np
+
+from companion.config import require, require_finite
+from companion.errors import InputError
+
+#: OBSTACLE_DISTANCE holds 72 distances; 72 × 5° covers 360° (docs/derivations/sectors.md).
+SECTOR_COUNT = 72
+#: Width of one sector, degrees (``increment`` / ``increment_f`` of OBSTACLE_DISTANCE).
+SECTOR_DEG = 5.0
+#: "Unknown" in OBSTACLE_DISTANCE / DISTANCE_SENSOR (MAVLink spec).
+UNKNOWN_CM = 65535
+
+_SAMPLES_PER_SECTOR = 5  # bearings tested per sector for the field-of-view mask (edges + inside)
+
+
+class SectorState(enum.IntEnum):
+    """What a sector claims."""
+
+    UNKNOWN = 0  # UINT16_MAX: not seen, or seen without evidence
+    OBSTACLE = 1  # a distance in [min_distance, max_distance] (or 0 = touching)
+    CLEAR = 2  # max_distance + 1: evidence of free space up to max_distance
+
+
+@dataclasses.dataclass(frozen=True)
+class SectorConfig:
+    """The ``[sectors]`` table."""
+
+    min_distance_m: float = 0.5  # nearest range reported; nearer obstacles are reported at this distance
+    max_distance_m: float = 40.0  # farthest range claimed; beyond it, with evidence, a sector is "clear" (max + 1 cm)
+    sigma_k: float = 2.0  # conservative range = estimate − k·σ
+    band_mode: str = "metres"  # vertical band around the flight path: "metres" (fixed height) or "degrees" (cone)
+    band_half_height_m: float = 1.5  # half height of the band, metres mode
+    band_half_angle_deg: float = 10.0  # half angle of the band, degrees mode
+    min_points_obstacle: int = 1  # converged in-band points a sector needs to report an obstacle (the n-th nearest is reported)
+    min_points_clear: int = 3  # converged in-band points beyond max_distance a sector needs to be "clear"
+    unconverged_veto_clear: bool = True  # a valid but unconverged point that may lie within max_distance forbids "clear"
+    touching_distance_m: float = 0.0  # estimate at or below this is sent as 0 (touching); 0 = never (ArduPilot discards 0)
+    forward_half_width_deg: float = 2.5  # DISTANCE_SENSOR forward window: sectors centred within ± this (2.5 = sector 0 only)
+    nearest_count: int = 5  # nearest obstacles (one per sector) kept for OBSTACLE_DISTANCE_3D
+    flight_path_min_speed_mps: float = 1.0  # below this speed the band is centred on the horizontal
+    flight_path_max_angle_deg: float = 30.0  # the band centre climbs or descends at most this steeply
+    remembered_spread_k: float = 2.0  # a remembered point is spread over bearings ± remembered_spread_k·σ_tangential/range ...
+    remembered_max_spread_deg: float = 15.0  # ... at most this far, degrees
+    remembered_drop_spread_deg: float = 90.0  # a remembered point whose k·σ_tangential/range exceeds this is not published (its bearing is too uncertain to place it), degrees
+    infer_max_gap_sectors: int = 1  # unknown gaps up to this many sectors between two consistent obstacle sectors are inferred obstacles (0 = off)
+    infer_rel_tol: float = 0.15  # the two sides are consistent when their ranges differ by at most this fraction of the nearer
+    infer_narrow_gap_m: float = 0.0  # an unknown gap (up to infer_narrow_max_sectors) between two obstacle sectors whose points lie at most this far apart is filled with the straight line between them (too narrow to fly through); 0 = off
+    infer_narrow_max_sectors: int = 4  # widest such gap, sectors
+    infer_vertical: bool = False  # a sector with converged points both just above and just below the band whose horizontal ranges agree within infer_rel_tol claims an obstacle at the nearer of them (a pole, mast or trunk standing through the band whose own points in the band did not converge)
+    infer_vertical_window_m: float = 1.5  # ... "just": within this of the band's upper and lower edges, m (keeps the ground out while it lies farther below the band than this)
+    infer_vertical_ground_margin_m: float = 1.0  # with the ground's height known (the autopilot's altitude above its origin), points below the band count only this far above the ground, m
+    infer_vertical_one_side: bool = False  # with infer_vertical: points above the band alone suffice when they show a vertical structure reaching down towards it (two at consistent ranges whose heights differ by infer_vertical_min_extent_m, the lower within infer_vertical_reach_m of the band's edge): a pole standing on the ground, whose foot is no evidence
+    infer_vertical_min_extent_m: float = 0.5  # ... the two points' heights differ by at least this, m
+    infer_vertical_reach_m: float = 1.5  # ... and the lower one lies within this above the band's edge, m
+    cap_above_m: float = 0.0  # a converged point up to this far above the band caps the range its sector claims (an obstacle sector reports no farther than it, a clear one becomes an obstacle at it; unknown stays unknown), m; 0 = off
+    ground_margin_m: float = 0.0  # with the ground's height known, points less than this above it are the ground: never an obstacle nor evidence of clear (taking off, landing, flying low); 0 = off
+
+    def __post_init__(self) -> None:
+        require_finite("min_distance_m", self.min_distance_m, positive=True)
+        require_finite("max_distance_m", self.max_distance_m, positive=True)
+        require(self.max_distance_m > self.min_distance_m, "max_distance_m must exceed min_distance_m")
+        require(
+            round(self.max_distance_m * 100) + 1 < UNKNOWN_CM,
+            f"max_distance_m must be < 655.33 m (max_distance + 1 cm must stay below UINT16_MAX), got {self.max_distance_m}",
+        )
+        require_finite("sigma_k", self.sigma_k, nonnegative=True)
+        require(self.band_mode in ("metres", "degrees"), f"band_mode must be 'metres' or 'degrees', got {self.band_mode!r}")
+        require_finite("band_half_height_m", self.band_half_height_m, positive=True)
+        require_finite("band_half_angle_deg", self.band_half_angle_deg, positive=True)
+        require(self.band_half_angle_deg < 90, f"band_half_angle_deg must be < 90, got {self.band_half_angle_deg}")
+        for name in ("min_points_obstacle", "min_points_clear", "nearest_count"):
+            v = getattr(self, name)
+            require(isinstance(v, int) and not isinstance(v, bool) and v >= 1, f"{name} must be an integer >= 1, got {v!r}")
+        require(isinstance(self.unconverged_veto_clear, bool), "unconverged_veto_clear must be true or false")
+        require_finite("touching_distance_m", self.touching_distance_m, nonnegative=True)
+        require(self.touching_distance_m < self.min_distance_m, "touching_distance_m must be below min_distance_m")
+        require_finite("forward_half_width_deg", self.forward_half_width_deg, nonnegative=True)
+        require(self.forward_half_width_deg < 180, "forward_half_width_deg must be < 180")
+        require_finite("flight_path_min_speed_mps", self.flight_path_min_speed_mps, nonnegative=True)
+        require_finite("flight_path_max_angle_deg", self.flight_path_max_angle_deg, nonnegative=True)
+        require(self.flight_path_max_angle_deg < 90, "flight_path_max_angle_deg must be < 90")
+        require_finite("remembered_max_spread_deg", self.remembered_max_spread_deg, nonnegative=True)
+        require(self.remembered_max_spread_deg <= 90, "remembered_max_spread_deg must be <= 90")
+        require_finite("remembered_spread_k", self.remembered_spread_k, nonnegative=True)
+        require_finite("remembered_drop_spread_deg", self.remembered_drop_spread_deg, positive=True)
+        require(self.remembered_drop_spread_deg <= 90, "remembered_drop_spread_deg must be <= 90")
+        require(isinstance(self.infer_max_gap_sectors, int) and not isinstance(self.infer_max_gap_sectors, bool)
+                and 0 <= self.infer_max_gap_sectors <= 6, f"infer_max_gap_sectors must be an integer in 0..6, got {self.infer_max_gap_sectors!r}")
+        require_finite("infer_rel_tol", self.infer_rel_tol, nonnegative=True)
+        require_finite("infer_narrow_gap_m", self.infer_narrow_gap_m, nonnegative=True)
+        require(isinstance(self.infer_narrow_max_sectors, int) and not isinstance(self.infer_narrow_max_sectors, bool)
+                and 0 <= self.infer_narrow_max_sectors <= 12,
+                f"infer_narrow_max_sectors must be an integer in 0..12, got {self.infer_narrow_max_sectors!r}")
+        require(isinstance(self.infer_vertical, bool), "infer_vertical must be true or false")
+        require_finite("infer_vertical_window_m", self.infer_vertical_window_m, positive=True)
+        require_finite("infer_vertical_ground_margin_m", self.infer_vertical_ground_margin_m, nonnegative=True)
+        require(isinstance(self.infer_vertical_one_side, bool), "infer_vertical_one_side must be true or false")
+        require_finite("infer_vertical_min_extent_m", self.infer_vertical_min_extent_m, positive=True)
+        require_finite("infer_vertical_reach_m", self.infer_vertical_reach_m, nonnegative=True)
+        require_finite("cap_above_m", self.cap_above_m, nonnegative=True)
+        require_finite("ground_margin_m", self.ground_margin_m, nonnegative=True)
+
+    @property
+    def min_distance_cm(self) -> int:
+        return int(round(self.min_distance_m * 100))
+
+    @property
+    def max_distance_cm(self) -> int:
+        return int(round(self.max_distance_m * 100))
+
+
+@dataclasses.dataclass(frozen=True)
+class ForwardRange:
+    """The forward direction for DISTANCE_SENSOR (orientation NONE)."""
+
+    state: SectorState
+    distance_m: float  # conservative range (obstacle), max_distance + 0.01 (clear) or nan (unknown)
+    sigma_m: float  # σ of the range estimate behind ``distance_m`` (nan unless obstacle)
+    estimate_m: float  # the (non-conservative) horizontal range estimate (nan unless obstacle)
+
+    @property
+    def variance_m2(self) -> float:
+        return self.sigma_m**2
+
+
+@dataclasses.dataclass(frozen=True)
+class Obstacle3D:
+    """One obstacle for OBSTACLE_DISTANCE_3D: the nearest point of one sector."""
+
+    p_body: tuple[float, float, float]  # body FRD, metres, moved to the conservative range along its ray
+    range_m: float  # conservative 3-D range, clamped up to min_distance
+    sigma_m: float  # σ of the range estimate
+    sector: int
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Sectors:
+    """Result of :func:`~companion.core.sectors.compute_sectors`; ``distances_cm`` is ready for OBSTACLE_DISTANCE."""
+
+    distances_cm: np.ndarray  # (72,) uint16
+    state: np.ndarray  # (72,) int8 SectorState
+    range_m: np.ndarray  # (72,) conservative horizontal range of obstacle sectors, nan elsewhere
+    sigma_m: np.ndarray  # (72,) σ of the point defining ``range_m``, nan elsewhere
+    in_view: np.ndarray  # (72,) bool: the camera sees part of the sector (at the band centre)
+    fully_in_view: np.ndarray  # (72,) bool: the camera sees all of it
+    obstacle_points: np.ndarray  # (72,) int: converged in-band points within max_distance
+    clear_points: np.ndarray  # (72,) int: converged in-band points beyond max_distance
+    forward: ForwardRange
+    nearest: tuple[Obstacle3D, ...]
+    min_distance_cm: int
+    max_distance_cm: int
+    points_used: int  # points that passed validity, convergence and the band
+    points_rejected: int  # points with NaN/inf/negative σ/zero range (bad input, ignored)
+    # obstacle points behind the OBSTACLE sectors, for re-binning in :meth:`rotated`
+    obstacle_bearing_rad: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))  # levelled body bearing
+    obstacle_cm: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))  # published value of each
+    obstacle_rank: int = 1  # the n-th nearest point of a sector is published (``min_points_obstacle``)
+    remembered_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(SECTOR_COUNT, np.int64))  # (72,) map points behind each sector's claim
+    inferred: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(SECTOR_COUNT, bool))  # (72,) obstacle inferred between two sides
+
+    @property
+    def n_inferred(self) -> int:
+        return int(np.count_nonzero(self.inferred))
+
+    @property
+    def clear_cm(self) -> int:
+        return self.max_distance_cm + 1
+
+    @property
+    def any_valid(self) -> bool:
+        """True when at least one sector makes a claim (obstacle or clear)."""
+        return bool(np.any(self.state != SectorState.UNKNOWN))
+
+    @property
+    def nearest_m(self) -> float:
+        """Nearest conservative obstacle range over all sectors (nan if none)."""
+        r = self.range_m[np.isfinite(self.range_m)]
+        return float(r.min()) if r.size else math.nan
+
+    def rotated(self, yaw_change_rad: float) -> np.ndarray:
+        """``distances_cm`` as seen after the vehicle turned by ``yaw_change_rad`` since exposure.
+
+        Obstacle points are re-binned at bearing − Δψ (the same n-th-nearest rule as at exposure);
+        "clear" and "unknown" sectors are turned by :func:`rotate_sectors` (clear only where every
+        overlapped sector was clear).  An obstacle point always wins over clear or unknown.
+        """
+        if not math.isfinite(yaw_change_rad):
+            return np.full(SECTOR_COUNT, UNKNOWN_CM, dtype=np.uint16)
+        base = np.where(self.state == SectorState.OBSTACLE, UNKNOWN_CM, self.distances_cm.astype(np.int64))
+        out = rotate_sectors(base, yaw_change_rad, self.max_distance_cm).astype(np.int64)
+        if self.obstacle_cm.size:
+            idx = sector_index(self.obstacle_bearing_rad - yaw_change_rad)
+            pick = SectorRanking(idx, self.obstacle_cm).nth(self.obstacle_rank)
+            has = pick >= 0
+            out[has] = self.obstacle_cm[pick[has]]
+        return out.astype(np.uint16)
+
+
+def sector_index(bearing_rad) -> np.ndarray:
+    """Sector of each bearing (rad, clockwise from forward): sector ``i`` spans ``i·5° ± 2.5°``."""
+    return np.mod(np.rint(np.degrees(np.asarray(bearing_rad, float)) / SECTOR_DEG).astype(np.int64), SECTOR_COUNT)
+
+
+class SectorRanking:
+    """Points sorted by (sector, value) once: :meth:`nth` picks the ``k``-th smallest per sector.
+
+    ``ids`` names the points in the caller's numbering (default 0..N−1)."""
+
+    def __init__(self, idx: np.ndarray, value: np.ndarray, ids: np.ndarray | None = None):
+        idx = np.asarray(idx, np.int64)
+        order = np.lexsort((value, idx))
+        self.count = np.bincount(idx, minlength=SECTOR_COUNT)
+        self.starts = np.searchsorted(idx[order], np.arange(SECTOR_COUNT), side="left")
+        self.order = order if ids is None else np.asarray(ids, np.int64)[order]
+
+    def nth(self, k: int) -> np.ndarray:
+        """(72,) id of each sector's ``k``-th smallest point, −1 where it has fewer than ``k``."""
+        pick = np.full(SECTOR_COUNT, -1, dtype=np.int64)
+        has = self.count >= k
+        pick[has] = self.order[self.starts[has] + k - 1]
+        return pick
+
+def unknown_sectors(config: SectorConfig = SectorConfig()) -> np.ndarray:
+    """All sectors unknown (what to send while no valid ranges are produced)."""
+    return np.full(SECTOR_COUNT, UNKNOWN_CM, dtype=np.uint16)
+
+
+def rotate_sectors(distances, yaw_change_rad: float, max_distance_cm: int, increment_deg: float = SECTOR_DEG) -> np.ndarray:
+    """Turn sector distances by the vehicle's yaw change since exposure (docs/derivations/sectors.md).
+
+    ``yaw_change_rad`` = yaw now − yaw at exposure (NED yaw, + = turned right).  An obstacle seen
+    at bearing β is now at β − Δψ, so new sector ``i`` takes what old bearing ``i·inc + Δψ`` held.
+    For a fractional shift a new sector overlaps two old ones and takes, conservatively: the
+    nearest obstacle of either; else "unknown" if either is unknown; "clear" only if both are
+    clear.  Values outside the ring come from the (circular) array itself, where the camera's
+    unseen sectors already hold ``UINT16_MAX``; nothing becomes clear that was not clear before.
+    """
+    d = np.asarray(distances)
+    if d.ndim != 1 or d.size == 0:
+        raise InputError(f"distances must be a 1-D array, got shape {d.shape}")
+    d = d.astype(np.int64)
+    if not math.isfinite(yaw_change_rad):
+        return np.full(d.shape, UNKNOWN_CM, dtype=np.uint16)
+    n = d.size
+    shift = math.degrees(yaw_change_rad) / increment_deg
+    shift = (shift + n / 2) % n - n / 2  # wrap to [-n/2, n/2)
+    lo = math.floor(shift)
+    frac = shift - lo
+    a = np.roll(d, -lo)  # new[i] = old[i + lo]
+    tol = 1e-6
+    if frac < tol:
+        return a.astype(np.uint16)
+    b = np.roll(d, -(lo + 1))  # old[i + lo + 1]
+    if frac > 1 - tol:
+        return b.astype(np.uint16)
+    return _combine_conservative(a, b, max_distance_cm).astype(np.uint16)
+
+
+def _combine_conservative(a: np.ndarray, b: np.ndarray, max_distance_cm: int) -> np.ndarray:
+    a_obs = a <= max_distance_cm
+    b_obs = b <= max_distance_cm
+    out = np.full(a.shape, UNKNOWN_CM, dtype=np.int64)
+    both_clear = (a == max_distance_cm + 1) & (b == max_distance_cm + 1)
+    out[both_clear] = max_distance_cm + 1
+    obs = a_obs | b_obs
+    out[obs] = np.minimum(np.where(a_obs, a, UNKNOWN_CM), np.where(b_obs, b, UNKNOWN_CM))[obs]
+    return out
