@@ -115,6 +115,8 @@ def test_points_outside_the_band_are_ignored():
     above = [[10.0, 0.0, -3.0], [10.0, 0.0, 2.0]]  # 3 m above, 2 m below: outside ±1.5 m
     band_alone = sectors_optional_rules_off()
     assert np.all(run(above, config=band_alone).distances_cm == UNKNOWN_CM)
+    # (as shipped, the vertical-span rule reads that pair as a pole through the band: see its test)
+    assert run(above).state[0] == SectorState.OBSTACLE and run(above).inferred[0]
     inside = [[10.0, 0.0, -1.0]]
     r = math.sqrt(101.0)
     assert run(inside).distances_cm[0] == round(10.0 * (r - 1.0) / r * 100)
