@@ -26,3 +26,32 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
 # tests run with Python's own Ctrl-C handler, whatever started them; children get the default.
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+# ---- configurations for tests of one mechanism in isolation ------------------------------------
+# The modules' dataclass defaults are the shipped configuration (configs/companion.toml), with the
+# optional rules and error models it turns on.  A test of one mechanism starts from one of these and
+# switches on, by name, what it exercises.
+
+def sectors_optional_rules_off(**changes):
+    """``[sectors]`` as shipped with its optional rules switched off: narrow-gap and vertical-span
+    inference, the cap above the band and the ground margin (the same-range gap rule,
+    ``infer_max_gap_sectors``, stays as shipped).  ``changes`` are applied on top."""
+    import dataclasses
+
+    from companion.core.sectors import SectorConfig
+
+    off = dict(infer_narrow_gap_m=0.0, infer_vertical=False, infer_vertical_one_side=False, cap_above_m=0.0,
+               ground_margin_m=0.0)
+    return dataclasses.replace(SectorConfig(), **{**off, **changes})
+
+
+def ekf_for_exact_telemetry(**changes):
+    """``[ekf_anchored]`` as shipped without the telemetry error models (no gyro-bias states, no
+    position noise), for synthetic flights whose telemetry is exact: a filter that models errors the
+    flight does not have is rightly under-confident (NEES below its band).  ``changes`` on top."""
+    import dataclasses
+
+    from companion.core.ekf_anchored import AnchoredEKFConfig
+
+    return dataclasses.replace(AnchoredEKFConfig(), **{"attitude_drift_deg_s": 0.0, "position_sigma_m": 0.0, **changes})

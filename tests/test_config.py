@@ -106,8 +106,33 @@ def test_no_config_means_the_shipped_file():
     shipped = load_companion_config(ROOT / "configs" / "companion.toml")
     assert load_companion_config() == shipped
     assert load_config(None).companion == shipped  # what `companion run/replay` use without --config
-    # the modules' own defaults are a neutral baseline, not what a command runs with
-    assert CompanionConfig() != shipped
+
+
+def _flat(obj, prefix=""):
+    """Every leaf key of a config, ``"table.key"`` (nested tables too: ``"link.timesync.interval_s"``) → value."""
+    import dataclasses
+
+    if not dataclasses.is_dataclass(obj):
+        return {prefix[:-1]: obj}
+    out = {}
+    for f in dataclasses.fields(obj):
+        out.update(_flat(getattr(obj, f.name), f"{prefix}{f.name}."))
+    return out
+
+
+def test_built_in_defaults_are_the_shipped_configuration():
+    """One source: the modules' dataclass defaults equal configs/companion.toml key by key, so the
+    library (``CompanionConfig()``, a module's ``XConfig()``) behaves exactly like a command run
+    without --config, and an edit to either side alone fails here naming the key."""
+    from companion.cli import load_config
+
+    shipped = _flat(load_companion_config(ROOT / "configs" / "companion.toml"))
+    defaults = _flat(CompanionConfig())
+    assert defaults.keys() == shipped.keys()
+    differ = [f"{k}: dataclass default {v!r}, configs/companion.toml {shipped[k]!r}"
+              for k, v in defaults.items() if v != shipped[k]]
+    assert not differ, "built-in defaults differ from the shipped configuration:\n" + "\n".join(differ)
+    assert CompanionConfig() == load_config(None).companion  # no --config: the same configuration
 
 
 def test_overlay_names_only_what_it_changes(tmp_path):

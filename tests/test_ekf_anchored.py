@@ -10,6 +10,7 @@ from companion.core.ekf_anchored import (
 from companion.core import jit
 from companion.core.frames import SKEW_MAP, skew, so3_exp
 from companion.errors import ConfigError, InputError
+from conftest import ekf_for_exact_telemetry
 
 rng = np.random.default_rng(7)
 
@@ -110,7 +111,7 @@ def band(nees, dof=3, p=0.99):
 
 
 def test_converges_and_is_consistent(kernels):
-    nees, rel = simulate(AnchoredEKFConfig(sigma_px=1.0))
+    nees, rel = simulate(ekf_for_exact_telemetry(sigma_px=1.0))  # simulate's telemetry is exact
     assert np.median(rel) < 0.03
     lo, hi = band(nees)
     assert lo <= nees.mean() <= hi, (nees.mean(), lo, hi)
@@ -118,8 +119,8 @@ def test_converges_and_is_consistent(kernels):
 
 def test_drift_states_keep_filter_honest():
     drift = np.radians(0.3)  # rad/s per axis: a bad gyro bias
-    nees_naive, _ = simulate(AnchoredEKFConfig(sigma_px=1.0), runs=10, drift=drift)
-    nees, rel = simulate(AnchoredEKFConfig(sigma_px=1.0, attitude_drift_deg_s=0.3), runs=10, drift=drift)
+    nees_naive, _ = simulate(ekf_for_exact_telemetry(sigma_px=1.0), runs=10, drift=drift)
+    nees, rel = simulate(ekf_for_exact_telemetry(sigma_px=1.0, attitude_drift_deg_s=0.3), runs=10, drift=drift)
     lo, hi = band(nees)
     assert nees_naive.mean() > hi  # ignoring the drift is overconfident ...
     assert nees.mean() <= hi  # ... modelling it is not

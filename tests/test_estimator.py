@@ -9,6 +9,7 @@ from companion.core.ekf_landmark import LandmarkEKFConfig
 from companion.core.estimator import EstimatorConfig, RangeEstimator
 from companion.core.frames import euler_zyx_to_R
 from companion.errors import ConfigError, InputError
+from conftest import ekf_for_exact_telemetry
 
 CAM = CameraConfig()
 
@@ -137,8 +138,8 @@ def test_tracks_inconsistent_with_a_static_point_are_retired(which):
     frames = _with_t_junctions(frames)
     results = {}
     for max_nis in (0.0, 1.0):
-        est = RangeEstimator(CAM, EstimatorConfig(filter=which),
-                             ekf_anchored=AnchoredEKFConfig(sigma_px=0.5, max_mean_nis=max_nis),
+        est = RangeEstimator(CAM, EstimatorConfig(filter=which),  # flight()'s telemetry is exact
+                             ekf_anchored=ekf_for_exact_telemetry(sigma_px=0.5, max_mean_nis=max_nis),
                              ekf_landmark=LandmarkEKFConfig(sigma_px=0.5, sigma_v=0.01, sigma_w=1e-4, max_mean_nis=max_nis))
         retired_seen = []
         for f in frames:

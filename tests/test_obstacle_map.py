@@ -17,6 +17,7 @@ from companion.core.obstacle_map import (
 )
 from companion.core.sectors import SECTOR_COUNT, UNKNOWN_CM, SectorConfig, SectorState, compute_sectors
 from companion.errors import ConfigError
+from conftest import sectors_optional_rules_off
 
 HFOV = math.radians(60.0)
 # camera looking along body x (forward): R_cam_body maps body (x fwd, y right, z down) to cam (x right, y down, z fwd)
@@ -176,10 +177,11 @@ def test_sectors_from_the_map_over_360_after_a_yaw():
 def test_remembered_point_with_uncertain_bearing_spreads_into_neighbours():
     p = np.array([[10.0, 0.0, 0.0]])
     kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=p, remembered_sigma=[0.2])
-    s_sharp = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(infer_max_gap_sectors=0),
+    spread_alone = sectors_optional_rules_off(infer_max_gap_sectors=0, remembered_spread_k=2.0)
+    s_sharp = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, spread_alone,
                               remembered_tangential_sigma=[0.05], **kw)
-    s_wide = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(infer_max_gap_sectors=0),
-                             remembered_tangential_sigma=[0.8], **kw)  # k·σ/r = 9.2°
+    s_wide = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, spread_alone,
+                             remembered_tangential_sigma=[0.8], **kw)  # k·σ/r = 9.2° (k = 2)
     assert np.flatnonzero(s_sharp.state == SectorState.OBSTACLE).tolist() == [0]
     assert np.flatnonzero(s_wide.state == SectorState.OBSTACLE).tolist() == [0, 1, 2, 70, 71]
 
@@ -189,16 +191,17 @@ def test_inference_fills_a_consistent_gap_and_is_marked():
     # points 10 m away at 0° and 10° (sectors 0 and 2), sector 1 has no evidence
     p = np.array([[10.0, 0.0, 0.0], [10.0 * math.cos(math.radians(10)), 10.0 * math.sin(math.radians(10)), 0.0]])
     kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=p, remembered_sigma=[0.2, 0.2], remembered_tangential_sigma=[0.0, 0.0])
-    s = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(), **kw)
+    same_range_alone = sectors_optional_rules_off()  # the narrow-gap rule would fill sector 1 too (1.7 m apart)
+    s = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, same_range_alone, **kw)
     assert s.state[1] == SectorState.OBSTACLE and s.inferred.tolist() == [i == 1 for i in range(SECTOR_COUNT)]
     assert s.distances_cm[1] == min(s.distances_cm[0], s.distances_cm[2]) and s.n_inferred == 1
     assert s.rotated(0.0)[1] == s.distances_cm[1]  # survives the re-binning at sending time
-    off = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(infer_max_gap_sectors=0), **kw)
+    off = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, sectors_optional_rules_off(infer_max_gap_sectors=0), **kw)
     assert off.distances_cm[1] == UNKNOWN_CM and not off.inferred.any()
     # inconsistent sides (10 m and 20 m): no inference
     p2 = p.copy()
     p2[1] *= 2.0
-    s2 = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(), roll_pitch_rad=(0.0, 0.0),
+    s2 = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, same_range_alone, roll_pitch_rad=(0.0, 0.0),
                          remembered_p_body=p2, remembered_sigma=[0.2, 0.2], remembered_tangential_sigma=[0.0, 0.0])
     assert s2.distances_cm[1] == UNKNOWN_CM
 
@@ -235,7 +238,8 @@ def _check_inference_only_adds_obstacles(cfg_on, cfg_off, seed, max_remembered, 
 def test_inference_never_produces_clear_and_only_adds_obstacles():
     """The same-range rule only ever turns unknown into obstacle (seeded Monte Carlo)."""
     changed = _check_inference_only_adds_obstacles(
-        SectorConfig(infer_max_gap_sectors=3, infer_rel_tol=0.5), SectorConfig(infer_max_gap_sectors=0), 11, 10, 40.0)
+        sectors_optional_rules_off(infer_max_gap_sectors=3, infer_rel_tol=0.5), sectors_optional_rules_off(infer_max_gap_sectors=0),
+        11, 10, 40.0)
     assert changed > 0  # the property was exercised
 
 
@@ -253,11 +257,12 @@ def test_narrow_gap_inference_follows_a_wall_beside_the_vehicle_conservatively()
     the two sides differ by 22 %, so the same-range rule alone leaves the gap unknown."""
     p = _wall_points([50.0, 70.0])
     kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=p, remembered_sigma=[0.0, 0.0], remembered_tangential_sigma=[0.0, 0.0])
-    base = SectorConfig(infer_max_gap_sectors=1, sigma_k=0.0)
+    base = sectors_optional_rules_off(infer_max_gap_sectors=1, sigma_k=0.0)
     off = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, base, **kw)
     assert np.all(off.distances_cm[11:14] == UNKNOWN_CM)
     on = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi,
-                         SectorConfig(infer_max_gap_sectors=1, sigma_k=0.0, infer_narrow_gap_m=3.0, infer_narrow_max_sectors=4), **kw)
+                         sectors_optional_rules_off(infer_max_gap_sectors=1, sigma_k=0.0, infer_narrow_gap_m=3.0,
+                                                    infer_narrow_max_sectors=4), **kw)
     assert on.inferred.tolist() == [i in (11, 12, 13) for i in range(SECTOR_COUNT)]
     assert np.all(on.state[11:14] == SectorState.OBSTACLE)
     for i in (11, 12, 13):
@@ -270,11 +275,11 @@ def test_narrow_gap_inference_follows_a_wall_beside_the_vehicle_conservatively()
     assert np.array_equal(on.rotated(0.0)[11:14], on.distances_cm[11:14])
     # two points farther apart than infer_narrow_gap_m: no fill
     far = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi,
-                          SectorConfig(sigma_k=0.0, infer_narrow_gap_m=2.0, infer_narrow_max_sectors=4), **kw)
+                          sectors_optional_rules_off(sigma_k=0.0, infer_narrow_gap_m=2.0, infer_narrow_max_sectors=4), **kw)
     assert np.hypot(*(p[1, :2] - p[0, :2])) > 2.0 and np.all(far.distances_cm[11:14] == UNKNOWN_CM)
     # a gap wider than infer_narrow_max_sectors: no fill
     narrow = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi,
-                             SectorConfig(sigma_k=0.0, infer_narrow_gap_m=3.0, infer_narrow_max_sectors=2), **kw)
+                             sectors_optional_rules_off(sigma_k=0.0, infer_narrow_gap_m=3.0, infer_narrow_max_sectors=2), **kw)
     assert np.all(narrow.distances_cm[11:14] == UNKNOWN_CM)
 
 
@@ -296,8 +301,8 @@ def test_narrow_gap_inference_does_not_chain_on_inferred_sectors():
 def test_narrow_gap_inference_never_produces_clear_and_only_adds_obstacles():
     """The narrow-gap rule likewise (remembered points within 12 m, where gaps are narrow)."""
     changed = _check_inference_only_adds_obstacles(
-        SectorConfig(infer_max_gap_sectors=0, infer_narrow_gap_m=3.0, infer_narrow_max_sectors=6),
-        SectorConfig(infer_max_gap_sectors=0), 12, 12, 12.0)
+        sectors_optional_rules_off(infer_max_gap_sectors=0, infer_narrow_gap_m=3.0, infer_narrow_max_sectors=6),
+        sectors_optional_rules_off(infer_max_gap_sectors=0), 12, 12, 12.0)
     assert changed > 0
 
 
@@ -427,7 +432,7 @@ def test_support_radius_grows_with_distance_when_asked():
     # two wall points 1.5 m apart: lone at 0.6 m; neighbours when the radius is 10 % of their distance
     pts = [[20.0, 0.0, -5.0], [20.0, 1.5, -5.0], [4.0, 0.0, -5.0], [4.0, 1.5, -5.0]]
     vehicle = np.array([0.0, 0.0, -5.0])
-    fixed = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6))
+    fixed = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6, support_radius_rel=0.0))
     fixed.observe(0.0, [1, 2, 3, 4], pts, cov(4), live_keys=[])
     assert len(fixed.remembered(0.5, vehicle)) == 0
     rel = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6, support_radius_rel=0.1))
@@ -442,12 +447,13 @@ def test_support_radius_grows_with_distance_when_asked():
 def test_remembered_point_with_too_uncertain_a_bearing_is_dropped_not_spread():
     p = np.array([[10.0, 0.0, 0.0], [-10.0, 0.0, 0.0]])
     kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=p, remembered_sigma=[0.2, 0.2],
-              remembered_tangential_sigma=[0.8, 0.05])  # k·σ/r = 9.2° and 0.6°
-    cfg = SectorConfig(infer_max_gap_sectors=0, remembered_drop_spread_deg=5.0)
+              remembered_tangential_sigma=[0.8, 0.05])  # k·σ/r = 9.2° and 0.6° (k = 2)
+    spread_alone = sectors_optional_rules_off(infer_max_gap_sectors=0, remembered_spread_k=2.0)
+    cfg = sectors_optional_rules_off(infer_max_gap_sectors=0, remembered_spread_k=2.0, remembered_drop_spread_deg=5.0)
     s = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, cfg, **kw)
     assert np.flatnonzero(s.state == SectorState.OBSTACLE).tolist() == [36]  # only the sharp point, behind
     assert s.state[0] == SectorState.UNKNOWN  # never "clear" for a dropped point either
-    keep = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, SectorConfig(infer_max_gap_sectors=0), **kw)
+    keep = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, math.pi, spread_alone, **kw)
     assert np.flatnonzero(keep.state == SectorState.OBSTACLE).tolist() == [0, 1, 2, 36, 70, 71]
     with pytest.raises(ConfigError, match="remembered_drop_spread_deg"):
         SectorConfig(remembered_drop_spread_deg=0.0)

@@ -641,8 +641,9 @@ def test_tracker_refill_gets_the_priority_region_from_the_previous_frame():
         assert res.ok, res.reason
     assert len(seen) == 5 and all(m is not None and m.shape == (CAM.height, CAM.width) and m.dtype == bool for m in seen)
     assert all(0 < np.count_nonzero(m) < m.size for m in seen), [np.count_nonzero(m) for m in seen]  # the band, not the sky or the ground
-    # off by default: no region computed
-    flight, tel, p = make_pipeline()
+    # off (priority_share = priority_min_tracks = 0): no region computed
+    off = dataclasses.replace(base, tracks=dataclasses.replace(base.tracks, priority_share=0.0, priority_min_tracks=0))
+    flight, tel, p = make_pipeline(config=off)
     assert p._detection_priority(res, np.eye(3), np.zeros(3)) is None
 
 

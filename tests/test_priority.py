@@ -87,8 +87,8 @@ def test_track_manager_refill_share_goes_to_the_region():
     tf = tm.step(img, 0.0, 0, priority_mask=region)
     assert len(tf.new_ids) == 20
     assert np.count_nonzero(tf.uv[:, 1] >= 130) == 10
-    # default (share 0): the strongest corners only, the mask is ignored
-    tm = _manager(max_tracks=20)
+    # share 0 (off): the strongest corners only, the mask is ignored
+    tm = _manager(max_tracks=20, priority_share=0.0)
     tf = tm.step(img, 0.0, 0, priority_mask=region)
     assert np.count_nonzero(tf.uv[:, 1] >= 130) == 0
 

@@ -16,9 +16,10 @@ from companion.core.sectors import (
     sector_view_masks,
 )
 from companion.errors import ConfigError, InputError
+from conftest import sectors_optional_rules_off
 
 HFOV = math.radians(60.0)
-CFG = SectorConfig()  # min 0.5 m, max 40 m, k = 2, band ±1.5 m, 1 point per obstacle, 3 per clear
+CFG = SectorConfig()  # as shipped: min 0.5 m, max 40 m, k = 2, band ±1.5 m, 1 point per obstacle, 3 per clear
 CLEAR = CFG.max_distance_cm + 1
 
 
@@ -112,7 +113,10 @@ def test_unconverged_near_point_vetoes_clear_but_claims_nothing():
 
 def test_points_outside_the_band_are_ignored():
     above = [[10.0, 0.0, -3.0], [10.0, 0.0, 2.0]]  # 3 m above, 2 m below: outside ±1.5 m
-    assert np.all(run(above).distances_cm == UNKNOWN_CM)
+    band_alone = sectors_optional_rules_off()
+    assert np.all(run(above, config=band_alone).distances_cm == UNKNOWN_CM)
+    # (as shipped, the vertical-span rule reads that pair as a pole through the band: see its test)
+    assert run(above).state[0] == SectorState.OBSTACLE and run(above).inferred[0]
     inside = [[10.0, 0.0, -1.0]]
     r = math.sqrt(101.0)
     assert run(inside).distances_cm[0] == round(10.0 * (r - 1.0) / r * 100)
@@ -269,14 +273,14 @@ def test_vertical_span_infers_a_pole_through_the_band():
     """infer_vertical: converged points just above and just below the band at consistent ranges in one
     sector claim an obstacle at the nearer conservative range (a thin pole whose in-band points did not
     converge); the ground far below, inconsistent ranges, one side only or the option off claim nothing."""
-    cfg = SectorConfig(infer_vertical=True, infer_vertical_window_m=1.5, sigma_k=0.0)
+    cfg = sectors_optional_rules_off(infer_vertical=True, infer_vertical_window_m=1.5, sigma_k=0.0)
     pole = [[12.0, 0.2, -2.5], [11.0, -0.1, 2.2]]  # FRD: 2.5 m above and 2.2 m below, 11–12 m ahead
     s = run(pole, config=cfg)
     assert s.state[0] == SectorState.OBSTACLE and s.inferred[0]
     assert s.distances_cm[0] == round(math.hypot(11.0, 0.1) * 100)  # the nearer of the two
     assert np.all(s.state[1:] != SectorState.OBSTACLE)
     assert np.array_equal(s.rotated(0.0), s.distances_cm)  # re-binned like any other claim
-    assert np.all(run(pole, config=SectorConfig(sigma_k=0.0)).distances_cm == UNKNOWN_CM)  # off by default
+    assert np.all(run(pole, config=sectors_optional_rules_off(sigma_k=0.0)).distances_cm == UNKNOWN_CM)  # off
     assert np.all(run(pole[:1], config=cfg).distances_cm == UNKNOWN_CM)  # one side only
     assert np.all(run([[12.0, 0.2, -2.5], [16.0, 0.0, 2.2]], config=cfg).distances_cm == UNKNOWN_CM)  # ranges disagree
     assert np.all(run([[12.0, 0.2, -2.5], [12.0, 0.0, 5.0]], config=cfg).distances_cm == UNKNOWN_CM)  # ground 5 m below
@@ -293,7 +297,8 @@ def test_vertical_span_ignores_the_ground_with_its_height_known():
     """With ``ground_height_m`` (the take-off ground relative to the vehicle, up positive: −5 m for a vehicle 5 m up) a
     point below the band counts only ``infer_vertical_ground_margin_m`` above the ground: texture on
     the ground 12 m ahead pairs with nothing, a pole's point 1.5 m above the ground still does."""
-    cfg = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0, infer_vertical_ground_margin_m=1.0, sigma_k=0.0)
+    cfg = sectors_optional_rules_off(infer_vertical=True, infer_vertical_window_m=5.0, infer_vertical_ground_margin_m=1.0,
+                                     sigma_k=0.0)
     above = [12.0, 0.1, -3.0]
     on_ground = [12.0, 0.0, 5.0]  # vehicle 5 m up: this point lies on the ground
     on_pole = [12.0, 0.0, 3.5]  # 1.5 m above the ground
@@ -307,8 +312,8 @@ def test_vertical_span_ignores_the_ground_with_its_height_known():
 def test_vertical_span_only_ever_adds_obstacles_seeded():
     """Seeded Monte Carlo over random scenes: with ``infer_vertical`` on, no sector becomes clear or
     unknown that was an obstacle, none becomes clear that was not, and no claimed range grows."""
-    on = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0)
-    off = SectorConfig()
+    on = sectors_optional_rules_off(infer_vertical=True, infer_vertical_window_m=5.0)
+    off = sectors_optional_rules_off()
     for pts, sig, conv in random_scenes(11, max_height=8.0):
         a = run(pts, sigma=sig, converged=conv, config=off, ground_height_m=-5.0)
         v = run(pts, sigma=sig, converged=conv, config=on, ground_height_m=-5.0)
@@ -324,12 +329,12 @@ def test_ground_points_are_dropped_with_the_ground_height_known():
     """``ground_margin_m``: a vehicle 1 m up (taking off) sees the ground ahead inside its height band;
     with the ground's height known those points are neither an obstacle nor evidence of clear, while a
     point 0.6 m above the ground still claims; off (0) or without the height, the old behaviour."""
-    cfg = SectorConfig(ground_margin_m=0.5, sigma_k=0.0)
+    cfg = sectors_optional_rules_off(ground_margin_m=0.5, sigma_k=0.0)
     ground = [[12.0, 0.0, 1.0], [50.0, 0.0, 1.0], [55.0, 0.5, 1.0], [60.0, -0.5, 1.0]]  # FRD: 1 m below = the ground
     assert np.all(run(ground, config=cfg, ground_height_m=-1.0).distances_cm == UNKNOWN_CM)
     s = run(ground, config=cfg)  # height unknown: as before, the near one claims
     assert s.distances_cm[0] == 1200
-    assert run(ground, config=SectorConfig(sigma_k=0.0), ground_height_m=-1.0).distances_cm[0] == 1200  # off
+    assert run(ground, config=sectors_optional_rules_off(sigma_k=0.0), ground_height_m=-1.0).distances_cm[0] == 1200  # off
     low = run([[12.0, 0.0, 0.4]], config=cfg, ground_height_m=-1.0)  # 0.6 m above the ground
     assert low.distances_cm[0] == 1200
     with pytest.raises(ConfigError):
@@ -340,15 +345,15 @@ def test_points_just_above_the_band_cap_what_the_sector_claims():
     """cap_above_m: a converged point just above the band (a thin pole's upper part, ranged against the
     sky) caps the sector's claim: a farther in-band obstacle (the background through a patch straddling
     the pole's edge) is reported at the pole, a clear sector becomes an obstacle, an unknown one stays
-    unknown; points farther above, below the band or unconverged cap nothing; off by default."""
-    cfg = SectorConfig(cap_above_m=2.5, sigma_k=0.0)
+    unknown; points farther above, below the band or unconverged cap nothing; off (0), no cap."""
+    cfg = sectors_optional_rules_off(cap_above_m=2.5, sigma_k=0.0)
     far_in_band = [25.0, 0.0, 0.0]
     pole_top = [8.0, 0.1, -3.0]  # FRD: 3 m above the vehicle, 1.5 m above the band's upper edge
     s = run([far_in_band, pole_top], config=cfg)
     assert s.state[0] == SectorState.OBSTACLE and s.inferred[0]
     assert s.distances_cm[0] == round(math.hypot(8.0, 0.1) * 100)
     assert s.forward.distance_m == pytest.approx(math.hypot(8.0, 0.1), abs=0.01)  # DISTANCE_SENSOR too
-    assert run([far_in_band, pole_top], config=SectorConfig(sigma_k=0.0)).distances_cm[0] == 2500  # off by default
+    assert run([far_in_band, pole_top], config=sectors_optional_rules_off(sigma_k=0.0)).distances_cm[0] == 2500  # off
     # a nearer in-band claim stands
     s2 = run([[6.0, 0.0, 0.0], pole_top], config=cfg)
     assert s2.distances_cm[0] == 600 and not s2.inferred[0]
@@ -369,8 +374,8 @@ def test_points_just_above_the_band_cap_what_the_sector_claims():
 def test_cap_above_only_ever_lowers_a_claim_seeded():
     """Seeded Monte Carlo: with ``cap_above_m`` on, an unknown sector stays unknown, nothing becomes clear,
     an obstacle's range never grows, and every changed sector is an inferred obstacle."""
-    on = SectorConfig(cap_above_m=2.5)
-    off = SectorConfig()
+    on = sectors_optional_rules_off(cap_above_m=2.5)
+    off = sectors_optional_rules_off()
     for pts, sig, conv in random_scenes(12, max_height=6.0):
         a = run(pts, sigma=sig, converged=conv, config=off)
         v = run(pts, sigma=sig, converged=conv, config=on)
@@ -388,14 +393,14 @@ def test_one_sided_vertical_structure_claims_a_pole_standing_on_the_ground():
     above the band at consistent ranges, spanning ``infer_vertical_min_extent_m`` of height with the
     lower within ``infer_vertical_reach_m`` of the band's edge, claim the nearer; one point, a short
     span, a structure high above the band or disagreeing ranges claim nothing."""
-    cfg = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0, infer_vertical_one_side=True,
-                       infer_vertical_min_extent_m=0.5, infer_vertical_reach_m=2.5, sigma_k=0.0)
+    cfg = sectors_optional_rules_off(infer_vertical=True, infer_vertical_window_m=5.0, infer_vertical_one_side=True,
+                                     infer_vertical_min_extent_m=0.5, infer_vertical_reach_m=2.5, sigma_k=0.0)
     top = [[10.2, 0.0, -3.8], [10.0, 0.1, -3.0]]  # FRD: 3.8 and 3.0 m above the vehicle (band edge 1.5 m)
     s = run(top, config=cfg, ground_height_m=-5.0)
     assert s.state[0] == SectorState.OBSTACLE and s.inferred[0]
     assert s.distances_cm[0] == round(math.hypot(10.0, 0.1) * 100)
     assert np.all(s.state[1:] == SectorState.UNKNOWN)
-    two_sided_only = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0, sigma_k=0.0)
+    two_sided_only = sectors_optional_rules_off(infer_vertical=True, infer_vertical_window_m=5.0, sigma_k=0.0)
     assert np.all(run(top, config=two_sided_only, ground_height_m=-5.0).distances_cm == UNKNOWN_CM)
     assert np.all(run(top[:1], config=cfg).distances_cm == UNKNOWN_CM)  # one point
     assert np.all(run([[10.2, 0.0, -3.2], [10.0, 0.1, -3.0]], config=cfg).distances_cm == UNKNOWN_CM)  # 0.2 m span
@@ -406,8 +411,9 @@ def test_one_sided_vertical_structure_claims_a_pole_standing_on_the_ground():
 
 def test_one_sided_vertical_structure_only_ever_adds_obstacles_seeded():
     """Seeded Monte Carlo as for the two-sided rule: nothing becomes clear or unknown, no claim grows."""
-    on = SectorConfig(infer_vertical=True, infer_vertical_window_m=5.0, infer_vertical_one_side=True, infer_vertical_reach_m=2.5)
-    off = SectorConfig()
+    on = sectors_optional_rules_off(infer_vertical=True, infer_vertical_window_m=5.0, infer_vertical_one_side=True,
+                                    infer_vertical_reach_m=2.5)
+    off = sectors_optional_rules_off()
     for pts, sig, conv in random_scenes(13, max_height=8.0):
         a = run(pts, sigma=sig, converged=conv, config=off, ground_height_m=-5.0)
         v = run(pts, sigma=sig, converged=conv, config=on, ground_height_m=-5.0)

@@ -34,6 +34,7 @@ from companion.core import sectors_kernels as SK
 from companion.core.frames import mount_rotation
 from companion.core.sectors import SectorConfig, SectorState, compute_sectors, compute_sectors_reference
 from companion.errors import InputError
+from conftest import sectors_optional_rules_off
 
 ROOT = Path(__file__).resolve().parent.parent
 HFOV = math.radians(60.0)
@@ -153,7 +154,7 @@ def scene(rng: np.random.Generator, ground_m: float):
 def configs():
     base = shipped_config()
     yield "shipped", base
-    yield "defaults", SectorConfig()
+    yield "optional rules off", sectors_optional_rules_off(remembered_spread_k=2.0)  # and a wider spread than shipped (k = 1)
     yield "degrees band", dataclasses.replace(base, band_mode="degrees", band_half_angle_deg=8.0)
     yield "n-th nearest", dataclasses.replace(base, min_points_obstacle=3, min_points_clear=1, infer_max_gap_sectors=3)
     yield "touching, no veto", dataclasses.replace(base, touching_distance_m=0.4, unconverged_veto_clear=False,

@@ -83,16 +83,16 @@ class AnchoredEKFConfig:
 
     sigma_px: float = 1.0  # pixel measurement noise σ
     gate_probability: float = 0.999  # χ² (2 dof) innovation gate
-    iterations: int = 2  # iterated-EKF relinearizations per update (1 = plain EKF)
+    iterations: int = 3  # iterated-EKF relinearizations per update (1 = plain EKF)
     attitude_sigma_deg: float = 0.0  # white attitude error of each telemetry pose
-    attitude_drift_deg_s: float = 0.0  # σ of the gyro bias per axis (°/s); > 0 adds 3 bias states
-    position_sigma_m: float = 0.0  # σ of the telemetry's camera position error per axis (m), seen as ρ·σ at the landmark
+    attitude_drift_deg_s: float = 0.03  # σ of the gyro bias per axis (°/s); > 0 adds 3 bias states
+    position_sigma_m: float = 0.1  # σ of the telemetry's camera position error per axis (m), seen as ρ·σ at the landmark
     converged_rel_sigma: float = 0.1  # converged when range σ / range is below this
     min_updates: int = 3  # ... and at least this many accepted updates
     max_consecutive_rejects: int = 5  # then the landmark is flagged diverged
     max_range_m: float = 10000.0  # ranges beyond this are reported as this value
     nis_window: float = 10.0  # updates averaged (exponentially) in each landmark's mean NIS
-    max_mean_nis: float = 0.0  # mean NIS above this flags the landmark diverged (not a static point); 0 = off
+    max_mean_nis: float = 4.0  # mean NIS above this flags the landmark diverged (not a static point); 0 = off
     looming: bool = True  # fuse the matcher's patch scale change (looming, docs/derivations/looming.md) when given
     looming_sigma_floor: float = 0.003  # floor added (in quadrature) to the matcher's scale σ
     looming_gate_probability: float = 0.999  # χ² (1 dof) gate of the looming innovation

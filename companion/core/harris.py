@@ -63,7 +63,7 @@ class HarrisConfig:
     border: int = 8  # no corners closer than this to the image edge (px)
     subpix_window: int = 3  # half-size of the sub-pixel refinement window; 0 disables refinement
     subpix_iterations: int = 2
-    priority_min_distance: int = 0  # NMS radius inside the caller's priority region (denser corners there); 0 = min_distance
+    priority_min_distance: int = 6  # NMS radius inside the caller's priority region (denser corners there); 0 = min_distance
     priority_rel_threshold: float = -1.0  # per-cell relative threshold inside the priority region; < 0 = rel_threshold
 
     def __post_init__(self) -> None:

@@ -94,7 +94,7 @@ class MapConfig:
     max_age_s: float = 20.0  # points not observed for this long are dropped, s
     min_score: float = -0.75  # usage score s = (o − 0.5u)/(1 + o) below this drops a point
     max_rel_sigma: float = 0.15  # a converged landmark enters the map only when its σ/range is at most this
-    max_entry_nis_ratio: float = 0.0  # ... and its filter's mean NIS is at most this many times the median over the converged landmarks of the frame (occlusion-edge mismatches sit far above the points their filters explain; relative, so it follows the camera's real pixel noise); 0 = off
+    max_entry_nis_ratio: float = 10.0  # ... and its filter's mean NIS is at most this many times the median over the converged landmarks of the frame (occlusion-edge mismatches sit far above the points their filters explain; relative, so it follows the camera's real pixel noise); 0 = off
     position_drift_mps: float = 0.02  # growth of the vehicle's position error relative to a remembered point, m per s
     position_drift_max_m: float = 1.5  # ... bounded by this (the correlated GPS error does not grow without bound), m
     heading_drift_deg_s: float = 0.05  # heading drift since a point was last observed, degrees per s
@@ -103,7 +103,7 @@ class MapConfig:
     image_margin_px: float = 4.0  # a remembered point is predicted in view only this far inside the image border, px
     min_support: int = 2  # a remembered point is published only with at least this many map points (itself included) within support_radius_m
     support_radius_m: float = 0.6  # neighbourhood of that support test, m (at least)
-    support_radius_rel: float = 0.0  # ... or this fraction of the point's distance from the vehicle, if larger (corners are spaced in pixels, so neighbours lie farther apart far away)
+    support_radius_rel: float = 0.15  # ... or this fraction of the point's distance from the vehicle, if larger (corners are spaced in pixels, so neighbours lie farther apart far away)
 
     def __post_init__(self) -> None:
         require(isinstance(self.enabled, bool), "enabled must be true or false")

@@ -55,21 +55,21 @@ class SectorConfig:
     nearest_count: int = 5  # nearest obstacles (one per sector) kept for OBSTACLE_DISTANCE_3D
     flight_path_min_speed_mps: float = 1.0  # below this speed the band is centred on the horizontal
     flight_path_max_angle_deg: float = 30.0  # the band centre climbs or descends at most this steeply
-    remembered_spread_k: float = 2.0  # a remembered point is spread over bearings ± remembered_spread_k·σ_tangential/range ...
+    remembered_spread_k: float = 1.0  # a remembered point is spread over bearings ± remembered_spread_k·σ_tangential/range ...
     remembered_max_spread_deg: float = 15.0  # ... at most this far, degrees
     remembered_drop_spread_deg: float = 90.0  # a remembered point whose k·σ_tangential/range exceeds this is not published (its bearing is too uncertain to place it), degrees
     infer_max_gap_sectors: int = 1  # unknown gaps up to this many sectors between two consistent obstacle sectors are inferred obstacles (0 = off)
     infer_rel_tol: float = 0.15  # the two sides are consistent when their ranges differ by at most this fraction of the nearer
-    infer_narrow_gap_m: float = 0.0  # an unknown gap (up to infer_narrow_max_sectors) between two obstacle sectors whose points lie at most this far apart is filled with the straight line between them (too narrow to fly through); 0 = off
-    infer_narrow_max_sectors: int = 4  # widest such gap, sectors
-    infer_vertical: bool = False  # a sector with converged points both just above and just below the band whose horizontal ranges agree within infer_rel_tol claims an obstacle at the nearer of them (a pole, mast or trunk standing through the band whose own points in the band did not converge)
-    infer_vertical_window_m: float = 1.5  # ... "just": within this of the band's upper and lower edges, m (keeps the ground out while it lies farther below the band than this)
+    infer_narrow_gap_m: float = 4.0  # an unknown gap (up to infer_narrow_max_sectors) between two obstacle sectors whose points lie at most this far apart is filled with the straight line between them (too narrow to fly through); 0 = off
+    infer_narrow_max_sectors: int = 6  # widest such gap, sectors
+    infer_vertical: bool = True  # a sector with converged points both just above and just below the band whose horizontal ranges agree within infer_rel_tol claims an obstacle at the nearer of them (a pole, mast or trunk standing through the band whose own points in the band did not converge)
+    infer_vertical_window_m: float = 5.0  # ... "just": within this of the band's upper and lower edges, m (keeps the ground out while it lies farther below the band than this)
     infer_vertical_ground_margin_m: float = 1.0  # with the ground's height known (the autopilot's altitude above its origin), points below the band count only this far above the ground, m
-    infer_vertical_one_side: bool = False  # with infer_vertical: points above the band alone suffice when they show a vertical structure reaching down towards it (two at consistent ranges whose heights differ by infer_vertical_min_extent_m, the lower within infer_vertical_reach_m of the band's edge): a pole standing on the ground, whose foot is no evidence
+    infer_vertical_one_side: bool = True  # with infer_vertical: points above the band alone suffice when they show a vertical structure reaching down towards it (two at consistent ranges whose heights differ by infer_vertical_min_extent_m, the lower within infer_vertical_reach_m of the band's edge): a pole standing on the ground, whose foot is no evidence
     infer_vertical_min_extent_m: float = 0.5  # ... the two points' heights differ by at least this, m
-    infer_vertical_reach_m: float = 1.5  # ... and the lower one lies within this above the band's edge, m
-    cap_above_m: float = 0.0  # a converged point up to this far above the band caps the range its sector claims (an obstacle sector reports no farther than it, a clear one becomes an obstacle at it; unknown stays unknown), m; 0 = off
-    ground_margin_m: float = 0.0  # with the ground's height known, points less than this above it are the ground: never an obstacle nor evidence of clear (taking off, landing, flying low); 0 = off
+    infer_vertical_reach_m: float = 2.5  # ... and the lower one lies within this above the band's edge, m
+    cap_above_m: float = 2.5  # a converged point up to this far above the band caps the range its sector claims (an obstacle sector reports no farther than it, a clear one becomes an obstacle at it; unknown stays unknown), m; 0 = off
+    ground_margin_m: float = 0.5  # with the ground's height known, points less than this above it are the ground: never an obstacle nor evidence of clear (taking off, landing, flying low); 0 = off
 
     def __post_init__(self) -> None:
         require_finite("min_distance_m", self.min_distance_m, positive=True)

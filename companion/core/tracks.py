@@ -73,8 +73,8 @@ class TrackConfig:
     max_failures: int = 1  # consecutive failed matches before a track is dropped (1 = at once)
     duplicate_distance_px: float = 1.0  # two tracks closer than this: the younger is dropped
     template_rescale_threshold: float = 0.05  # |predicted scale change − 1| beyond this: template resampled to it (0 = never)
-    priority_share: float = 0.0  # share of a refill's budget given first to corners inside the caller's priority region (0 = off)
-    priority_min_tracks: int = 0  # refill (into the region only) when it holds fewer live tracks than this, whatever the total (0 = off)
+    priority_share: float = 0.5  # share of a refill's budget given first to corners inside the caller's priority region (0 = off)
+    priority_min_tracks: int = 20  # refill (into the region only) when it holds fewer live tracks than this, whatever the total (0 = off)
     priority_band_range_m: float = 8.0  # the flight-path band of the region: rows within ± band_half_height_m at this range (pipeline)
     priority_path_half_width_deg: float = 15.0  # ... and the columns within this bearing of the flight path (pipeline)
 

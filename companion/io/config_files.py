@@ -131,8 +131,9 @@ def load_companion_config(path: str | os.PathLike | None = None) -> CompanionCon
     """Load and validate the whole companion configuration: ``path`` (overlays resolved, see
     :func:`read_config_toml`), or the shipped ``companion.toml`` when None.  Every command that
     runs the companion loads its configuration here, so "no --config" means exactly the shipped
-    file.  (The dataclasses' own defaults are each module's neutral baseline, with the optional
-    rules off, for library use and unit tests; they are not what a command runs with.)"""
+    file.  The dataclasses' own defaults are that same configuration (``CompanionConfig() ==
+    load_companion_config()``, checked key by key by tests/test_config.py), so library use without
+    a file behaves like a command."""
     path = shipped_config() if path is None else Path(path)
     data = read_config_toml(path)
     try:
