@@ -1,4 +1,4 @@
-"""Closed-loop avoidance campaigns (issue 12): does a vehicle flying on the companion's ranges stop short?
+"""Closed-loop avoidance campaigns: does a vehicle flying on the companion's ranges stop short?
 
 Each campaign is ``flightsim campaign configs/scenarios/<scenario>.toml --avoidance MODEL --runs N``
 (lockstep SITL, the companion live): the simulated autopilot's avoidance (:mod:`flightsim.avoidance`)

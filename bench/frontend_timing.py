@@ -1,9 +1,9 @@
-"""Timing of the image front end: Harris, NCC per track and a full TrackManager step (issue 2 targets).
+"""Timing of the image front end: Harris, NCC per track and a full TrackManager step.
 
 Pure functions that return numbers (no printing); ``bench`` formats them.  Every
 measurement runs on one core (``cv2.setNumThreads(1)``, restored afterwards), on a synthetic
 textured scene that moves by about one pixel per frame, and reports the median over ``repeats``
-of ``time.perf_counter`` differences.  Target (issue 2): Harris + NCC ≤ 5 ms per 640×480 frame
+of ``time.perf_counter`` differences.  Target: Harris + NCC ≤ 5 ms per 640×480 frame
 with 300 tracks on one core.
 
 The scene is band-limited noise rendered by area-averaging a 4× supersampled image, so a shift
@@ -150,7 +150,7 @@ def time_ncc_predicted_per_track(n_tracks: int = 300, repeats: int = 20, radius_
 
 
 def frontend_timings(repeats: int = 10) -> dict[str, float]:
-    """All front-end figures of the issue-2 timing benchmark, as a flat dict of numbers.
+    """All front-end figures of the front-end timing benchmark, as a flat dict of numbers.
 
     ``*_predicted_*`` figures use a ±3 px window around a telemetry-style prediction (the
     intended operating mode); the others search the default ±8 px window around the previous

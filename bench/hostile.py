@@ -1,4 +1,4 @@
-"""Hostile traffic and soak benchmark (issue 14): the companion under a dirty MAVLink link for a long flight.
+"""Hostile traffic and soak benchmark: the companion under a dirty MAVLink link for a long flight.
 
 One lockstep SITL flight (:func:`flightsim.sitl.run_sitl`) of ``configs/scenarios/quad_hostile_hover.toml``
 — the quad flies up to a textured warehouse face and hovers 6 m from it, sidestepping 1 m left and

@@ -1,6 +1,6 @@
-"""Frame-to-OBSTACLE_DISTANCE latency and sustained frame rate of the whole pipeline (issue 4).
+"""Frame-to-OBSTACLE_DISTANCE latency and sustained frame rate of the whole pipeline.
 
-Target (issue 4): p99 ≤ 30 ms and ≥ 30 frames/s at 640×480 with 300 tracks on one core.
+Target: p99 ≤ 30 ms and ≥ 30 frames/s at 640×480 with 300 tracks on one core.
 
 What is timed: for each frame, from the moment :meth:`~companion.pipeline.Pipeline.process` is
 called (the frame and the telemetry that brackets it are in memory) until the OBSTACLE_DISTANCE
@@ -231,7 +231,7 @@ def measure_latency(width: int = 640, height: int = 480, max_tracks: int = 300, 
 
 
 def run_all(frames: int = 240) -> dict:
-    """Both filters at 640×480 with 300 tracks (the issue-4 benchmark)."""
+    """Both filters at 640×480 with 300 tracks (the latency benchmark)."""
     return {f: measure_latency(640, 480, 300, frames, estimator_filter=f) for f in ("anchored", "landmark")}
 
 
@@ -241,7 +241,7 @@ def markdown(res: dict) -> str:
         "Frame-to-OBSTACLE_DISTANCE latency of the whole pipeline (pose interpolation, Harris + NCC tracking guided by "
         "telemetry, triangulation, EKF, sectors, yaw rotation, MAVLink encoding) on one core "
         "(`cv2.setNumThreads(1)`), synthetic flight past a textured wall at 640×480 with up to 300 tracks. "
-        "Targets (issue 4): p99 ≤ 30 ms, ≥ 30 frames/s. Standalone: `python -m bench.latency [--filter landmark]`.",
+        "Targets: p99 ≤ 30 ms, ≥ 30 frames/s. Standalone: `python -m bench.latency [--filter landmark]`.",
         "",
         "| filter | frames | mean tracks | mean converged | p50 ms | p99 ms | max ms | sustained frames/s | p99 ≤ 30 | ≥ 30 fps |",
         "|---|---|---|---|---|---|---|---|---|---|",

@@ -1,4 +1,4 @@
-"""Looming benchmark (docs/derivations/looming.md, issue 11 item 2): range on the direction of travel.
+"""Looming benchmark (docs/derivations/looming.md): range on the direction of travel.
 
 ``python -m bench looming [--runs N] [--json]``
 

@@ -1,4 +1,4 @@
-"""Memory of the local obstacle map over a long hover in front of a wall (issue 11, docs/derivations/obstacle_map.md).
+"""Memory of the local obstacle map over a long hover in front of a wall (docs/derivations/obstacle_map.md).
 
 A synthetic feed (:class:`bench.latency.SyntheticFlight`'s textured wall, exact telemetry):
 the vehicle approaches the wall from 20 m to 5 m at 1.5 m/s, then hovers 5 m in front of it for

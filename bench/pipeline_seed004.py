@@ -1,4 +1,4 @@
-"""Seed-004 through the whole pipeline: rendered frames, real Harris/NCC, telemetry from a tlog (issue 5).
+"""Seed-004 through the whole pipeline: rendered frames, real Harris/NCC, telemetry from a tlog.
 
 Each run flies ``configs/scenarios/seed004_straight.toml`` with its own seed (JSBSim J3Cub at
 30 m/s towards the six checker targets of seed 004, the paper's gyro model on the attitude,
@@ -10,7 +10,7 @@ image); its range is compared with the true range from ``truth.npz``.
 
 Figure of merit: RMS range error per target over the runs, and over all targets, next to the
 measurement-level anchored EKF of the seed-004 benchmark (same targets and time, pixels with
-σ = 2 px, gyro model).  Target (issue 5): within 1.5× of that error.
+σ = 2 px, gyro model).  Target: within 1.5× of that error.
 """
 
 from __future__ import annotations

@@ -1,10 +1,10 @@
-"""SITL benchmarks (issue 5): lockstep speed and Monte Carlo campaigns scored against truth.
+"""SITL benchmarks: lockstep speed and Monte Carlo campaigns scored against truth.
 
 * lockstep ``flightsim sitl`` of ``quad_approach`` (320×240): wall time, real-time factor (target
   ≥ 10×) and the companion's work per lockstep round;
 * campaigns (:func:`flightsim.campaign.run_campaign`, SITL mode) of every scenario in
-  :data:`CAMPAIGNS`: ``quad_approach`` and ``fixedwing_pass`` (issue 5), and the hard flights of
-  issue 11 where docs/derivations/sectors.md says avoidance needs ranges most and a single camera gains least
+  :data:`CAMPAIGNS`: ``quad_approach`` and ``fixedwing_pass``, and the hard flights
+  where docs/derivations/sectors.md says avoidance needs ranges most and a single camera gains least
   (hovering at a wall, turning in place, head-on, close in): ``quad_wall_hover``, ``quad_slalom``,
   ``quad_corner``, ``quad_yaw_spin``, ``fixedwing_tower``.  Pooled detection, unknown,
   false-obstacle and dangerous-clear rates against the targets, range error by bin, latency and
@@ -13,7 +13,7 @@
   ``configs/companion_fixedwing.toml``, max_distance 150 m), else ``configs/companion.toml``.
 
 Seeds: :func:`run_all` runs ``quad_runs`` seeds of each quad scenario and ``fixedwing_runs`` of
-each fixed-wing one (8 each by default, issue 11 asks ≥ 8 per scenario); fewer, or a subset of
+each fixed-wing one (8 each by default, the targets ask ≥ 8 per scenario); fewer, or a subset of
 the scenarios, from Python or ``python -m bench.sitl_bench --runs 2 --scenarios quad_slalom``.
 """
 
@@ -127,10 +127,10 @@ _TARGET_COLUMNS = (("detection_in_view", "detection in view"), ("detection_near_
                    ("messages_without_false_obstacle", "messages without a false obstacle"))
 
 
-def _issue11_tables(res: dict) -> list[str]:
-    """The issue-11 targets per scenario (pooled over the runs, after the scorer's warm-up), time to the
+def _range_target_tables(res: dict) -> list[str]:
+    """The range targets per scenario (pooled over the runs, after the scorer's warm-up), time to the
     first valid range per obstacle, and detection by true range in view."""
-    lines = ["", "Issue-11 targets, pooled over each campaign's runs (cells after the 2 s warm-up; detection = a range "
+    lines = ["", "Range targets, pooled over each campaign's runs (cells after the 2 s warm-up; detection = a range "
              "within tolerance; remembered = out-of-view obstacle cells whose own point was in view within 10 s, the "
              "vehicle having moved < 20 m since; definitions in `flightsim/score/__init__.py`):", "",
              "| scenario | " + " | ".join(f"{label} ({_bound(res, key)})" for key, label in _TARGET_COLUMNS)
@@ -206,7 +206,7 @@ def markdown(res: dict) -> str:
         "",
         "`flightsim campaign configs/scenarios/X.toml --runs N --workers 2 --mode sitl --out out/bench/campaign_X` "
         "(plots and index.md in `out/bench/campaign_X/report/`). Pooled over the runs (N seeds from the scenario's own); "
-        "cell definitions in `flightsim/score/__init__.py`. What each scenario flies (the hard flights of issue 11 hover, turn in "
+        "cell definitions in `flightsim/score/__init__.py`. What each scenario flies (the hard flights hover, turn in "
         "place and come close, where DESIGN.md §6–§7 say avoidance needs ranges most and a single camera gains least):",
         "",
     ]
@@ -248,7 +248,7 @@ def markdown(res: dict) -> str:
             f"{t_dc['n'] if t_dc else '–'} | {fe} | "
             f"{_num(lat.get('p50_ms'), 0)} / {_num(lat.get('p99_ms'), 0)} | "
             f"{_num(nees.get('mean'))} (band {_num(lo_hi[0])}–{_num(lo_hi[1])}) |")
-    lines += _issue11_tables(res)
+    lines += _range_target_tables(res)
     for name, c in res["campaigns"].items():
         t_dc = next((t for t in c.get("aggregate", {}).get("targets", []) if "dangerous" in t["name"]), None)
         if t_dc is not None and not t_dc.get("n"):

@@ -232,7 +232,7 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
     targets = []
     for i, t in enumerate(scores[0]["targets"] if scores else []):
         same = all(len(s["targets"]) > i and s["targets"][i].get("key") == t.get("key") for s in scores)
-        if t.get("key") is not None and "num" in t and same:  # issue-11 targets: pool numerators and denominators
+        if t.get("key") is not None and "num" in t and same:  # rate targets: pool numerators and denominators
             num = sum(int(s["targets"][i]["num"] or 0) for s in scores)
             n = sum(int(s["targets"][i]["n"] or 0) for s in scores)
             v = num / n if n else None

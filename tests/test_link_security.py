@@ -543,7 +543,7 @@ def test_memory_stays_bounded_under_a_flood():
 
 # ---------------------------------------------------------------------- the whole companion -----
 def test_companion_under_the_incident_stays_quiet_and_keeps_ranging():
-    """The issue-14 incident end to end (camera, pipeline, reporter, link): 340 random-time ATTITUDE
+    """The spoofed-ATTITUDE incident end to end (camera, pipeline, reporter, link): 340 random-time ATTITUDE
     per second from the autopilot's ids for 3 s.  Before the fix: ~340 STATUSTEXT/s and ~230
     COMMAND_LONG/s back to the autopilot and the ranging restarting every packet; now: a handful of
     STATUSTEXT, no command, and the ranges keep coming."""

@@ -628,7 +628,7 @@ def _spoofer(vehicle, sysid=VEHICLE_SYSID, comp=1):
 
 
 def test_random_time_attitude_from_the_autopilot_resets_nothing(pair, caplog):
-    """The issue-14 incident: valid-CRC ATTITUDE packets with random time_boot_ms, ~340/s for 20 s,
+    """The spoofed-ATTITUDE incident: valid-CRC ATTITUDE packets with random time_boot_ms, ~340/s for 20 s,
     from the autopilot's own system/component.  Before: each was a "reboot" (STATUSTEXT and
     COMMAND_LONG storms, the telemetry cleared).  Now: rejected and counted, nothing resets."""
     link, vehicle, clock = pair("accept")

@@ -81,8 +81,8 @@ clear.  Warm-up: messages stamped within ``warmup_s`` of the first truth frame a
 Targets (thresholds in configs/score.toml): no false obstacle in clear sectors in
 ≥ 98 % of messages; dangerous clears ≤ 0.5 % of obstacle cells; false obstacles ≤ 1 % of clear
 cells; detection (within tolerance) ≥ 90 % of in-view obstacle cells and ≥ 95 % of those within
-``near_range_m``; remembered ≥ 90 %.  "Detection" in the issue-11 targets and the by-range tables
-means a range *within tolerance* (``valid``); the ``detection`` rate below keeps its issue-5
+``near_range_m``; remembered ≥ 90 %.  "Detection" in the range targets and the by-range tables
+means a range *within tolerance* (``valid``); the ``detection`` rate below keeps its earlier
 meaning (any range in an obstacle cell).
 
 Range error by range bin (of the true distance ``T``), absolute and in % of ``T``: of the
