@@ -204,7 +204,7 @@ def markdown(res: dict) -> str:
     L = ["Command: `python -m bench avoidance --runs " + str(res["runs"]) + "` (in `make bench`); each cell is "
          "`flightsim campaign configs/scenarios/<scenario>.toml --avoidance <model> --runs N --mode sitl` (lockstep SITL, "
          "the companion live with configs/companion.toml, seeds from the scenario's own).  The simulated autopilot limits "
-         "the pilot's velocity with the messages as they arrive (flightsim/avoidance.py: ArduPilot Copter simple "
+         "the pilot's velocity with the messages as they arrive (flightsim/avoidance/: ArduPilot Copter simple "
          "avoidance with its shipped defaults — AVOID_MARGIN 2 m, slide, PRX_FILT 0.25 Hz, braking at 1 m/s²; PX4 "
          "collision prevention with CP_DIST 2 m, CP_DELAY 0.4 s, CP_GUIDE_ANG 30°, CP_GO_NO_DATA 0 as shipped"
          + (", and a variant with CP_GO_NO_DATA 1" if any(c["model"] == "px4_go_no_data" for c in res["campaigns"].values()) else "")

@@ -154,7 +154,8 @@ def measure_latency(width: int = 640, height: int = 480, max_tracks: int = 300, 
     """
     from companion.mavlink.dialect import mavlink  # first: MAVLink 2
     from companion.io.config_files import load_companion_config
-    from companion.pipeline import Pipeline, PipelineConfig, Reporter
+    from companion.pipeline import Pipeline, PipelineConfig
+    from companion.reporter import Reporter
     from companion.camera_sources import Frame
     from companion.telemetry import TelemetryBuffer
 

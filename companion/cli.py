@@ -288,7 +288,7 @@ def cmd_run(args) -> int:
     from companion.mavlink.dialect import mavlink  # noqa: F401  (first: MAVLink 2)
     from companion.camera_sources import open_source
     from companion.mavlink.link import MavLink
-    from companion.pipeline import Companion
+    from companion.app import Companion
     from companion.telemetry import TelemetryBuffer
 
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):

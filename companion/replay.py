@@ -47,7 +47,8 @@ from companion.core.camera import CameraConfig
 from companion.errors import ConfigError
 from companion.io.atomic import StagedFiles, atomic_path
 from companion.io.tlog import TlogError, read_tlog
-from companion.pipeline import Pipeline, PipelineConfig, Reporter
+from companion.pipeline import Pipeline, PipelineConfig
+from companion.reporter import Reporter
 from companion.telemetry import TelemetryBuffer
 
 log = logging.getLogger(__name__)

@@ -27,7 +27,7 @@ uses that fixed offset (``MavLink(clock_offset_s=0.0)``) for telemetry and frame
 is still exchanged and its estimate logged, as a check of the transport.
 
 Rounds.  With this clock the companion runs in *rounds*, one per frame
-(:meth:`companion.pipeline.Companion.step_lockstep`): wait for a frame → poll the MAVLink link
+(:meth:`companion.app.Companion.step_lockstep`): wait for a frame → poll the MAVLink link
 (everything the simulator sent before the frame is there) → process → publish → periodic duties
 → acknowledge the frame.  Nothing is sent between rounds, so a lockstep run is deterministic in
 simulation time: the same flight gives the same messages at the same simulated instants.

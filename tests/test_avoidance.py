@@ -461,7 +461,7 @@ def test_malformed_obstacle_distance_is_ignored_not_fatal():
 
 
 def test_closest_point_between_segments_is_exact():
-    from flightsim.avoidance import _closest_between_segments
+    from flightsim.avoidance.common import _closest_between_segments
 
     o = np.zeros(2)
     # crossing: the intersection

@@ -29,7 +29,8 @@ from companion.mavlink.guard import BootClockGuard, RequestBudget, SourceTable
 from companion.mavlink.config import LinkConfig
 from companion.mavlink.link import MavLink
 from companion.mavlink.signing import load_signing_key
-from companion.pipeline import PipelineConfig, Reporter
+from companion.pipeline import PipelineConfig
+from companion.reporter import Reporter
 from companion.telemetry import TelemetryBuffer, TelemetryConfig
 from test_mavlink_link import VEHICLE_SYSID, make_pair, pair, run  # noqa: F401 (pair: the fixture)
 
@@ -188,7 +189,7 @@ def test_cli_exits_2_on_a_missing_or_bad_key_file(tmp_path, capsys):
 
 # ---------------------------------------------------------------------- STATUSTEXT rate ---------
 def test_statustext_is_sent_at_most_once_per_second_per_text_and_overall():
-    """The Reporter (companion/pipeline.py) turns link events into STATUSTEXT; two texts repeated
+    """The Reporter (companion/reporter.py) turns link events into STATUSTEXT; two texts repeated
     every 5 ms for 20 s: each goes out at most once a second (repeats counted in the next one), and
     all texts together at most once a second, taking turns."""
     rep = Reporter(CompanionConfig(), PipelineConfig(), start=0.0)

@@ -25,7 +25,9 @@ from companion.core.camera import CameraConfig
 from companion.io.config_files import CompanionConfig
 from companion.mavlink.link import MavLink
 from companion.mavlink.timesync import NS
-from companion.pipeline import Companion, FrameResult, HealthState, Pipeline, PipelineConfig, Reporter
+from companion.app import Companion
+from companion.pipeline import FrameResult, Pipeline, PipelineConfig
+from companion.reporter import HealthState, Reporter
 from companion.telemetry import TelemetryBuffer
 
 DT = 0.005

@@ -18,7 +18,7 @@ from companion.core.sectors import SECTOR_COUNT, SectorState
 from companion.monitor.decode import DecodedSectors, bin_sectors, severity_name, state_name
 from companion.monitor.state import MonitorConfig, Snapshot
 
-#: Friendly labels for the companion's own diagnostics (:attr:`companion.pipeline.Reporter.DIAG_NAMES`).
+#: Friendly labels for the companion's own diagnostics (:attr:`companion.reporter.Reporter.DIAG_NAMES`).
 DIAG_LABELS = {"MR_FPS": "fps", "MR_TRACKS": "tracks", "MR_NEAR_M": "nearest m", "MR_LAT_MS": "latency ms",
                "MR_MAP": "map points", "MR_MEM_SEC": "sectors from memory", "MR_INFER": "inferred sectors",
                "MR_FWD_M": "forward m", "MR_FWD_SIG": "forward σ m"}
