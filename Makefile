@@ -12,7 +12,7 @@ $(VENV): pyproject.toml setup.py
 	$(BIN)/python -m pip install --upgrade pip
 	$(BIN)/python -m pip install -e '.[dev,sim,gcs]'
 	# compile the companion's kernels once (numba caches them; the first start would otherwise pay it)
-	$(BIN)/python -c "import companion.pipeline; from companion.core import jit; jit.warm_up(); print(jit.describe())"
+	$(BIN)/companion kernels
 	touch $(VENV)
 
 # Main job, the closed loop: the quad is commanded at 6 m/s through a textured wall in JSBSim; the

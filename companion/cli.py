@@ -193,6 +193,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="log verbosity on stderr (default WARNING)")
     c.set_defaults(func=cmd_check)
 
+    k = sub.add_parser("kernels", help="compile (or load from the cache) the compiled kernels and say which ones run",
+                       description="Compile the companion's numba kernels into their disk cache (NUMBA_CACHE_DIR, else next "
+                                   "to the installed modules), or load them when they are already there, and print which "
+                                   "kernels this machine runs. Run it once after an install, as the user and with the "
+                                   "environment the service uses: compiling takes a minute or more on a small computer, and a "
+                                   "process that compiled keeps LLVM's memory (~250 MiB more than one that loaded them), so "
+                                   "the flight process should only load them.",
+                       epilog="exit codes: 0 = kernels ready (or the numpy reference in use, said so), 1 = compiling failed.\n"
+                              "example:\n  NUMBA_CACHE_DIR=/var/cache/companion companion kernels",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    k.add_argument("--log-level", default="WARNING", type=str.upper, choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                   help="log verbosity on stderr (default WARNING)")
+    k.set_defaults(func=cmd_kernels)
+
     mo = sub.add_parser("monitor", help="ground-station view of a running companion: sectors, nearest range, health",
                         description="Listen where the companion's messages arrive and show its live sectors, nearest range, "
                                     "forward DISTANCE_SENSOR, HEARTBEAT health, diagnostics, STATUSTEXT and message rates "
@@ -483,6 +497,25 @@ def cmd_check(args) -> int:
     report = run_check(args.mavlink, args.camera, cfg, timeout_s=args.timeout, expected_fps=fps)
     print(json.dumps(report.to_json(), indent=2) if args.json else report.text(), flush=True)
     return report.exit_code
+
+
+def cmd_kernels(args) -> int:
+    """``companion kernels``: compile or load every kernel now (docs/derivations/compute.md)."""
+    import companion.app  # noqa: F401  (registers every kernel's warm-up, as `companion run` does)
+    from companion.core import jit
+
+    t0 = time.perf_counter()
+    try:
+        n = jit.warm_up()
+    except Exception as exc:  # a broken numba / llvmlite install: say so, the reference still works
+        print(f"companion kernels: compiling failed: {exc!r}; run with COMPANION_KERNELS=numpy to use the numpy reference",
+              file=sys.stderr)
+        return EXIT_RUNTIME
+    if n:
+        print(f"{jit.describe()}: {n} kernel groups ready in {time.perf_counter() - t0:.1f} s")
+    else:
+        print(jit.describe())
+    return EXIT_OK
 
 
 # ---------------------------------------------------------------------- monitor -----------------

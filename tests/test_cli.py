@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
     (["--help"], ["run", "replay", "OBSTACLE_DISTANCE"]),
     (["run", "--help"], ["--mavlink", "--camera", "--config", "--calibration", "--gcs", "--log-level", "sim://"]),
     (["replay", "--help"], ["--tlog", "--video", "--frames", "--out", "--plot", "recording's clock"]),
+    (["kernels", "--help"], ["NUMBA_CACHE_DIR", "LLVM"]),
 ])
 def test_help_explains_and_exits_0(argv, expect, capsys):
     with pytest.raises(SystemExit) as e:
@@ -37,6 +38,21 @@ def test_help_explains_and_exits_0(argv, expect, capsys):
     out = capsys.readouterr().out
     for word in expect:
         assert word in out, word
+
+
+def test_kernels_command_loads_every_kernel_and_says_which(tmp_path):
+    """`companion kernels` in a fresh process: compiled kernels ready (from this checkout's cache), or the
+    numpy reference said so when forced; exit 0 either way."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-m", "companion", "kernels"], capture_output=True, text=True, env=env, timeout=900)
+    assert r.returncode == 0, r.stderr
+    from companion.core import jit
+
+    if jit.ENABLED:
+        assert "compiled kernels: numba" in r.stdout and "kernel groups ready in" in r.stdout
+    env["COMPANION_KERNELS"] = "numpy"
+    r = subprocess.run([sys.executable, "-m", "companion", "kernels"], capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0 and "numpy reference" in r.stdout, r.stdout + r.stderr
 
 
 @pytest.mark.parametrize("argv, fragment", [

@@ -63,6 +63,9 @@ def test_systemd_unit_runs_the_companion_as_its_own_user_and_logs_to_journald():
         assert want in lines, want
     exec_start = text.split("ExecStart=", 1)[1].split("\n#", 1)[0].replace("\\\n", " ")
     assert "/bin/companion run" in exec_start and "--mavlink" in exec_start and "--config" in exec_start
+    # kernels compiled (or loaded) in a process of their own, into the cache the flight process reads
+    assert "ExecStartPre=/opt/companion/.venv/bin/companion kernels" in lines
+    assert "Environment=NUMBA_CACHE_DIR=/var/cache/companion" in lines and "CacheDirectory=companion" in lines
     readme = (ROOT / "README.md").read_text()
     section = readme.split("## Running on a Raspberry Pi or Jetson", 1)[1].split("\n## ", 1)[0]
     for want in ("SERIALn_PROTOCOL = 2", "MAV_1_CONFIG", "dialout", "video", "companion check", "journalctl -u companion",
