@@ -133,6 +133,41 @@ def test_calibration_yaml_reads_back():
     assert cam.distortion[0] == 0.01
 
 
+def test_a_matrix_without_cols_is_a_config_error_not_a_corrupted_heap(tmp_path):
+    """OpenCV 5.0's FileNode.mat() on an !!opencv-matrix without ``cols`` corrupts the heap; the process
+    aborted later (``free(): invalid next size``), e.g. in an unrelated test after this file's fuzzing.
+    Loaded 300 times in a child process: the loader must never hand such a node to OpenCV."""
+    import subprocess
+    import sys
+
+    bad = _calibration_yaml().replace(b"   cols: 3\n", b"   cols4: 3\n", 1)
+    p = _write(tmp_path, "cal.yaml", bad)
+    code = ("import sys\nfrom companion.io.config_files import load_opencv_calibration\nfrom companion.errors import ConfigError\n"
+            "for _ in range(300):\n    try:\n        load_opencv_calibration(sys.argv[1])\n"
+            "    except ConfigError as exc:\n        msg = str(exc)\nprint(msg)\n")
+    r = subprocess.run([sys.executable, "-c", code, str(p)], capture_output=True, text=True, timeout=120,
+                       env={**__import__("os").environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 0, r.stderr[-500:]
+    assert "camera_matrix is not an OpenCV matrix" in r.stdout
+
+
+def test_calibration_written_by_opencv_reads_back_in_every_format(tmp_path):
+    import cv2
+
+    K = np.array([[612.5, 0, 331.2], [0, 611.9, 242.7], [0, 0, 1]])
+    D = np.array([[0.1, -0.2, 0.001, 0.002, 0.05]])
+    for ext in ("yaml", "xml", "json"):
+        p = tmp_path / f"cal.{ext}"
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+        fs.write("camera_matrix", K)
+        fs.write("distortion_coefficients", D)
+        fs.write("image_width", 640)
+        fs.release()
+        cam = load_opencv_calibration(p)
+        assert (cam.fx, cam.fy, cam.cx, cam.cy, cam.width) == (612.5, 611.9, 331.2, 242.7, 640), ext
+        assert cam.distortion == (0.1, -0.2, 0.001, 0.002, 0.05), ext
+
+
 @SETTINGS
 @given(data=st.one_of(st.binary(max_size=300), st.builds(lambda e: _mutate(_calibration_yaml(), e), EDITS)))
 @example(data=b"-")  # a YAML sequence at the top level: OpenCV 5 asserts in getNode (was an uncaught cv2.error)

@@ -203,13 +203,40 @@ def _calibration_matrix(fs, path: Path, name: str) -> np.ndarray:
         raise ConfigError(f"{path}: not a calibration file OpenCV can read ({_opencv_reason(exc)})") from None
     if node.empty() or node.isNone():
         raise ConfigError(f"{path}: {name} missing")
-    try:
-        m = node.mat() if node.isMap() else None
-    except cv2.error:
-        m = None
+    m = _matrix_node(node) if node.isMap() else None
     if m is None:
         raise ConfigError(f"{path}: {name} is not an OpenCV matrix (!!opencv-matrix with rows, cols, dt, data)")
-    return np.asarray(m, float)
+    return m
+
+
+def _matrix_node(node) -> np.ndarray | None:
+    """An ``!!opencv-matrix`` map (rows, cols, dt, data) read element by element, or None if it is not one.
+
+    Not ``FileNode.mat()``: OpenCV 5.0's reader trusts the node — a matrix without ``cols`` corrupts the
+    heap (``free(): invalid next size``, the process aborts later, wherever the allocator notices), so a
+    malformed calibration file could take the companion down instead of being a ConfigError.  Every
+    field is checked here before any value is read: rows and cols small positive integers, data a
+    sequence of exactly rows × cols numbers.
+    """
+    dims = []
+    for key in ("rows", "cols"):
+        sub = node.getNode(key)
+        if sub.empty() or sub.isNone() or not sub.isInt():
+            return None
+        v = int(sub.real())
+        if not 1 <= v <= 64:
+            return None
+        dims.append(v)
+    dt, data = node.getNode("dt"), node.getNode("data")
+    if dt.empty() or not dt.isString() or data.empty() or not data.isSeq() or data.size() != dims[0] * dims[1]:
+        return None
+    values = []
+    for i in range(data.size()):
+        item = data.at(i)
+        if not (item.isInt() or item.isReal()):
+            return None
+        values.append(item.real())
+    return np.asarray(values, float).reshape(dims)
 
 
 def _calibration_int(fs, path: Path, name: str) -> int | None:
