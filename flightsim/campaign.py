@@ -124,7 +124,7 @@ def run_one(job: RunJob) -> dict:
         sc = load_scenario(job.scenario, seed=job.seed, avoidance=job.avoidance)
         ranges = _replay_run(job, sc, run_dir) if job.mode == "replay" else _sitl_run(job, run_dir)
         score = score_run(ranges, run_dir / "truth.npz", config=job.score_config, companion_config=job.companion_config,
-                          world=sc.world, series_out=run_dir / "score_series.npz")
+                          world=sc.world, series_out=run_dir / "score_series.npz", plot_dir=run_dir)
         write_score(run_dir, score)
         if score.get("avoidance"):
             from flightsim.plots import plot_run_outcome
