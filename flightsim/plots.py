@@ -222,7 +222,8 @@ def nees_plot(series: dict, nees: dict, path, title: str = "") -> None:
         a1.plot(t[~out], err[~out], ".", ms=3, color="k", label="estimate − truth (at exposure)")
         a1.plot(t[out], err[out], ".", ms=5, color="tab:red", label="outside ± 2σ")
         a1.axhline(0, color="0.3", lw=0.8)
-        lim = float(np.percentile(np.abs(np.r_[err, 2 * sig]), 99)) * 1.3 or 1.0
+        mag = np.abs(np.r_[err, 2 * sig])
+        lim = min(float(mag.max()), 3.0 * float(np.percentile(mag, 99))) * 1.1 or 1.0  # a wild outlier may leave the axes
         a1.set_ylim(-lim, lim)
         cov = nees.get("coverage") or {}
         if cov.get("rate_2sigma") is not None:
