@@ -354,7 +354,8 @@ def main(argv=None) -> int:
                                    "replay's ranges.tlog or SITL's received.tlog) with the flight's truth.npz and write "
                                    "score.json and score.md (detection and false-obstacle rates per sector, dangerous "
                                    "clears, range error by range bin, time to the first valid range per obstacle, "
-                                   "latency, NEES of the reported σ, the scorer's targets) and score_series.npz.",
+                                   "latency, NEES of the reported σ against the band for its effective sample size and "
+                                   "the ±σ / ±2σ coverage, the scorer's targets), score_series.npz and nees.png.",
                        epilog="examples:\n  flightsim score out/quad        # out/quad/{received,ranges}.tlog + truth.npz\n"
                               "  flightsim score --ranges r.tlog --truth truth.npz --out scores/\n\n"
                               "exit codes: 0 scored, 2 missing or unreadable inputs / bad options.")

@@ -302,6 +302,13 @@ def summarize(ev: Evaluation) -> dict:
                           "since the latest such frame; unknown there counts as not reported",
             "warmup": f"messages stamped within {cfg.warmup_s:g} s of the first truth frame are not scored (latency and "
                       "first claim include them)",
+            "nees": "(estimate − truth at exposure)² / σ² of each forward DISTANCE_SENSOR range with a known σ; its mean "
+                    "against the band of the mean of n_eff χ²₁ samples, χ²(n_eff)/n_eff (n_eff: the effective sample size, "
+                    "from the autocorrelation within stretches without a gap over "
+                    f"{cfg.nees_gap_s:g} s, truncated by Geyer's initial monotone sequence); band_independent: as if the n "
+                    "samples were independent (reference only: consecutive samples are correlated)",
+            "coverage": "share of the same samples with the truth within estimate ± σ / ± 2σ (a normal error with the right "
+                        "σ: 68.27 % / 95.45 %)",
         },
         "config": dataclasses.asdict(cfg),
         "duration_s": float(ev.od_t[-1] - ev.t0) if len(ev.od_t) else 0.0,
