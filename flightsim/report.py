@@ -320,14 +320,15 @@ def plot_nees(series: dict[int, dict], campaign: dict, path: Path) -> Path:
         vals = [v for r in runs for v in [r["key_figures"]["nees_mean"], *(r["key_figures"].get("nees_band") or [])]]
         vals += [v for v in [ne.get("mean"), *(band or []), *(bi or [])] if v is not None]
         vals = [v for v in vals if v is not None and v > 0]
-        if vals:
-            a2.set_ylim(min(vals) / 1.4, max(vals) * 1.6)  # room for the legend
-        from matplotlib.ticker import FormatStrFormatter
+        lo_y, hi_y = (min(vals) / 1.4, max(vals) * 1.4) if vals else (0.1, 10.0)
+        a2.set_ylim(lo_y, hi_y)
+        from matplotlib.ticker import FormatStrFormatter, NullFormatter
 
         a2.yaxis.set_major_formatter(FormatStrFormatter("%g"))
-        a2.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
+        # minor ticks labelled only within about a decade (else the labels run into each other)
+        a2.yaxis.set_minor_formatter(FormatStrFormatter("%g") if hi_y / lo_y < 15 else NullFormatter())
         a2.tick_params(axis="y", which="minor", labelsize=7)
-        a2.legend(fontsize=8, loc="upper right")
+        a2.legend(fontsize=8, loc="best")
         a2.set_title("NEES mean per run with its n_eff band (green: inside, red: outside)", fontsize=10)
     else:
         _empty(a2, "no run with forward NEES samples")
