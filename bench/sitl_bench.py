@@ -109,6 +109,18 @@ def _config_label(path) -> str:
         return f"`{Path(path).name}`"
 
 
+def _nees_cell(nees: dict) -> str:
+    """The pooled NEES of a campaign: mean (n_eff, its band ✓/✗; ±2σ coverage); an older campaign
+    without n_eff: mean (band of n independent samples)."""
+    lo_hi = nees.get("band") or [float("nan"), float("nan")]
+    if nees.get("n_eff") is None:
+        return f"{_num(nees.get('mean'))} (band {_num(lo_hi[0])}–{_num(lo_hi[1])})"
+    cov = (nees.get("coverage") or {}).get("rate_2sigma")
+    ok = {True: " ✓", False: " ✗"}.get(nees.get("consistent"), "")
+    return (f"{_num(nees.get('mean'))} (n_eff {_num(nees['n_eff'], 0)}, band {_num(lo_hi[0])}–{_num(lo_hi[1])}{ok}; "
+            f"±2σ {_pct(cov)})")
+
+
 def _num(v, d: int = 2) -> str:
     return "–" if v is None else f"{v:.{d}f}"
 
@@ -218,7 +230,7 @@ def markdown(res: dict) -> str:
         "Detection: a range reported in an obstacle cell; unknown: no data (UINT16_MAX) there, which ArduPilot treats "
         "as no constraint and PX4 as a direction it refuses to move into.",
         "",
-        "| scenario | companion config (max_distance) | runs ok | detection | unknown in obstacle cells | valid range | too near | false obstacles in clear cells | messages with no false obstacle (target) | dangerous clears (target) | obstacle cells | forward estimate mean abs error | latency p50 / p99 ms | NEES |",
+        "| scenario | companion config (max_distance) | runs ok | detection | unknown in obstacle cells | valid range | too near | false obstacles in clear cells | messages with no false obstacle (target) | dangerous clears (target) | obstacle cells | forward estimate mean abs error | latency p50 / p99 ms | NEES (pooled n_eff, its band; truth within ±2σ) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, c in res["campaigns"].items():
@@ -241,13 +253,12 @@ def markdown(res: dict) -> str:
                        if isinstance(b, dict) and b.get("n")) or "–"
         lat = a.get("latency", {})
         nees = a.get("nees", {})
-        lo_hi = nees.get("band") or [float("nan"), float("nan")]
         lines.append(
             f"| {name} | {_config_label(c.get('companion_config'))} | {a.get('runs_ok', '?')}/{a.get('runs', '?')} | {_pct(p.get('detection'))} | {_pct(unknown)} | {_pct(p.get('valid_range'))} | "
             f"{_pct(p.get('too_near'))} | {_pct(p.get('false_obstacle_clear_cells'))} | {tcell(t_nf)} | {tcell(t_dc)} | "
             f"{t_dc['n'] if t_dc else '–'} | {fe} | "
             f"{_num(lat.get('p50_ms'), 0)} / {_num(lat.get('p99_ms'), 0)} | "
-            f"{_num(nees.get('mean'))} (band {_num(lo_hi[0])}–{_num(lo_hi[1])}) |")
+            f"{_nees_cell(nees)} |")
     lines += _range_target_tables(res)
     for name, c in res["campaigns"].items():
         t_dc = next((t for t in c.get("aggregate", {}).get("targets", []) if "dangerous" in t["name"]), None)

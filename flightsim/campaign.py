@@ -48,6 +48,7 @@ from companion.errors import EXIT_TERMINATED, ConfigError, Terminated
 from companion.io.atomic import atomic_dir, partial_path, prepare_output_dir, write_text_atomic
 from flightsim.score.config import ScoreConfig
 from flightsim.score.markdown import mark
+from flightsim.score.stats import pooled_n_eff
 from flightsim.score.summary import _jsonable, nees_stats
 
 log = logging.getLogger(__name__)
@@ -124,7 +125,7 @@ def run_one(job: RunJob) -> dict:
         sc = load_scenario(job.scenario, seed=job.seed, avoidance=job.avoidance)
         ranges = _replay_run(job, sc, run_dir) if job.mode == "replay" else _sitl_run(job, run_dir)
         score = score_run(ranges, run_dir / "truth.npz", config=job.score_config, companion_config=job.companion_config,
-                          world=sc.world, series_out=run_dir / "score_series.npz")
+                          world=sc.world, series_out=run_dir / "score_series.npz", plot_dir=run_dir)
         write_score(run_dir, score)
         if score.get("avoidance"):
             from flightsim.plots import plot_run_outcome
@@ -191,6 +192,21 @@ def _mean_std(values) -> dict:
     return {"n": int(v.size), "mean": float(v.mean()) if v.size else None,
             "std": float(v.std(ddof=1)) if v.size > 1 else (0.0 if v.size == 1 else None),
             "min": float(v.min()) if v.size else None, "max": float(v.max()) if v.size else None}
+
+
+def pooled_nees(scores: list[dict], samples: np.ndarray, confidence: float) -> dict:
+    """The NEES of the runs' forward samples pooled (``samples``: their NEES series, concatenated),
+    against the band of the mean with the pooled effective size
+    (:func:`~flightsim.score.stats.pooled_n_eff` of the runs' ``n`` and ``n_eff``: the sum of the
+    runs' n_eff when they share one correlation time, less when a long correlated run dominates;
+    ``n_eff_sum_of_runs`` beside it), the independent-sample band, and the pooled ±σ / ±2σ coverage.
+    The effective size is unknown (no band) if a run with samples has none (an older score)."""
+    runs = [(int(s["nees"].get("n") or 0), s["nees"].get("n_eff")) for s in scores if (s.get("nees") or {}).get("n")]
+    known = bool(runs) and all(e for _, e in runs)
+    n_eff = pooled_n_eff([m for m, _ in runs], [e for _, e in runs]) if known else None
+    out = nees_stats(samples, confidence, n_eff=n_eff)
+    out["n_eff_sum_of_runs"] = float(sum(e for _, e in runs)) if known else None
+    return out
 
 
 def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig = ScoreConfig()) -> dict:
@@ -260,9 +276,12 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
     pct = lambda q: float(np.percentile(lat, q)) if lat.size else None  # noqa: E731
     latency = {"n": int(lat.size), "p50_ms": pct(50), "p95_ms": pct(95), "p99_ms": pct(99),
                "max_ms": float(lat.max()) if lat.size else None}
-    nees = nees_stats(cat("nees_exposure"), config.nees_confidence)
-    nees["arrival"] = nees_stats(cat("nees_arrival"), config.nees_confidence)
+    nees = pooled_nees(scores, cat("nees_exposure"), config.nees_confidence)
+    nees["arrival"] = pooled_nees([{"nees": s["nees"].get("arrival") or {}} for s in scores], cat("nees_arrival"),
+                                  config.nees_confidence)
     nees["per_run_mean"] = _mean_std(s["nees"]["mean"] for s in scores)
+    nees["runs_consistent"] = sum(1 for s in scores if s["nees"].get("consistent"))
+    nees["runs_with_samples"] = sum(1 for s in scores if s["nees"].get("n"))
     nees["confidence"] = config.nees_confidence
     obstacles: dict[str, dict] = {}
     for s in scores:
@@ -328,6 +347,9 @@ def run_key_figures(score: dict) -> dict:
         "detection_in_view": (score.get("rates_in_view") or {}).get("valid_range"),
         "remembered": (score.get("remembered") or {}).get("rate"), "latency_p50_ms": score["latency"]["p50_ms"],
         "latency_p99_ms": score["latency"]["p99_ms"], "nees_mean": score["nees"]["mean"], "nees_n": score["nees"]["n"],
+        "nees_n_eff": score["nees"].get("n_eff"), "nees_band": score["nees"].get("band"),
+        "nees_consistent": score["nees"].get("consistent"),
+        "coverage_2sigma": (score["nees"].get("coverage") or {}).get("rate_2sigma"),
         "first_claim_at_s": score["first_claim_at_s"],
         "time_to_first_valid_s": {o["name"]: o["time_to_first_valid_s"] for o in score["obstacles"]},
         "avoidance": None if not score.get("avoidance") else {
@@ -595,6 +617,12 @@ def campaign_from_args(args) -> int:
     for t in a["targets"]:
         print(f"  {mark(t['met'])} {t['name']}: {pc(t['pooled'])} (target {t['op']} {100 * t['threshold']:g} %; "
               f"met in {t['runs_met']} of {t['runs_scored']} runs)")
+    ne = a["nees"]
+    if ne["n"]:
+        band = ne.get("band") or [math.nan, math.nan]
+        print(f"  {mark(ne['consistent'])} NEES pooled {ne['mean']:.2f} (n = {ne['n']}, n_eff = {ne['n_eff'] or math.nan:.1f}: "
+              f"{100 * ne['confidence']:g} % band [{band[0]:.2f}, {band[1]:.2f}]); truth within ±2σ in "
+              f"{pc(ne['coverage']['rate_2sigma'])} (normal {pc(ne['coverage']['expected_2sigma'])})")
     for r in c["runs"]:
         if r["status"] != "ok":
             print(f"  seed {r['seed']} FAILED: {r['error']} (see {r['dir']}/error.txt)")

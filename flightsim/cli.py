@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 
 from pathlib import Path
@@ -218,10 +219,12 @@ def cmd_score(args) -> int:
     companion_config = _score_companion_config(args.companion_config, args.scenario, rec)
     world = _world_for_names(args.scenario, run_dir, rec)
     log.info("scoring %s against %s", ranges, truth)
-    # score.json, score.md and score_series.npz appear together (a previous series goes with --no-series)
-    with StagedFiles(out, obsolete=("score_series.npz",)) as staged:
+    # score.json, score.md, score_series.npz and nees.png appear together (a previous series or plot goes with
+    # --no-series / --no-plot)
+    with StagedFiles(out, obsolete=("score_series.npz", "nees.png")) as staged:
         score = score_run(ranges, truth, config=cfg, companion_config=companion_config, world=world,
-                          series_out=None if args.no_series else staged.path("score_series.npz"))
+                          series_out=None if args.no_series else staged.path("score_series.npz"),
+                          plot_dir=None if args.no_plot else staged)
         stage_score(staged, score)
     r = score["rates"]
 
@@ -238,9 +241,13 @@ def cmd_score(args) -> int:
     if la["n"]:
         print(f"  latency p50 {la['p50_ms']:.1f} ms, p99 {la['p99_ms']:.1f} ms")
     if ne["n"]:
-        print(f"  NEES {ne['mean']:.2f} (n = {ne['n']}, {100 * ne['confidence']:g} % band "
-              f"[{ne['band'][0]:.2f}, {ne['band'][1]:.2f}])")
-    print(f"wrote {out / 'score.json'} and {out / 'score.md'}")
+        band, bi, cov = ne.get("band") or [math.nan, math.nan], ne["band_independent"], ne["coverage"]
+        print(f"  {mark(ne['consistent'])} NEES {ne['mean']:.2f} (n = {ne['n']}, n_eff = {ne['n_eff'] or math.nan:.1f}: "
+              f"{100 * ne['confidence']:g} % band [{band[0]:.2f}, {band[1]:.2f}]; as if independent "
+              f"[{bi[0]:.2f}, {bi[1]:.2f}]); truth within ±2σ in {pc(cov['rate_2sigma'])} (normal "
+              f"{pc(cov['expected_2sigma'])}), ±σ in {pc(cov['rate_1sigma'])} ({pc(cov['expected_1sigma'])})")
+    plots = f" and {out / 'nees.png'}" if score.get("plots", {}).get("nees") else ""
+    print(f"wrote {out / 'score.json'}, {out / 'score.md'}{plots}")
     return EXIT_OK
 
 
@@ -347,7 +354,8 @@ def main(argv=None) -> int:
                                    "replay's ranges.tlog or SITL's received.tlog) with the flight's truth.npz and write "
                                    "score.json and score.md (detection and false-obstacle rates per sector, dangerous "
                                    "clears, range error by range bin, time to the first valid range per obstacle, "
-                                   "latency, NEES of the reported σ, the scorer's targets) and score_series.npz.",
+                                   "latency, NEES of the reported σ against the band for its effective sample size and "
+                                   "the ±σ / ±2σ coverage, the scorer's targets), score_series.npz and nees.png.",
                        epilog="examples:\n  flightsim score out/quad        # out/quad/{received,ranges}.tlog + truth.npz\n"
                               "  flightsim score --ranges r.tlog --truth truth.npz --out scores/\n\n"
                               "exit codes: 0 scored, 2 missing or unreadable inputs / bad options.")
@@ -362,6 +370,8 @@ def main(argv=None) -> int:
                                               "companion_config, else built-in defaults)")
     p.add_argument("--scenario", help="scenario TOML whose world names the obstacles (default: the one flight.json names)")
     p.add_argument("--no-series", action="store_true", help="do not write score_series.npz (per-message arrays)")
+    p.add_argument("--no-plot", action="store_true", help="do not draw nees.png (forward error with its ±2σ envelope, "
+                                                         "running NEES against its n_eff band)")
     p = sub.add_parser("campaign", help="Monte Carlo over seeds in worker processes, scored, with a report",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        description="Fly a scenario with seeds seed0 … seed0+N−1 (default seed0 = the scenario's seed), run "

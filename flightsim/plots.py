@@ -160,3 +160,125 @@ def flight_summary_plot(sc, truth: dict, path: Path) -> None:
     ax[1, 1].legend(fontsize=8)
     fig.savefig(path, dpi=90, metadata={"Software": None})
     plt.close(fig)
+
+
+def _stretch_nan(t: np.ndarray, y: np.ndarray, stretch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``t``, ``y`` with a NaN between stretches, so a line is not drawn across a gap."""
+    if t.size == 0:
+        return t, y
+    cut = np.flatnonzero(np.diff(stretch) != 0) + 1
+    return np.insert(t.astype(float), cut, np.nan), np.insert(y.astype(float), cut, np.nan)
+
+
+def running_nees_bands(n_samples: int, n_eff: float | None, confidence: float, points: int = 60):
+    """The band of the running NEES mean after 1 … ``n_samples`` samples: with the effective size
+    growing in proportion (``j · n_eff / n``, at least 1) and as if independent (``j``).  Evaluated at
+    up to ``points`` counts spread logarithmically and interpolated.  Returns (lo, hi, lo_ind, hi_ind),
+    each (n_samples,); the first two NaN without ``n_eff``."""
+    from flightsim.score.stats import nees_band
+
+    n = int(n_samples)
+    if n == 0:
+        return (np.zeros(0),) * 4
+    j = np.arange(1, n + 1, dtype=float)
+    at = np.unique(np.round(np.geomspace(1, n, min(n, points))).astype(int))
+    ind = np.array([nees_band(int(k), confidence) for k in at])
+    lo_i, hi_i = np.interp(j, at, ind[:, 0]), np.interp(j, at, ind[:, 1])
+    if not n_eff:
+        return np.full(n, np.nan), np.full(n, np.nan), lo_i, hi_i
+    ratio = min(1.0, float(n_eff) / n)
+    eff = np.array([nees_band(max(1.0, k * ratio), confidence) for k in at])
+    return np.interp(j, at, eff[:, 0]), np.interp(j, at, eff[:, 1]), lo_i, hi_i
+
+
+def nees_plot(series: dict, nees: dict, path, title: str = "") -> None:
+    """One run's forward σ against the truth: the error (estimate − truth) over time with the ±σ and
+    ±2σ envelopes the companion reported (samples outside ±2σ marked), and the NEES samples with
+    their running mean against the band of the mean with n_eff (and, dashed, as if independent)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t0 = float(series["t0"])
+    t = np.asarray(series["nees_exposure_t"], float) - t0
+    err, sig = np.asarray(series["nees_exposure_error_m"], float), np.asarray(series["nees_exposure_sigma_m"], float)
+    st = np.asarray(series["nees_exposure_stretch"])
+    x = (err / sig) ** 2 if t.size else np.zeros(0)
+    conf = float(nees.get("confidence", 0.95))
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(10, 7.5), sharex=True, constrained_layout=True)
+    if t.size == 0:
+        for a in (a1, a2):
+            a.text(0.5, 0.5, "no forward range with a known σ and truth", ha="center", va="center", transform=a.transAxes,
+                   color="0.4")
+    else:
+        tt, s2 = _stretch_nan(t, 2 * sig, st)
+        _, s1 = _stretch_nan(t, sig, st)
+        a1.fill_between(tt, -s2, s2, color="tab:blue", alpha=0.15, lw=0, label="± 2σ (reported)")
+        a1.fill_between(tt, -s1, s1, color="tab:blue", alpha=0.2, lw=0, label="± σ")
+        te, ee = _stretch_nan(t, err, st)
+        a1.plot(te, ee, "-", color="k", lw=0.8, alpha=0.7)
+        out = np.abs(err) > 2 * sig
+        a1.plot(t[~out], err[~out], ".", ms=3, color="k", label="estimate − truth (at exposure)")
+        a1.plot(t[out], err[out], ".", ms=5, color="tab:red", label="outside ± 2σ")
+        a1.axhline(0, color="0.3", lw=0.8)
+        mag = np.abs(np.r_[err, 2 * sig])
+        lim = min(float(mag.max()), 3.0 * float(np.percentile(mag, 99))) * 1.1 or 1.0  # a wild outlier may leave the axes
+        a1.set_ylim(-lim, lim)
+        cov = nees.get("coverage") or {}
+        if cov.get("rate_2sigma") is not None:
+            a1.set_title(f"Forward range error with the reported σ: within ± σ {100 * cov['rate_1sigma']:.1f} % "
+                         f"(normal {100 * cov['expected_1sigma']:.1f} %), within ± 2σ {100 * cov['rate_2sigma']:.1f} % "
+                         f"(normal {100 * cov['expected_2sigma']:.1f} %)", fontsize=10)
+        a1.legend(fontsize=8, loc="upper right")
+        floor = 1e-4
+        a2.plot(t, np.maximum(x, floor), ".", ms=2.5, color="0.55", label="NEES sample (e/σ)²")
+        run = np.cumsum(x) / np.arange(1, x.size + 1)
+        lo, hi, lo_i, hi_i = running_nees_bands(x.size, nees.get("n_eff"), conf)
+        if np.any(np.isfinite(lo)):
+            a2.fill_between(t, lo, hi, color="tab:green", alpha=0.25, lw=0,
+                            label=f"{100 * conf:g} % band of the mean, n_eff (∝ samples so far)")
+        a2.plot(t, lo_i, "--", color="tab:green", lw=0.9, label="band as if independent (reference)")
+        a2.plot(t, hi_i, "--", color="tab:green", lw=0.9)
+        a2.plot(t, run, "-", color="tab:purple", lw=1.6, label="running mean")
+        a2.axhline(1.0, color="k", lw=0.8)
+        a2.set_yscale("log")
+        a2.set_ylim(floor, max(10.0, float(np.max(x)) * 2))
+        a2.legend(fontsize=8, loc="lower right")
+        ne = nees.get("n_eff")
+        k = nees.get("stretches")
+        a2.set_title(f"NEES: mean {np.mean(x):.2f} over n = {x.size} (n_eff = {ne:.1f}, {k} stretch{'' if k == 1 else 'es'})"
+                     if ne else f"NEES: mean {np.mean(x):.2f} over n = {x.size}", fontsize=10)
+    a1.set_ylabel("estimate − truth, m")
+    a2.set_ylabel("NEES (log)")
+    a2.set_xlabel("time since the first frame, s")
+    for a in (a1, a2):
+        a.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path, dpi=100, format="png", metadata={"Software": None})
+    plt.close(fig)
+
+
+def plot_run_nees(path, series: dict, nees: dict, title: str = "") -> Path | None:
+    """``nees.png`` of one scored run (:func:`nees_plot`), written atomically; without matplotlib (an
+    onboard install) or on any failure it is skipped with a log line and None returned — a plot is
+    not the verdict."""
+    import logging
+
+    from companion.io.atomic import atomic_path
+
+    log = logging.getLogger(__name__)
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        log.info("matplotlib is not installed: %s not drawn", path)
+        return None
+    path = Path(path)
+    try:
+        with atomic_path(path) as tmp:
+            nees_plot(series, nees, tmp, title=title)
+    except Exception:
+        log.exception("NEES plot %s failed", path)
+        return None
+    return path

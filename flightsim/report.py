@@ -13,9 +13,13 @@
   "clear", unknown left blank); over 360° with the out-of-view sectors hatched when the truth
   covers them;
 * ``latency_hist.png`` — exposure → message latency, pooled;
+* ``nees.png`` — consistency of the forward σ: the pooled normalized errors against the standard
+  normal (±σ / ±2σ coverage) and every run's NEES mean with its band for n_eff beside the pooled
+  mean and band (each run's own ``nees.png`` shows its error and NEES over time);
 * ``index.md`` — the tables of campaign.json (targets ✓/✗, pooled rates, per-run mean ± std,
   in view / out of view (docs/derivations/obstacle_map.md), detection and unknown by true-range bin,
-  remembered obstacles, range error by bin, time to the first valid range per obstacle, latency, NEES, runs) linking
+  remembered obstacles, range error by bin, time to the first valid range per obstacle, latency, NEES with the pooled
+  n_eff and its band, ±2σ coverage, runs) linking
   the plots and each run's score.md.
 
 Only reads what it is handed (campaign dict, per-run series arrays); no figure here comes from
@@ -31,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.score.config import REP_CLEAR, REP_RANGE, SECTOR_DEG, TRUTH_OBSTACLE
-from flightsim.score.markdown import mark
+from flightsim.score.markdown import mark, nees_lines
 
 
 def _plt():
@@ -261,6 +265,83 @@ def plot_latency(series: dict[int, dict], path: Path) -> Path:
     return path
 
 
+def plot_nees(series: dict[int, dict], campaign: dict, path: Path) -> Path:
+    """Pooled consistency of the forward σ: the normalized errors (estimate − truth)/σ of every run
+    against the standard normal, with the ±σ / ±2σ coverage; and each run's NEES mean with its band
+    for n_eff (the verdict) and, thin, for n independent samples, beside the pooled mean and band."""
+    plt = _plt()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.8), gridspec_kw={"width_ratios": [1, 1.3]})
+    z = [np.asarray(s["nees_exposure_error_m"], float) / np.asarray(s["nees_exposure_sigma_m"], float)
+         for s in series.values() if "nees_exposure_error_m" in s]
+    z = np.concatenate(z) if z else np.zeros(0)
+    z = z[np.isfinite(z)]
+    ne = (campaign.get("aggregate") or {}).get("nees") or {}
+    if z.size:
+        lim = max(4.0, min(12.0, float(np.percentile(np.abs(z), 99.5)) * 1.1))
+        a1.hist(np.clip(z, -lim, lim), bins=np.linspace(-lim, lim, 61), density=True, color="tab:blue", alpha=0.6,
+                label=f"(estimate − truth) / σ, n = {z.size}")
+        g = np.linspace(-lim, lim, 400)
+        a1.plot(g, np.exp(-0.5 * g * g) / math.sqrt(2 * math.pi), "k-", lw=1.2, label="standard normal (σ right)")
+        for k_, ls in ((1, ":"), (2, "--")):
+            a1.axvline(k_, color="0.3", ls=ls, lw=0.9)
+            a1.axvline(-k_, color="0.3", ls=ls, lw=0.9)
+        cov = ne.get("coverage") or {}
+        if cov.get("rate_2sigma") is not None:
+            a1.set_title(f"within ±σ {100 * cov['rate_1sigma']:.1f} % (normal 68.3 %), within ±2σ "
+                         f"{100 * cov['rate_2sigma']:.1f} % (95.4 %)", fontsize=10)
+        a1.legend(fontsize=8, loc="upper left")
+    else:
+        _empty(a1, "no forward range with a known σ and truth")
+    a1.set_xlabel("normalized forward error (at exposure)")
+    a1.set_ylabel("density")
+    runs = [r for r in campaign.get("runs", []) if (r.get("key_figures") or {}).get("nees_mean") is not None]
+    if runs:
+        for i, r in enumerate(runs):
+            kf = r["key_figures"]
+            b = kf.get("nees_band")
+            col = "tab:green" if kf.get("nees_consistent") else "tab:red"
+            if b:
+                a2.plot([i, i], b, "-", color=col, lw=4, alpha=0.35, solid_capstyle="butt")
+            a2.plot(i, kf["nees_mean"], "o", color=col, ms=5)
+        band = ne.get("band")
+        if band:
+            a2.axhspan(band[0], band[1], color="tab:purple", alpha=0.12,
+                       label=f"pooled band, n_eff = {ne['n_eff']:.1f}: mean {ne['mean']:.2f} {mark(ne.get('consistent'))}")
+        bi = ne.get("band_independent")
+        if bi:
+            a2.axhline(bi[0], color="tab:purple", ls="--", lw=0.8, label=f"pooled band as if independent (n = {ne['n']})")
+            a2.axhline(bi[1], color="tab:purple", ls="--", lw=0.8)
+        if ne.get("mean") is not None:
+            a2.axhline(ne["mean"], color="tab:purple", lw=1.2)
+        a2.axhline(1.0, color="k", lw=0.8)
+        a2.set_xticks(range(len(runs)))
+        a2.set_xticklabels([str(r["seed"]) for r in runs], rotation=90 if len(runs) > 20 else 0, fontsize=7)
+        a2.set_yscale("log")
+        vals = [v for r in runs for v in [r["key_figures"]["nees_mean"], *(r["key_figures"].get("nees_band") or [])]]
+        vals += [v for v in [ne.get("mean"), *(band or []), *(bi or [])] if v is not None]
+        vals = [v for v in vals if v is not None and v > 0]
+        lo_y, hi_y = (min(vals) / 1.4, max(vals) * 1.4) if vals else (0.1, 10.0)
+        a2.set_ylim(lo_y, hi_y)
+        from matplotlib.ticker import FormatStrFormatter, NullFormatter
+
+        a2.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        # minor ticks labelled only within about a decade (else the labels run into each other)
+        a2.yaxis.set_minor_formatter(FormatStrFormatter("%g") if hi_y / lo_y < 15 else NullFormatter())
+        a2.tick_params(axis="y", which="minor", labelsize=7)
+        a2.legend(fontsize=8, loc="best")
+        a2.set_title("NEES mean per run with its n_eff band (green: inside, red: outside)", fontsize=10)
+    else:
+        _empty(a2, "no run with forward NEES samples")
+    a2.set_xlabel("seed")
+    a2.set_ylabel("NEES mean (log)")
+    for a in (a1, a2):
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 # ---------------------------------------------------------------------- index.md ----------------
 def _pc(v, d: int = 2) -> str:
     return "–" if v is None else f"{100 * v:.{d}f} %"
@@ -385,21 +466,28 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
         L.append(f"| {o['name']} | {o['runs_in_range']} | {_ms(o['in_range_at_s'])} | {_ms(o['time_to_first_valid_s'])} | "
                  f"{o['runs_never_valid']} | {_ms(o['detected_fraction'], pct=True)} |")
     la, ne = a["latency"], a["nees"]
-    band = ne.get("band") or [None, None]
-    L += ["", "## Latency and NEES", "",
+    L += ["", "## Latency", "",
           f"Latency exposure → message (n = {la['n']}): p50 {_f(la['p50_ms'], '{:.1f}')} ms, p95 {_f(la['p95_ms'], '{:.1f}')} ms, "
           f"p99 {_f(la['p99_ms'], '{:.1f}')} ms, max {_f(la['max_ms'], '{:.1f}')} ms.", "",
-          f"NEES of the forward σ against the truth at exposure, pooled: n = {ne['n']}, mean {_f(ne['mean'])}, median "
-          f"{_f(ne['median'])}, {100 * ne['confidence']:g} % band [{_f(band[0], '{:.3f}')}, {_f(band[1], '{:.3f}')}] "
-          f"{mark(ne['consistent'])}; per-run mean {_ms(ne['per_run_mean'])}; at arrival: mean {_f(ne['arrival']['mean'])}.  "
-          "Samples within a run are correlated (one filter over many frames): the band is optimistic.", "",
+          "## NEES and coverage of the forward σ, pooled over runs", "",
+          "Every run's NEES series has its own effective sample size n_eff (autocorrelation within the run's gap-free "
+          "stretches; each run's score.md and nees.png); the runs are independent, so the pooled mean has "
+          "n_eff = N² / Σ (n_run² / n_eff,run) — the sum of the runs' n_eff when they share one correlation time"
+          + (f" (here the plain sum would be {_f(ne.get('n_eff_sum_of_runs'), '{:.1f}')})" if ne.get("n_eff_sum_of_runs") else "")
+          + ".", ""]
+    L += nees_lines(ne, "Pooled, against the truth at exposure")
+    L += [f"Per run: mean {_ms(ne['per_run_mean'])}; consistent with its own n_eff band in {ne.get('runs_consistent', '–')} of "
+          f"{ne.get('runs_with_samples', '–')} runs with forward samples.  At arrival, pooled: n = {ne['arrival']['n']}, "
+          f"n_eff = {_f(ne['arrival'].get('n_eff'), '{:.1f}')}, mean {_f(ne['arrival']['mean'])}.", "",
           "## Plots", ""]
     for key, title in (("range_vs_truth", "Range estimate ± σ vs truth"), ("error_vs_range", "Error vs true range L"),
+                       ("nees", "Normalized forward error and NEES per run"),
                        ("radar", "Sector radar"), ("latency", "Latency histogram")):
         if key in files:
             L += [f"### {title}", "", f"![{title}]({files[key].name})", ""]
     L += ["## Runs", "", "| seed | status | detection | detection in view (within tol.) | remembered | no false obstacle (msgs) | "
-          "dangerous clear | latency p50 ms | NEES | wall s | score |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+          "dangerous clear | latency p50 ms | NEES (n_eff, in its band) | within ±2σ | wall s | score |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in c["runs"]:
         kf = r.get("key_figures") or {}
         rel = Path(r["dir"])
@@ -410,8 +498,9 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
         link = f"[score.md]({rel.as_posix()}/score.md)" if r["status"] == "ok" else (r.get("error") or "").replace("|", "/")[:120]
         L.append(f"| {r['seed']} | {r['status']} | {_pc(kf.get('detection'), 1)} | {_pc(kf.get('detection_in_view'), 1)} | "
                  f"{_pc(kf.get('remembered'), 1)} | {_pc(kf.get('messages_without_false_obstacle'), 1)} | "
-                 f"{_pc(kf.get('dangerous_clear'))} | {_f(kf.get('latency_p50_ms'), '{:.1f}')} | {_f(kf.get('nees_mean'))} | "
-                 f"{_f(r.get('wall_s'), '{:.0f}')} | {link} |")
+                 f"{_pc(kf.get('dangerous_clear'))} | {_f(kf.get('latency_p50_ms'), '{:.1f}')} | {_f(kf.get('nees_mean'))}"
+                 + (f" ({kf['nees_n_eff']:.1f}, {mark(kf.get('nees_consistent'))})" if kf.get("nees_n_eff") else "")
+                 + f" | {_pc(kf.get('coverage_2sigma'), 1)} | {_f(r.get('wall_s'), '{:.0f}')} | {link} |")
     return "\n".join(L) + "\n"
 
 
@@ -427,6 +516,7 @@ def write_report(report_dir: str | Path, campaign: dict, series: dict[int, dict]
     first = min(series) if series else None
     files["radar"] = plot_radar(series[first] if first is not None else None, first, d / "radar.png", times)
     files["latency"] = plot_latency(series, d / "latency_hist.png")
+    files["nees"] = plot_nees(series, campaign, d / "nees.png")
     idx = d / "index.md"
     idx.write_text(index_markdown(campaign, files, d), encoding="utf-8")
     files["index"] = idx

@@ -15,3 +15,11 @@ def test_lockstep_line_uses_the_loop_wall_and_per_frame_cpu():
     res["lockstep"].update(realtime_factor=12.0, companion_cpu_ms_per_frame=None)
     text = markdown(res)
     assert "Target ≥ 10×: ✓" in text and "companion n/a ms" in text
+
+
+def test_campaign_nees_cell_shows_n_eff_and_coverage():
+    from bench.sitl_bench import _nees_cell
+
+    new = {"mean": 14.29, "n_eff": 123.4, "band": [0.78, 1.27], "consistent": False, "coverage": {"rate_2sigma": 0.8012}}
+    assert _nees_cell(new) == "14.29 (n_eff 123, band 0.78–1.27 ✗; ±2σ 80.12 %)"
+    assert _nees_cell({"mean": 1.5, "band": [0.9, 1.1]}) == "1.50 (band 0.90–1.10)"  # a campaign.json from before n_eff

@@ -45,6 +45,10 @@ def test_tiny_campaign_runs_scores_and_reports(tiny_campaign):
         assert (run / "ranges.tlog").is_file() and (run / "score.md").is_file() and (run / "score_series.npz").is_file()
         assert not (run / "video.avi").exists()  # deleted after scoring (the seed reproduces it)
         assert json.loads((run / "flight.json").read_text())["seed"] == seed
+        assert (run / "nees.png").is_file()  # each run's forward error and NEES over time
+    ne = c["aggregate"]["nees"]
+    assert {"n", "n_eff", "n_eff_sum_of_runs", "band", "band_independent", "consistent", "coverage", "runs_consistent"} <= set(ne)
+    assert "NEES and coverage of the forward σ, pooled over runs" in (out / "report" / "index.md").read_text()
     # the two seeds flew differently (different noise), so their ranges differ
     a = (out / "runs" / "seed_0001" / "ranges.tlog").read_bytes()
     b = (out / "runs" / "seed_0002" / "ranges.tlog").read_bytes()
@@ -52,7 +56,8 @@ def test_tiny_campaign_runs_scores_and_reports(tiny_campaign):
     on_disk = json.loads((out / "campaign.json").read_text())
     assert on_disk["aggregate"]["runs_ok"] == 2 and on_disk["report"]["index"].endswith("index.md")
     idx = (out / "report" / "index.md").read_text()
-    for name in ("range_vs_truth.png", "error_vs_range.png", "radar.png", "latency_hist.png", "runs/seed_0001/score.md"):
+    for name in ("range_vs_truth.png", "error_vs_range.png", "radar.png", "latency_hist.png", "nees.png",
+                 "runs/seed_0001/score.md"):
         assert name in idx
         if name.endswith(".png"):
             assert (out / "report" / name).stat().st_size > 10_000
@@ -168,3 +173,49 @@ def test_ray_backend_without_ray_says_how_to_install(tmp_path, monkeypatch):
     monkeypatch.setattr(builtins, "__import__", no_ray)
     with pytest.raises(ConfigError, match=r"pip install '\.\[ray\]'"):
         C.run_campaign(short_scenario(tmp_path), tmp_path / "c", runs=1, mode="replay", backend="ray")
+
+
+def test_campaign_pools_nees_with_n_eff_and_coverage(tmp_path):
+    """Two runs with differently correlated forward errors (the right σ): the pooled NEES has the
+    runs' samples, the variance-matched pooled n_eff (below the plain sum, the runs' correlation
+    times differ) and its band, the summed coverage counts; the report shows them and draws nees.png."""
+    from score_inputs import write_correlated_run
+
+    from flightsim.report import write_report
+    from flightsim.score.files import load_series, score_run, write_score
+    from flightsim.score.stats import nees_band, pooled_n_eff
+
+    cfg = ScoreConfig(sigma_k=2.0)
+    results, series = [], {}
+    for seed, phi in ((1, 0.95), (2, 0.3)):
+        d = tmp_path / "runs" / f"seed_{seed:04d}"
+        write_correlated_run(d, 1.0, seed=seed, phi=phi)
+        s = score_run(d / "ranges.tlog", d / "truth.npz", config=cfg, series_out=d / "score_series.npz", plot_dir=d)
+        write_score(d, s)
+        results.append({"seed": seed, "dir": str(d), "status": "ok", "error": None, "wall_s": 1.0, "score": s})
+        series[seed] = load_series(d / "score_series.npz")
+    a = C.aggregate(results, series, cfg)
+    ne, runs = a["nees"], [r["score"]["nees"] for r in results]
+    assert runs[0]["n_eff"] < 0.3 * runs[1]["n_eff"]  # φ = 0.95 against φ = 0.3
+    assert ne["n"] == sum(r["n"] for r in runs)
+    assert ne["mean"] == pytest.approx(sum(r["n"] * r["mean"] for r in runs) / ne["n"])
+    assert ne["n_eff"] == pytest.approx(pooled_n_eff([r["n"] for r in runs], [r["n_eff"] for r in runs]))
+    assert ne["n_eff_sum_of_runs"] == pytest.approx(sum(r["n_eff"] for r in runs)) and ne["n_eff"] < ne["n_eff_sum_of_runs"]
+    assert ne["band"] == pytest.approx(list(nees_band(ne["n_eff"], 0.95)))
+    assert ne["band_independent"] == pytest.approx(list(nees_band(ne["n"], 0.95)))
+    assert ne["consistent"] is True and ne["runs_consistent"] == 2 and ne["runs_with_samples"] == 2
+    cov = ne["coverage"]
+    assert cov["within_2sigma"] == sum(r["coverage"]["within_2sigma"] for r in runs)
+    assert cov["rate_2sigma"] == pytest.approx(0.954, abs=0.03)
+    assert ne["arrival"]["n_eff"] == pytest.approx(
+        pooled_n_eff([r["arrival"]["n"] for r in runs], [r["arrival"]["n_eff"] for r in runs]))
+    campaign = {"scenario": "synthetic.toml", "scenario_name": "synthetic", "mode": "replay", "seeds": [1, 2], "workers": 1,
+                "wall_s": 2.0, "fixed_processing_ms": 30.0, "companion_config": None, "score_config": {"warmup_s": 2.0},
+                "runs": [{k: v for k, v in r.items() if k != "score"} | {"key_figures": C.run_key_figures(r["score"])}
+                         for r in results], "aggregate": a}
+    assert campaign["runs"][0]["key_figures"]["nees_n_eff"] == pytest.approx(runs[0]["n_eff"])
+    files = write_report(tmp_path / "report", campaign, series)
+    idx = files["index"].read_text()
+    assert "nees.png" in idx and f"n_eff = {ne['n_eff']:.1f}" in idx and "within ± 2σ" in idx
+    assert f"plain sum would be {ne['n_eff_sum_of_runs']:.1f}" in idx
+    assert files["nees"].stat().st_size > 10_000

@@ -3,6 +3,7 @@ of correctly scaled noise in a seeded Monte Carlo, obstacles from a real world, 
 fly + replay scored end to end."""
 
 import json
+import math
 import re
 from pathlib import Path
 
@@ -335,6 +336,8 @@ def test_reader_and_writers_round_trip(tmp_path):
     assert back["cells"] == s["cells"]
     md = (tmp_path / "out" / "score.md").read_text()
     assert "✗" in md and "## Definitions" in md and "max(2 m, 20 % of the true distance)" in md
+    assert "## NEES and coverage of the reported σ" in md and "nees.png" not in md  # no plot asked for
+    assert not (tmp_path / "out" / "nees.png").exists() and "plots" not in s
     assert set(load_series(tmp_path / "score_series.npz")) >= {"od_t", "od_cm", "nees_exposure", "obstacle_names"}
     with pytest.raises(Exception, match="unknown option"):
         score_run(tlog, tmp_path / "truth.npz", toleranse_m=3.0)
@@ -416,6 +419,20 @@ def test_end_to_end_fly_replay_score(flown_and_replayed, capsys):
     assert c["detections"] + c["dangerous_clears"] + c["unknown_in_obstacle_cells"] <= c["obstacle"]
     assert s["messages"]["by_type"]["OBSTACLE_DISTANCE"] == s["messages"]["obstacle_distance"]
     assert any(o["name"] == "mast" for o in s["obstacles"])
+    # NEES with its effective sample size and the coverage of the reported σ, and the plot of both (this
+    # short flight has no forward range yet: the keys are there, empty; test_correlated_run_scored_from_files
+    # has the numbers)
+    ne, ser = s["nees"], load_series(run / "score_series.npz")
+    assert {"n", "n_eff", "band", "band_independent", "consistent", "consistent_independent", "autocorrelation_time",
+            "stretches", "gap_s", "coverage"} <= set(ne)
+    assert ne["n"] == ser["nees_exposure"].size == ser["nees_exposure_t"].size == ne["coverage"]["n"]
+    assert ne["coverage"]["expected_2sigma"] == pytest.approx(0.9545, abs=1e-4)
+    if ne["n"] == 0:
+        assert ne["n_eff"] is None and ne["band"] is None and ne["consistent"] is None and ne["coverage"]["rate_2sigma"] is None
+    else:
+        assert 1.0 <= ne["n_eff"] <= ne["n"]
+    assert s["plots"] == {"nees": "nees.png"} and (run / "nees.png").stat().st_size > 5_000
+    assert "## NEES and coverage of the reported σ" in (run / "score.md").read_text()
     # one cell recomputed independently from the files: the latest frame at or before the stamp
     msgs = read_ranges_tlog(run / "ranges.tlog")
     with np.load(run / "truth.npz") as z:
@@ -427,3 +444,37 @@ def test_end_to_end_fly_replay_score(flown_and_replayed, capsys):
     # missing inputs: exit 2 naming them
     assert flightsim_main(["score", str(run / "nope")]) == 2
     assert "no such run directory" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- NEES from files ---------
+from score_inputs import write_correlated_run  # noqa: E402  (tests/score_inputs.py: shared with the campaign tests)
+
+
+def test_correlated_run_scored_from_files(tmp_path, capsys):
+    """A correctly scaled but strongly correlated forward error, scored from its files: the samples
+    are worth about n (1 − φ²)/(1 + φ²) independent ones, the mean sits in the band for n_eff but
+    not in the one for n independent samples, ±2σ covers about 95.4 %, nees.png is drawn; σ
+    reported half the truth fails even the wide band and covers far less."""
+    k = 2.0
+    cfg = tmp_path / "score.toml"
+    cfg.write_text(f"[score]\nsigma_k = {k}\n")
+    write_correlated_run(tmp_path / "ok", 1.0, k=k)
+    assert flightsim_main(["--log-level", "WARNING", "score", str(tmp_path / "ok"), "--config", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    ne = json.loads((tmp_path / "ok" / "score.json").read_text())["nees"]
+    n = ne["n"]
+    assert 1350 < n < 1420 and ne["stretches"] == 2
+    assert ne["n_eff"] == pytest.approx(n * (1 - 0.81) / (1 + 0.81), rel=0.35)
+    assert ne["consistent"] is True and ne["consistent_independent"] is False  # the latter: this seed (about half of them)
+    assert ne["coverage"]["rate_2sigma"] == pytest.approx(0.954, abs=0.04)
+    assert ne["coverage"]["rate_1sigma"] == pytest.approx(0.683, abs=0.12)
+    assert ne["arrival"]["n_eff"] == pytest.approx(ne["n_eff"], rel=0.05)  # arrives within the exposure's frame
+    assert (tmp_path / "ok" / "nees.png").stat().st_size > 10_000 and "nees.png" in out and "n_eff" in out
+    ser = load_series(tmp_path / "ok" / "score_series.npz")
+    assert sorted(set(ser["nees_exposure_stretch"].tolist())) == [0, 1]
+    write_correlated_run(tmp_path / "half", 2.0, k=k)
+    assert flightsim_main(["--log-level", "WARNING", "score", str(tmp_path / "half"), "--config", str(cfg), "--no-plot"]) == 0
+    ne = json.loads((tmp_path / "half" / "score.json").read_text())["nees"]
+    assert ne["consistent"] is False and ne["mean"] > ne["band"][1]
+    assert ne["coverage"]["rate_2sigma"] < 0.8 and not (tmp_path / "half" / "nees.png").exists()
+    assert math.isfinite(ne["autocorrelation_time"]) and ne["autocorrelation_time"] > 3

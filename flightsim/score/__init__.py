@@ -6,7 +6,8 @@ Layers, each importing only the ones before it:
 * :mod:`.inputs` — :class:`~.inputs.RangeMessages` (the companion's messages as arrays) and
   :class:`~.inputs.SectorTruth` (the parts of ``truth.npz`` the score needs);
 * :mod:`.obstacles` — truth cells grouped by position into obstacles, and named;
-* :mod:`.stats` — χ² quantiles for the NEES band (no SciPy at run time);
+* :mod:`.stats` — χ² quantiles for the NEES band, the effective sample size of a correlated series
+  and the ±kσ coverage (no SciPy at run time);
 * :mod:`.evaluation` — every message against the truth (:func:`~.evaluation.evaluate` →
   :class:`~.evaluation.Evaluation`) and the cell categories (:func:`~.evaluation.cell_masks`);
 * :mod:`.summary` — counts, rates, targets and tables: the JSON-ready score
@@ -96,13 +97,55 @@ Published values clamped at ``min_distance`` or ``max_distance`` are not undone.
 companion's 3-D range σ applied to the horizontal range (rays within the flight band are nearly
 horizontal).
 
-NEES of the reported σ (forward sector): ``(estimate − T)² / σ²`` averaged, against the two-sided
-95 % band of the mean of ``n`` χ²₁ samples, ``[χ²(n, 2.5 %), χ²(n, 97.5 %)] / n``.
-The estimate describes the exposure, so ``T`` is the truth of the capture frame when it is known
-(the DISTANCE_SENSOR is paired with the OBSTACLE_DISTANCE sent with it, whose ``time_usec`` is the
-exposure); the NEES against the truth at arrival is reported beside it.  Consecutive samples are
-correlated (one filter over many frames), so the band is narrower than a band for the effective
-number of independent samples would be.
+NEES of the reported σ (forward sector): the samples ``(estimate − T)² / σ²`` of every scored
+forward DISTANCE_SENSOR range with a known σ, averaged.  The estimate describes the exposure, so ``T``
+is the truth of the capture frame when it is known (the DISTANCE_SENSOR is paired with the
+OBSTACLE_DISTANCE sent with it, whose ``time_usec`` is the exposure); the NEES against the truth at
+arrival is reported beside it (``arrival``).  If σ is right and the error Gaussian, each sample is
+χ²₁ (mean 1, variance 2), and the mean of ``n`` *independent* samples lies in the two-sided band
+``[χ²(n, 2.5 %), χ²(n, 97.5 %)] / n`` with 95 % probability (``nees_confidence``).
+
+The samples are not independent: one filter carries its error over many frames (a landmark's range
+error changes slowly), so consecutive NEES values are alike, and the mean of ``n`` of them varies
+about as much as the mean of far fewer independent ones.  The score therefore estimates that
+number, the *effective sample size* ``n_eff`` (:func:`.stats.effective_sample_size`):
+
+* the NEES series is cut into *stretches* wherever two consecutive samples are more than
+  ``nees_gap_s`` (0.5 s) apart — the forward range went unknown or clear, the filter may start
+  afresh, and nothing says how the two sides relate;
+* the autocorrelation ρ_k at lag k (in samples) is estimated from the pairs ``(i, i + k)`` inside a
+  stretch only, about the mean of the whole run, averaged over all such pairs of all stretches;
+* its sum is truncated by Geyer's *initial monotone sequence* (Geyer 1992): the sums of adjacent
+  lags ``ρ_2m + ρ_2m+1`` are taken while they stay positive, none larger than the one before — past
+  that point the estimates are noise.  ``τ = 1 + 2 Σ ρ_k`` is the *autocorrelation time*: how many
+  samples are worth one independent sample;
+* a stretch of ``m`` samples is worth ``m / (1 + 2 Σ_{k<m} (1 − k/m) ρ_k)`` (≈ ``m / τ`` when it is
+  long), held within ``[1, m]`` — never more than independent samples, at least one; stretches are
+  independent, and groups are combined so that the mean keeps the right variance:
+  ``n_eff = n² / Σ (m² / n_eff,stretch)`` (:func:`.stats.pooled_n_eff`).
+
+For an AR(1) series with coefficient φ this gives ``n (1 − φ)/(1 + φ)``; for its square (the NEES of
+such an error) ``n (1 − φ²)/(1 + φ²)``.  Estimated from one run it is approximate — with a few
+hundred samples and a long correlation it comes out somewhat high.  The band of the mean is then the
+χ² band with ``n_eff`` degrees of freedom scaled by ``1/n_eff`` (``n_eff`` need not be an integer:
+the χ² distribution with the mean 1 and variance ``2/n_eff`` of the correlated mean), and
+``consistent`` says whether the mean lies in it.  The band of ``n`` independent samples is reported
+beside it (``band_independent``, ``consistent_independent``) for reference only: it is far too
+narrow for correlated samples.  The autocorrelation time, its last lag and the stretches are in the
+score too.
+
+Coverage of the reported σ: the share of the same samples whose truth lies within
+``estimate ± σ`` and ``estimate ± 2σ`` (NEES ≤ 1, ≤ 4), beside what a Gaussian error with the right
+σ gives, 68.27 % and 95.45 %.  It reads without the correlation: a lower share means σ too small (or
+a heavier tail than Gaussian), a higher one σ too large.  The NEES mean is pulled by a few large
+errors; the coverage is not.  Each scored run draws ``nees.png`` (:func:`flightsim.plots.nees_plot`):
+the forward error over time inside its ±σ / ±2σ envelopes, and the running NEES mean against its
+band for ``n_eff``.
+
+A campaign pools the runs' samples: the pooled mean has ``n_eff = N² / Σ (n_run² / n_eff,run)`` —
+the sum of the runs' ``n_eff`` when the runs share one autocorrelation time, less when a long,
+strongly correlated run weighs on the pooled mean (``n_eff_sum_of_runs`` is reported beside it) —
+and its coverage is that of all the samples.
 
 Obstacles and time to the first valid range.  Truth sectors are grouped into obstacles by
 position: the world point of every obstacle cell of every truth frame (vehicle position + ``T``

@@ -50,6 +50,7 @@ class ScoreConfig:
     target_remembered: float = 0.90  # target: share of remembered out-of-view obstacle cells within tolerance (>=)
     beside_sectors: int = 2  # a false obstacle within this many sectors of an obstacle at its range is reported as "beside an obstacle" (diagnostic only)
     nees_confidence: float = 0.95  # two-sided probability of the NEES band
+    nees_gap_s: float = 0.5  # forward NEES samples further apart than this start a new stretch (effective sample size), s
 
     def __post_init__(self) -> None:
         require_finite("tolerance_m", self.tolerance_m, nonnegative=True)
@@ -80,6 +81,7 @@ class ScoreConfig:
             require_finite(name, v)
             require(0 <= v <= 1, f"{name} must be in [0, 1], got {v}")
         require(0 < self.nees_confidence < 1, "nees_confidence must be in (0, 1)")
+        require_finite("nees_gap_s", self.nees_gap_s, positive=True)
 
     def tolerance(self, true_m: np.ndarray) -> np.ndarray:
         return np.maximum(self.tolerance_m, self.tolerance_rel * np.asarray(true_m, float))

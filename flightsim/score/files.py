@@ -149,9 +149,19 @@ def companion_score_params(companion_config) -> dict:
     return {"sigma_k": float(cfg.sectors.sigma_k), "quality_zero_rel_sigma": float(cfg.outputs.quality_zero_rel_sigma)}
 
 
+NEES_PLOT = "nees.png"
+
+
 def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, companion_config=None, world=None,
-              component_id: int = COMPANION_COMPONENT, series_out=None, **fields) -> dict:
-    """See :func:`flightsim.score.score_run`."""
+              component_id: int = COMPANION_COMPONENT, series_out=None, plot_dir=None, **fields) -> dict:
+    """Score one run: read the ranges tlog and ``truth.npz``, evaluate, summarize (the ``score.json``
+    dict, with the avoidance outcome when a closed-loop ``trajectory.npz`` lies beside the truth).
+
+    ``series_out``: where to write ``score_series.npz`` (None: not written).  ``plot_dir``: a
+    directory, or a :class:`~companion.io.atomic.StagedFiles`, to draw ``nees.png`` into
+    (:func:`flightsim.plots.plot_run_nees`: the forward error with its ±2σ envelope and the running
+    NEES against its n_eff band); skipped without matplotlib; the score then names it under
+    ``plots``.  ``fields`` override :class:`ScoreConfig` fields."""
     cfg = config or ScoreConfig()
     over = {}
     if companion_config is not None:
@@ -175,8 +185,20 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
         if str(tr.get("avoidance_model", "none")) != "none":
             score["avoidance"] = evaluate_outcome(tr, world)
             score["inputs"]["trajectory"] = str(traj)
-    if series_out is not None:
-        save_series(series_out, series_arrays(ev))
+    if series_out is not None or plot_dir is not None:
+        arrays = series_arrays(ev)
+        if series_out is not None:
+            save_series(series_out, arrays)
+        if plot_dir is not None:
+            from flightsim.plots import plot_run_nees
+
+            staged = isinstance(plot_dir, StagedFiles)
+            directory = plot_dir.directory if staged else Path(plot_dir)
+            target = plot_dir.path(NEES_PLOT) if staged else directory / NEES_PLOT
+            if not staged:
+                directory.mkdir(parents=True, exist_ok=True)
+            if plot_run_nees(target, arrays, score["nees"], title=f"Forward σ of {directory.resolve().name}") is not None:
+                score["plots"] = {"nees": NEES_PLOT}
     return score
 
 

@@ -20,6 +20,31 @@ def mark(met) -> str:
     return "–" if met is None else ("✓" if met else "✗")
 
 
+def nees_lines(ne: dict, what: str = "Against the truth at exposure") -> list[str]:
+    """The NEES paragraph of a :func:`~flightsim.score.summary.nees_stats` dict (one run or pooled):
+    n and n_eff, the mean against its band with n_eff (the verdict) and, for reference, the band
+    of n independent samples; the ±1σ / ±2σ coverage against a normal error's."""
+    band, bi = ne.get("band") or [None, None], ne.get("band_independent") or [None, None]
+    conf = 100 * ne.get("confidence", 0.95)
+    how = ""
+    if ne.get("autocorrelation_time") is not None:
+        gap = f", a gap over {ne['gap_s']:g} s starting a new one" if ne.get("gap_s") is not None else ""
+        how = (f" in {ne.get('stretches')} stretch{'es' if ne.get('stretches') != 1 else ''}{gap}; autocorrelation "
+               f"time {ne['autocorrelation_time']:.2f} samples (Geyer's initial monotone sequence, lags ≤ "
+               f"{ne.get('autocorrelation_lags')})")
+    L = [f"{what}: n = {ne['n']} samples{how}, effective n_eff = {_f(ne.get('n_eff'), '{:.1f}')}; mean "
+         f"{_f(ne['mean'])}, median {_f(ne['median'])}.  {conf:g} % band of the mean with n_eff "
+         f"[{_f(band[0], '{:.3f}')}, {_f(band[1], '{:.3f}')}] {mark(ne.get('consistent'))}; as if the n samples were "
+         f"independent [{_f(bi[0], '{:.3f}')}, {_f(bi[1], '{:.3f}')}] {mark(ne.get('consistent_independent'))} "
+         "(for reference only: consecutive samples come from one filter and are correlated).", ""]
+    cov = ne.get("coverage")
+    if cov:
+        L += [f"Coverage: the truth lies within estimate ± σ in {_pc(cov['rate_1sigma'])} ({cov['within_1sigma']} of "
+              f"{cov['n']}; a normal error with the right σ: {_pc(cov['expected_1sigma'])}) and within ± 2σ in "
+              f"{_pc(cov['rate_2sigma'])} ({cov['within_2sigma']}; normal: {_pc(cov['expected_2sigma'])}).", ""]
+    return L
+
+
 def markdown(score: dict, title: str = "Score") -> str:
     """``score.md``: the definitions, the targets with ✓/✗ and the tables of one run."""
     s = score
@@ -108,13 +133,11 @@ def markdown(score: dict, title: str = "Score") -> str:
                      f"{_f(row['p95_abs_m'])} | {_f(row['mae_pct'], '{:.1f}')} | {_f(row['median_abs_pct'], '{:.1f}')} |")
         L.append("")
     ne = s["nees"]
-    band = ne["band"] or [None, None]
-    L += ["## NEES of the reported σ (forward)", "",
-          f"Against the truth at exposure: n = {ne['n']}, mean {_f(ne['mean'])}, median {_f(ne['median'])}, "
-          f"{100 * ne['confidence']:g} % band [{_f(band[0], '{:.3f}')}, {_f(band[1], '{:.3f}')}] {mark(ne['consistent'])}; "
-          f"at arrival: n = {ne['arrival']['n']}, mean {_f(ne['arrival']['mean'])}.  σ from covariance: "
-          f"{s['distance_sensor']['sigma_from_covariance']}, from signal_quality: {s['distance_sensor']['sigma_from_signal_quality']}.  "
-          "Consecutive samples are correlated, so the band is optimistic.", ""]
+    L += ["## NEES and coverage of the reported σ (forward)", ""] + nees_lines(ne) + [
+          f"At arrival: n = {ne['arrival']['n']}, n_eff = {_f(ne['arrival'].get('n_eff'), '{:.1f}')}, mean "
+          f"{_f(ne['arrival']['mean'])}.  σ from covariance: {s['distance_sensor']['sigma_from_covariance']}, from "
+          f"signal_quality: {s['distance_sensor']['sigma_from_signal_quality']}." + (
+              "  Plot: [nees.png](nees.png)." if s.get("plots", {}).get("nees") else ""), ""]
     la = s["latency"]
     L += ["## Latency (exposure → message stamp)", "",
           f"n = {la['n']}: p50 {_f(la['p50_ms'], '{:.1f}')} ms, p95 {_f(la['p95_ms'], '{:.1f}')} ms, "

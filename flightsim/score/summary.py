@@ -16,7 +16,7 @@ import numpy as np
 
 from flightsim.score.config import N_SECTORS, REP_CLEAR, REP_RANGE, REP_UNKNOWN, SECTOR_DEG, TRUTH_OBSTACLE
 from flightsim.score.evaluation import CellMasks, Evaluation, cell_masks
-from flightsim.score.stats import nees_band
+from flightsim.score.stats import EffectiveSize, effective_sample_size, nees_band, normal_coverage, stretch_labels
 
 
 # ---------------------------------------------------------------------- helpers and range error --
@@ -302,6 +302,13 @@ def summarize(ev: Evaluation) -> dict:
                           "since the latest such frame; unknown there counts as not reported",
             "warmup": f"messages stamped within {cfg.warmup_s:g} s of the first truth frame are not scored (latency and "
                       "first claim include them)",
+            "nees": "(estimate − truth at exposure)² / σ² of each forward DISTANCE_SENSOR range with a known σ; its mean "
+                    "against the band of the mean of n_eff χ²₁ samples, χ²(n_eff)/n_eff (n_eff: the effective sample size, "
+                    "from the autocorrelation within stretches without a gap over "
+                    f"{cfg.nees_gap_s:g} s, truncated by Geyer's initial monotone sequence); band_independent: as if the n "
+                    "samples were independent (reference only: consecutive samples are correlated)",
+            "coverage": "share of the same samples with the truth within estimate ± σ / ± 2σ (a normal error with the right "
+                        "σ: 68.27 % / 95.45 %)",
         },
         "config": dataclasses.asdict(cfg),
         "duration_s": float(ev.od_t[-1] - ev.t0) if len(ev.od_t) else 0.0,
@@ -340,33 +347,73 @@ def summarize(ev: Evaluation) -> dict:
     return _jsonable(out)
 
 
-def nees_samples(ev: Evaluation, at: str = "exposure") -> np.ndarray:
-    """NEES samples of the forward estimate (``at`` = ``"exposure"`` or ``"arrival"`` truth)."""
+def forward_samples(ev: Evaluation, at: str = "exposure") -> dict[str, np.ndarray]:
+    """The scored forward samples behind the NEES and the coverage: stamp ``t`` (recording clock),
+    ``error_m`` (estimate − truth) and ``sigma_m`` of every forward DISTANCE_SENSOR range with a known
+    σ and truth (``at`` = ``"exposure"`` or ``"arrival"`` truth), in message order."""
     T = ev.ds_truth_exposure if at == "exposure" else ev.ds_truth_arrival
     ok = (ev.ds_state == REP_RANGE) & np.isfinite(ev.ds_sigma_m) & (ev.ds_sigma_m > 0) & np.isfinite(T) & np.isfinite(ev.ds_estimate_m)
-    return ((ev.ds_estimate_m[ok] - T[ok]) / ev.ds_sigma_m[ok]) ** 2
+    return {"t": ev.ds_t[ok], "error_m": ev.ds_estimate_m[ok] - T[ok], "sigma_m": ev.ds_sigma_m[ok]}
 
 
-def nees_stats(samples: np.ndarray, confidence: float) -> dict:
+def nees_samples(ev: Evaluation, at: str = "exposure") -> np.ndarray:
+    """NEES samples of the forward estimate (``at`` = ``"exposure"`` or ``"arrival"`` truth)."""
+    f = forward_samples(ev, at)
+    return (f["error_m"] / f["sigma_m"]) ** 2
+
+
+def nees_stats(samples: np.ndarray, confidence: float, n_eff: float | None = None, ess: EffectiveSize | None = None) -> dict:
+    """Mean, median, bands and coverage of NEES ``samples``.
+
+    ``band`` (and ``consistent``) is the band of the mean for ``n_eff`` effective samples (from
+    ``ess`` when given; ``n_eff`` alone for a pooled figure); ``band_independent`` (and
+    ``consistent_independent``) the band as if the ``n`` samples were independent, for reference.
+    Without an effective size the first is unknown (None).  ``coverage``: the share of samples whose
+    truth lies within ``estimate ± σ`` / ``± 2σ`` (NEES ≤ 1 / ≤ 4) and what a normal error with the
+    right σ gives.
+    """
     s = np.asarray(samples, float)
-    lo, hi = nees_band(int(s.size), confidence)
-    mean = float(s.mean()) if s.size else None
-    return {"n": int(s.size), "mean": mean, "median": _pct(s, 50), "band": [lo, hi] if s.size else None,
-            "consistent": None if mean is None else bool(lo <= mean <= hi)}
+    n = int(s.size)
+    if ess is not None:
+        n_eff = ess.n_eff
+    mean = float(s.mean()) if n else None
+    lo_i, hi_i = nees_band(n, confidence)
+    lo, hi = nees_band(n_eff, confidence) if n and n_eff else (math.nan, math.nan)
+    have = n > 0 and math.isfinite(lo)
+    out = {"n": n, "n_eff": float(n_eff) if n and n_eff else None, "mean": mean, "median": _pct(s, 50),
+           "band": [lo, hi] if have else None, "consistent": bool(lo <= mean <= hi) if have else None,
+           "band_independent": [lo_i, hi_i] if n else None,
+           "consistent_independent": None if mean is None else bool(lo_i <= mean <= hi_i)}
+    if ess is not None:
+        out.update({"autocorrelation_time": ess.tau if n else None, "autocorrelation_lags": ess.lags, "stretches": ess.stretches})
+    n1, n2 = int(np.sum(s <= 1.0)), int(np.sum(s <= 4.0))
+    out["coverage"] = {"n": n, "within_1sigma": n1, "within_2sigma": n2,
+                       "rate_1sigma": _rate(n1, n), "rate_2sigma": _rate(n2, n),
+                       "expected_1sigma": normal_coverage(1.0), "expected_2sigma": normal_coverage(2.0)}
+    return out
 
 
 def nees_summary(ev: Evaluation) -> dict:
-    out = nees_stats(nees_samples(ev, "exposure"), ev.config.nees_confidence)
-    arr = nees_stats(nees_samples(ev, "arrival"), ev.config.nees_confidence)
+    """NEES and coverage of the forward σ against the truth at exposure (and at arrival), with the
+    effective sample size of each series (gaps longer than ``nees_gap_s`` break it)."""
+    cfg = ev.config
+    per = {}
+    for at in ("exposure", "arrival"):
+        f = forward_samples(ev, at)
+        x = (f["error_m"] / f["sigma_m"]) ** 2
+        per[at] = nees_stats(x, cfg.nees_confidence, ess=effective_sample_size(x, f["t"], cfg.nees_gap_s))
+    out = per["exposure"]
     out["at"] = "exposure (paired OBSTACLE_DISTANCE time_usec)"
-    out["arrival"] = arr
-    out["confidence"] = ev.config.nees_confidence
+    out["arrival"] = per["arrival"]
+    out["confidence"] = cfg.nees_confidence
+    out["gap_s"] = cfg.nees_gap_s
     return out
 
 
 def series_arrays(ev: Evaluation) -> dict[str, np.ndarray]:
     """Per-message arrays a campaign report pools over runs (saved as ``score_series.npz``)."""
     m = cell_masks(ev)
+    fwd = forward_samples(ev, "exposure")
     return {
         "t0": np.array(ev.t0), "sector_max_m": np.array(ev.sector_max_m),
         "od_t": ev.od_t, "od_scored": ev.od_scored, "od_rep": ev.od_rep, "od_cm": ev.od_cm.astype(np.int32), "od_truth": ev.od_truth.astype(np.float32),
@@ -376,6 +423,8 @@ def series_arrays(ev: Evaluation) -> dict[str, np.ndarray]:
         "ds_t": ev.ds_t, "ds_state": ev.ds_state, "ds_published_m": ev.ds_published_m, "ds_sigma_m": ev.ds_sigma_m,
         "ds_estimate_m": ev.ds_estimate_m, "ds_truth_arrival": ev.ds_truth_arrival, "ds_truth_exposure": ev.ds_truth_exposure,
         "ds_max_m": ev.ds_max_m, "nees_exposure": nees_samples(ev, "exposure"), "nees_arrival": nees_samples(ev, "arrival"),
+        "nees_exposure_t": fwd["t"], "nees_exposure_error_m": fwd["error_m"], "nees_exposure_sigma_m": fwd["sigma_m"],
+        "nees_exposure_stretch": stretch_labels(fwd["t"], ev.config.nees_gap_s).astype(np.int32),
         "obstacle_names": np.array(ev.obstacle_names, dtype="U128"),
     }
 

@@ -81,7 +81,7 @@ def _score(out: Path, companion_config: Path | None, world) -> tuple[dict | None
     opts = {"world": world}
     if companion_config is not None:
         opts["companion_config"] = companion_config
-    score = score_run(out / "received.tlog", out / "truth.npz", **opts)
+    score = score_run(out / "received.tlog", out / "truth.npz", plot_dir=out, **opts)
     write_score(out, score)
     return score, "scored"
 
@@ -152,7 +152,8 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
     out = prepare_output_dir(out_dir)
     # the names a previous run here may have left that this one writes after the commit (or not at all)
     staged = StagedFiles(out, keep_partial=("telemetry.tlog", "received.tlog"),
-                         obsolete=("video.avi", "avoidance.png", "score.json", "score.md", "score_series.npz", "sitl.json"))
+                         obsolete=("video.avi", "avoidance.png", "score.json", "score.md", "score_series.npz", "nees.png",
+                                  "sitl.json"))
     run = Run(sc, staged, clock, cfg, companion_config, attach, video, progress, _free_or(mavlink_port),
                _free_or(camera_port))
     wall0 = time.perf_counter()
