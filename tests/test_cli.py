@@ -136,48 +136,66 @@ def test_companion_run_process_ranges_over_the_sim_transport_and_stops_on_sigint
     """The whole thing as a separate process: the loopback vehicle streams telemetry on its own boot
     clock and answers TIMESYNC; the frame server sends 30 fps stamped on that boot clock (clock 1),
     so every frame reaches the pipeline through the TIMESYNC mapping."""
-    flight = SyntheticFlight(camera=CAM, wall_north_m=15.0, velocity_ned=(1.0, 3.0, 0.0))
-    t0 = time.monotonic()
-    boot = t0 - 50.0
+    flight = SyntheticFlight(camera=CAM, wall_north_m=25.0, velocity_ned=(1.0, 3.0, 0.0))
     port = free_port()
-    vehicle = LoopbackVehicle(port, flight, boot=boot, t0=t0)
     server = SimFrameServer()
     cfg = tmp_path / "c.toml"
     cfg.write_text(f"[camera]\nwidth = {CAM.width}\nheight = {CAM.height}\nfx = {CAM.fx}\nfy = {CAM.fy}\n"
                    f"cx = {CAM.cx}\ncy = {CAM.cy}\n[tracks]\nmax_tracks = 100\n[harris]\nmax_corners = 100\n")
     stop = threading.Event()
-
-    def vehicle_loop():
-        while not stop.is_set():
-            vehicle.step(time.monotonic())
-            time.sleep(0.002)
-
-    def camera_loop():
-        k = 0
-        while not stop.is_set():
-            t = t0 + k / 30.0
-            delay = t - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            server.send(flight.render(t - t0), k, int((t - boot) * 1e9), CLOCK_AUTOPILOT_BOOT)
-            k += 1
-
-    threads = [threading.Thread(target=vehicle_loop, daemon=True), threading.Thread(target=camera_loop, daemon=True)]
-    for th in threads:
-        th.start()
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen([sys.executable, "-m", "companion", "run", "--mavlink", f"udpin:127.0.0.1:{port}",
                              "--camera", server.address, "--config", str(cfg), "--log-level", "INFO"],
-                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    # Its log, read as it comes: the flight starts once the companion has its kernels (loading them
+    # from the cache takes a second or two, much longer on a loaded machine, and the flight reaches the
+    # wall in 25 s, so a flight clock started at spawn could end before the companion is ready).
+    err_lines: list[str] = []
+    ready = threading.Event()
+
+    def read_log():
+        for line in proc.stderr:
+            err_lines.append(line)
+            if "kernels ready in" in line or "compiled kernels: off" in line:
+                ready.set()
+
+    reader = threading.Thread(target=read_log, daemon=True)
+    reader.start()
+    threads = []
+    vehicle = None
     try:
-        deadline = time.monotonic() + 20.0
+        assert ready.wait(300) or proc.poll() is not None, "the companion did not load its kernels within 300 s"
+        assert proc.poll() is None, "".join(err_lines)
+        t0 = time.monotonic()
+        boot = t0 - 50.0
+        vehicle = LoopbackVehicle(port, flight, boot=boot, t0=t0)
+
+        def vehicle_loop():
+            while not stop.is_set():
+                vehicle.step(time.monotonic())
+                time.sleep(0.002)
+
+        def camera_loop():
+            k = 0
+            while not stop.is_set():
+                t = t0 + k / 30.0
+                delay = t - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                server.send(flight.render(t - t0), k, int((t - boot) * 1e9), CLOCK_AUTOPILOT_BOOT)
+                k += 1
+
+        threads = [threading.Thread(target=vehicle_loop, daemon=True), threading.Thread(target=camera_loop, daemon=True)]
+        for th in threads:
+            th.start()
+        deadline = time.monotonic() + 20.0  # the wall is 25 m ahead at 1 m/s
         valid = []
         while time.monotonic() < deadline and len(valid) < 5:
             time.sleep(0.1)
             valid = [m for m in vehicle.received("OBSTACLE_DISTANCE") if m.distances[0] != UINT16_MAX]
             if proc.poll() is not None:
                 break
-        assert proc.poll() is None, proc.communicate()[1]
+        assert proc.poll() is None, "".join(err_lines)
         assert len(valid) >= 5, "no valid ranges from the companion process"
         truth = flight.wall_distance(time.monotonic() - t0)
         assert valid[-1].distances[0] / 100 == pytest.approx(truth, rel=0.25)
@@ -194,15 +212,18 @@ def test_companion_run_process_ranges_over_the_sim_transport_and_stops_on_sigint
             time.sleep(0.1)
         assert recent_ack(), "the companion acknowledged none of the last ten frames within 5 s"
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=10)
+        proc.wait(timeout=10)
+        reader.join(timeout=5)
+        err = "".join(err_lines)
         assert proc.returncode == 0, err
         assert "SIGINT received" in err and "stopped" in err
     finally:
         stop.set()
         if proc.poll() is None:
             proc.kill()
-            proc.communicate()
+            proc.wait()
         for th in threads:
             th.join(timeout=2)
         server.close()
-        vehicle.conn.close()
+        if vehicle is not None:
+            vehicle.conn.close()
