@@ -84,15 +84,20 @@ class Companion:
             self.counters["ack_errors"] += 1
 
     # -- the loop ------------------------------------------------------------------------------------
-    def step(self, wait: float = 0.0) -> None:
-        """One iteration: poll links, take a frame, maybe process it, periodic duties."""
-        now = self.clock()
+    def _poll_links(self) -> None:
+        """Read what the autopilot (and the ground station) sent; the ground-station link speaks as the
+        vehicle's system id once the autopilot's is known."""
         self.link.poll()
         if self.gcs is not None:
             self.gcs.poll()
             sid = self.link.system_id
             if sid is not None and self.gcs.system_id != sid:
                 self.gcs.set_system_id(sid)
+
+    def step(self, wait: float = 0.0) -> None:
+        """One iteration: poll links, take a frame, maybe process it, periodic duties."""
+        now = self.clock()
+        self._poll_links()
         frame = self.source.read(timeout=wait)
         now = self.clock()
         if frame is not None:
@@ -170,12 +175,7 @@ class Companion:
             self._lockstep_started = True
             self.reporter.health.start = clock()
             self._status_t = clock()
-        self.link.poll()
-        if self.gcs is not None:
-            self.gcs.poll()
-            sid = self.link.system_id
-            if sid is not None and self.gcs.system_id != sid:
-                self.gcs.set_system_id(sid)
+        self._poll_links()
         now = clock()
         self._last_frame_at = now
         self.counters["frames_in"] += 1

@@ -251,13 +251,7 @@ def update_pixel(x, P, RA, pA, tA, z, Rc, C, t, var_px, position_sigma, gate, it
     for i in range(n):
         for j in range(n):
             P_new[i, j] = P[i, j] - (K[i, 0] * PHt[j, 0] + K[i, 1] * PHt[j, 1])
-    if not _symmetrize_finite(xi, P_new):  # § Update step 4: non-finite → GATED, state unchanged
-        return False, nis, GATED
-    for i in range(n):
-        x[i] = xi[i]
-        for j in range(n):
-            P[i, j] = P_new[i, j]
-    return True, nis, UPDATED
+    return _accept_if_finite(x, P, xi, P_new, nis)  # § Update step 4: non-finite → GATED, state unchanged
 
 
 @njit(error_model="numpy")
@@ -273,6 +267,20 @@ def _symmetrize_finite(x, P):
             P[j, i] = s
             finite &= math.isfinite(s)
     return finite
+
+
+@njit(error_model="numpy", inline="always")
+def _accept_if_finite(x, P, xi, P_new, nis):
+    """Symmetrize P_new; if xi and P_new are finite copy them into x and P (UPDATED), else leave the
+    state as it was (GATED).  Returns (accepted, nis, reason) as the update kernels do."""
+    if not _symmetrize_finite(xi, P_new):
+        return False, nis, GATED
+    n = x.shape[0]
+    for i in range(n):
+        x[i] = xi[i]
+        for j in range(n):
+            P[i, j] = P_new[i, j]
+    return True, nis, UPDATED
 
 
 @njit(error_model="numpy")
@@ -414,13 +422,7 @@ def update_looming(x, P, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t, gate, ite
             for k in range(n):
                 s += AP[i, k] * A[j, k]
             P_new[i, j] = s + var * (K[i] * K[j])
-    if not _symmetrize_finite(xi, P_new):
-        return False, nis, GATED
-    for i in range(n):
-        x[i] = xi[i]
-        for j in range(n):
-            P[i, j] = P_new[i, j]
-    return True, nis, UPDATED
+    return _accept_if_finite(x, P, xi, P_new, nis)
 
 
 @njit(error_model="numpy", inline="always")
