@@ -1,5 +1,6 @@
 """Obstacle sectors (DESIGN §5): hand-computed geometry for every OBSTACLE_DISTANCE rule."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -21,6 +22,7 @@ from conftest import sectors_optional_rules_off
 HFOV = math.radians(60.0)
 CFG = SectorConfig()  # as shipped: min 0.5 m, max 40 m, k = 2, band ±1.5 m, 1 point per obstacle, 3 per clear
 CLEAR = CFG.max_distance_cm + 1
+NEAREST_POINT = dataclasses.replace(CFG, fuse_gate_k=0.0)  # each sector publishes its nearest point (no surface fusion)
 
 
 def run(points, sigma=0.5, converged=True, valid=True, cam=0.0, config=CFG, **kw):
@@ -65,8 +67,9 @@ def test_no_points_is_unknown_never_clear():
 
 
 def test_wall_gives_conservative_centimetres():
-    s = run(wall(10.0), sigma=0.5)
+    s = run(wall(10.0), sigma=0.5, config=NEAREST_POINT)
     # on the horizontal (z = 0) the conservative range is r − 2·0.5 = r − 1 m, nearest point per sector
+    # (the fused surface of the same points: tests/test_sectors_fusion.py)
     assert s.distances_cm[0] == 900  # bearing 0°: r = 10
     assert s.distances_cm[1] == round((10 / math.cos(math.radians(3)) - 1) * 100)  # nearest bearing 3°
     assert s.distances_cm[71] == s.distances_cm[1]  # symmetric
@@ -92,8 +95,13 @@ def test_far_points_claim_clear_only_with_enough_evidence():
     s2 = run(far[:2], sigma=1.0)
     assert s2.distances_cm[0] == UNKNOWN_CM
     # a far point whose σ makes it possibly near is not evidence of free space: 50 − 2·10 = 30 m
-    s3 = run(wall(50.0, [-1, 0, 1]), sigma=10.0)
+    s3 = run(wall(50.0, [-1, 0, 1]), sigma=10.0, config=NEAREST_POINT)
     assert s3.distances_cm[0] == 3000
+    # fused, the three points (correlation ρ) give σ̄ = 10·√(ρ + (1 − ρ)/3): still an obstacle, never clear
+    s4 = run(wall(50.0, [-1, 0, 1]), sigma=10.0)
+    sig_bar = 10.0 * math.sqrt(CFG.fuse_correlation + (1 - CFG.fuse_correlation) / 3)
+    assert s4.state[0] == SectorState.OBSTACLE
+    assert int(s4.distances_cm[0]) == pytest.approx((50.0 - CFG.sigma_k * sig_bar) * 100, abs=2)
 
 
 def test_one_near_point_among_far_ones_wins():

@@ -165,6 +165,9 @@ def configs():
     yield "two-sided only", dataclasses.replace(base, infer_vertical_one_side=False, ground_margin_m=0.0, sigma_k=0.0)
     yield "exact ranges", dataclasses.replace(base, sigma_k=0.0)  # d_cons = d_h: points sharing (x, y) tie
     yield "cap only", dataclasses.replace(base, sigma_k=0.0, infer_vertical=False)
+    yield "no surface fusion", dataclasses.replace(base, fuse_gate_k=0.0)
+    yield "fusion: wide gate, independent", dataclasses.replace(base, fuse_gate_k=5.0, fuse_correlation=0.0)
+    yield "fusion: narrow gate, shared", dataclasses.replace(base, fuse_gate_k=0.5, fuse_correlation=1.0, min_points_obstacle=2)
 
 
 @pytest.mark.parametrize("name, config", list(configs()))
@@ -301,11 +304,17 @@ def test_kernel_raises_what_the_reference_raises(monkeypatch):
 
 def test_reference_rules_directly():
     """The reference itself, called directly (it stays the documented behaviour): a wall at 10 m
-    is an obstacle at 10 m − 2σ in the sectors it spans; far points alone make a fully seen sector clear."""
+    is an obstacle at 10 m − 2σ in the sectors it spans (its nearest point; fused with the other four
+    points of sector 0, 10 m − 2σ̄); far points alone make a fully seen sector clear."""
     b = np.radians(np.arange(-20, 21, 1.0))
     wall = np.stack([np.full(b.shape, 10.0), 10.0 * np.tan(b), np.zeros(b.shape)], 1)
-    r = compute_sectors_reference(wall, np.full(len(b), 0.5), np.ones(len(b), bool), np.ones(len(b), bool), HFOV, 0.0)
+    args = (wall, np.full(len(b), 0.5), np.ones(len(b), bool), np.ones(len(b), bool), HFOV, 0.0)
+    r = compute_sectors_reference(*args, SectorConfig(fuse_gate_k=0.0))
     assert r.state[0] == SectorState.OBSTACLE and r.distances_cm[0] == 900
+    r = compute_sectors_reference(*args)
+    d = (10.0 / np.cos(np.radians([-2, -1, 0, 1, 2]))).mean()  # ≈ 10.003 m (equal weights)
+    rho = SectorConfig().fuse_correlation
+    assert r.distances_cm[0] == pytest.approx(100 * (d - 2 * 0.5 * np.sqrt(rho + (1 - rho) / 5)), abs=1.0)
     assert np.all(r.state[[10, 36, 60]] == SectorState.UNKNOWN)
     far = np.array([[60.0, 0.0, 0.0], [61.0, 0.1, 0.0], [62.0, -0.1, 0.0]])
     r = compute_sectors_reference(far, np.full(3, 0.5), np.ones(3, bool), np.ones(3, bool), HFOV, 0.0)

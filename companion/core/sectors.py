@@ -337,6 +337,11 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     near = d_cons <= max_m
 
     obs_pts = in_band & conv & near
+    # the sector's nearest surface from the live points consistent with its nearest one, not the
+    # nearest of many noisy points (docs/derivations/sectors.md, "Nearest surface")
+    sig_pub, est = sig, d_h
+    if config.fuse_gate_k > 0:
+        d_cons, sig_pub, est = _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, obs_pts & ~mem, config)
     clr_pts = in_band & conv & ~near & ~mem  # "clear" only from what the camera sees now
     veto_pts = in_band & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)
 
@@ -369,7 +374,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         dist[obs_sec] = pt_cm[pts]
         state[obs_sec] = SectorState.OBSTACLE
         range_m[obs_sec] = d_pub[pts]
-        sigma_m[obs_sec] = sig[pts]
+        sigma_m[obs_sec] = sig_pub[pts]
         xy_m[obs_sec] = d_pub[pts, None] * np.stack([np.cos(bearing[pts]), np.sin(bearing[pts])], 1)
 
     clear_sec = fully & (n_obs == 0) & (n_veto == 0) & (n_clr >= config.min_points_clear)
@@ -416,7 +421,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         j = fwd_obs[np.argmin(range_m[fwd_obs])]
         pt = pick[j]  # −1 where the sector was inferred between two others: its own σ, no single point's estimate
         if pt >= 0:
-            forward = ForwardRange(SectorState.OBSTACLE, float(range_m[j]), float(sig[pt]), float(d_h[pt]))
+            forward = ForwardRange(SectorState.OBSTACLE, float(range_m[j]), float(sig_pub[pt]), float(est[pt]))
         else:
             forward = ForwardRange(SectorState.OBSTACLE, float(range_m[j]), float(sigma_m[j]), math.nan)
     elif fwd.size and np.all(state[fwd] == SectorState.CLEAR):
@@ -458,6 +463,48 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         remembered_points=n_mem,
         inferred=inferred,
     )
+
+
+def _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, cand, config: SectorConfig):
+    """Each sector's nearest surface from its live obstacle points (docs/derivations/sectors.md, "Nearest surface").
+
+    The anchor is the sector's candidate with the smallest conservative range; the candidates whose
+    horizontal estimates agree with it within ``fuse_gate_k`` combined σ are the same surface.  Their
+    inverse-variance mean d̄ with the variance of a mean of equicorrelated errors (correlation ρ =
+    ``fuse_correlation``: the shared pose),
+    σ̄² = ((1 − ρ) Σw + ρ (Σ 1/σ)²) / (Σw)², w = 1/σ² (horizontal σ = σ_r d_h / r),
+    replaces the conservative range of every member: min(max(d̄ − k σ̄, 0), max_distance_m); its σ̄ and
+    d̄ become their published σ and estimate.  A sector whose cluster has one point is unchanged.
+    Returns new (d_cons, sig_pub, est) arrays; the inputs are not modified."""
+    d_cons, sig_pub, est = d_cons.copy(), sig.copy(), d_h.copy()
+    sel = np.flatnonzero(cand)
+    if sel.size < 2:
+        return d_cons, sig_pub, est
+    sel = sel[np.lexsort((d_cons[sel], idx[sel]))]  # by sector, then conservative range (ties: index)
+    sec = idx[sel]
+    first = np.r_[True, sec[1:] != sec[:-1]]
+    anchor = sel[first][np.cumsum(first) - 1]
+    s_h = np.maximum(sig[sel] * d_h[sel] / r_safe[sel], 1e-9)
+    s_a = np.maximum(sig[anchor] * d_h[anchor] / r_safe[anchor], 1e-9)
+    member = np.abs(d_h[sel] - d_h[anchor]) <= config.fuse_gate_k * np.hypot(s_h, s_a)
+    m_sec = sec[member]
+    s_m = s_h[member]
+    w = 1.0 / (s_m * s_m)
+    count = np.bincount(m_sec, minlength=SECTOR_COUNT)
+    sw = np.bincount(m_sec, w, minlength=SECTOR_COUNT)
+    swd = np.bincount(m_sec, w * d_h[sel][member], minlength=SECTOR_COUNT)
+    sis = np.bincount(m_sec, 1.0 / s_m, minlength=SECTOR_COUNT)
+    rho = config.fuse_correlation
+    fused = count >= 2
+    safe_sw = np.where(fused, sw, 1.0)
+    d_bar = swd / safe_sw
+    s_bar = np.sqrt(((1.0 - rho) * safe_sw + rho * (sis * sis)) / (safe_sw * safe_sw))
+    value = np.minimum(np.maximum(d_bar - config.sigma_k * s_bar, 0.0), config.max_distance_m)
+    pts = sel[member]
+    upd = fused[m_sec]
+    pts, ps = pts[upd], m_sec[upd]
+    d_cons[pts], sig_pub[pts], est[pts] = value[ps], s_bar[ps], d_bar[ps]
+    return d_cons, sig_pub, est
 
 
 def _spread_remembered(p, p_level, sig, conv, usable, mem, r, mem_tan, n_live, config: SectorConfig, R_lb):

@@ -36,7 +36,7 @@ _VIEW_OFFSETS = np.radians(np.linspace(-SECTOR_DEG / 2, SECTOR_DEG / 2, _SAMPLES
 (_K_MIN_M, _K_MAX_M, _K_SIGMA_K, _K_BAND_METRES, _K_HALF_H, _K_HALF_ANGLE_RAD, _K_TAN_HALF_ANGLE, _K_N_OBS, _K_N_CLR,
  _K_VETO, _K_TOUCH, _K_SPREAD_K, _K_MAX_SPREAD_RAD, _K_DROP_SPREAD_RAD, _K_GAP, _K_REL_TOL, _K_NARROW_M, _K_NARROW_N,
  _K_VERT, _K_VERT_WIN, _K_VERT_GROUND, _K_ONE_SIDE, _K_MIN_EXTENT, _K_REACH, _K_CAP, _K_GROUND_MARGIN, _K_MIN_CM,
- _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_SIZE) = range(31)
+ _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_SIZE) = range(33)
 
 
 def _kernel_config(config: SectorConfig) -> np.ndarray:
@@ -62,6 +62,7 @@ def _kernel_config(config: SectorConfig) -> np.ndarray:
     v[_K_DROP_SPREAD_RAD] = math.radians(c.remembered_drop_spread_deg)
     v[_K_GAP], v[_K_NARROW_N] = c.infer_max_gap_sectors, c.infer_narrow_max_sectors
     v[_K_MIN_CM], v[_K_MAX_CM] = c.min_distance_cm, c.max_distance_cm
+    v[_K_FUSE_G], v[_K_FUSE_RHO] = c.fuse_gate_k, c.fuse_correlation
     v.flags.writeable = False
     _KERNEL_CONFIGS[id(config)] = (config, v)  # the config is kept alive with its id: no reuse while cached
     if len(_KERNEL_CONFIGS) > 64:  # bounded: configs are few (one per process, a handful in tests)
@@ -264,6 +265,11 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
 
     # ---- per sector: counts, n-th nearest obstacle point -----------------------------------------
     veto_on = cfg[_K_VETO] != 0
+    sig_pub = sig.copy()
+    est = d_h.copy()
+    if cfg[_K_FUSE_G] > 0:
+        _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, in_band & conv & near & ~mem, cfg[_K_FUSE_G],
+                                cfg[_K_FUSE_RHO], cfg[_K_SIGMA_K], max_m, sig_pub, est)
     n_obs = np.zeros(SECTOR_COUNT, np.int64)
     n_clr = np.zeros(SECTOR_COUNT, np.int64)
     n_veto = np.zeros(SECTOR_COUNT, np.int64)
@@ -320,7 +326,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
             dist[s] = pt_cm[pt]
             state[s] = _S_OBSTACLE
             range_m[s] = d_pub[pt]
-            sigma_m[s] = sig[pt]
+            sigma_m[s] = sig_pub[pt]
             xy_m[s, 0] = d_pub[pt] * math.cos(bearing[pt])
             xy_m[s, 1] = d_pub[pt] * math.sin(bearing[pt])
         elif fully[s] and n_obs[s] == 0 and n_veto[s] == 0 and n_clr[s] >= cfg[_K_N_CLR]:
@@ -391,7 +397,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
         pt = pick[j_best]
         fwd_vals[0] = range_m[j_best]
         if pt >= 0:
-            fwd_vals[1], fwd_vals[2] = sig[pt], d_h[pt]
+            fwd_vals[1], fwd_vals[2] = sig_pub[pt], est[pt]
         else:
             fwd_vals[1] = sigma_m[j_best]
     elif n_fwd > 0 and all_clear:
@@ -431,6 +437,57 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                 o += 1
     return (dist, state, range_m, sigma_m, n_obs, n_clr, n_mem, inferred, used, ob_bearing, ob_cm, fwd_state, fwd_vals, near_p,
             near_vals, near_sector)
+
+
+@_jit.njit
+def _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, cand, gate_k, rho, sigma_k, max_m, sig_pub, est):
+    """:func:`companion.core.sectors._fuse_nearest_surface` in place on ``d_cons``, ``sig_pub`` and ``est``
+    (docs/derivations/sectors.md, "Nearest surface"); sums in the reference's order (sector, then
+    conservative range, ties by index) so the results are the same to the bit."""
+    sel = np.flatnonzero(cand)
+    if sel.size < 2:
+        return
+    order = sel[np.argsort(d_cons[sel], kind="mergesort")]
+    count = np.zeros(SECTOR_COUNT + 1, np.int64)
+    for i in order:
+        count[idx[i] + 1] += 1
+    for s in range(SECTOR_COUNT):
+        count[s + 1] += count[s]
+    fill = count[:SECTOR_COUNT].copy()
+    ranked = np.empty(sel.size, np.int64)
+    for i in order:
+        ranked[fill[idx[i]]] = i
+        fill[idx[i]] += 1
+    member = np.zeros(sel.size, np.bool_)
+    for s in range(SECTOR_COUNT):
+        lo, hi = count[s], count[s + 1]
+        if hi - lo < 2:
+            continue
+        a = ranked[lo]
+        s_a = max(sig[a] * d_h[a] / r_safe[a], 1e-9)
+        n_m = 0
+        sw = 0.0
+        swd = 0.0
+        sis = 0.0
+        for q in range(lo, hi):
+            i = ranked[q]
+            s_i = max(sig[i] * d_h[i] / r_safe[i], 1e-9)
+            member[q] = abs(d_h[i] - d_h[a]) <= gate_k * np.hypot(s_i, s_a)
+            if member[q]:
+                w = 1.0 / (s_i * s_i)
+                n_m += 1
+                sw += w
+                swd += w * d_h[i]
+                sis += 1.0 / s_i
+        if n_m < 2:
+            continue
+        d_bar = swd / sw
+        s_bar = math.sqrt(((1.0 - rho) * sw + rho * (sis * sis)) / (sw * sw))
+        value = min(max(d_bar - sigma_k * s_bar, 0.0), max_m)
+        for q in range(lo, hi):
+            if member[q]:
+                i = ranked[q]
+                d_cons[i], sig_pub[i], est[i] = value, s_bar, d_bar
 
 
 @_jit.njit

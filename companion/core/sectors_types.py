@@ -70,6 +70,8 @@ class SectorConfig:
     infer_vertical_reach_m: float = 2.5  # ... and the lower one lies within this above the band's edge, m
     cap_above_m: float = 2.5  # a converged point up to this far above the band caps the range its sector claims (an obstacle sector reports no farther than it, a clear one becomes an obstacle at it; unknown stays unknown), m; 0 = off
     ground_margin_m: float = 0.5  # with the ground's height known, points less than this above it are the ground: never an obstacle nor evidence of clear (taking off, landing, flying low); 0 = off
+    fuse_gate_k: float = 2.0  # a sector's live obstacle points whose horizontal ranges agree with its nearest one within this many combined σ are one surface: their fused range replaces the nearest of them (the nearest of many noisy points is biased near); 0 = off (the n-th nearest point)
+    fuse_correlation: float = 0.3  # correlation of those points' range errors through the shared pose: the fused σ never falls below √ρ of theirs
 
     def __post_init__(self) -> None:
         require_finite("min_distance_m", self.min_distance_m, positive=True)
@@ -115,6 +117,9 @@ class SectorConfig:
         require_finite("infer_vertical_reach_m", self.infer_vertical_reach_m, nonnegative=True)
         require_finite("cap_above_m", self.cap_above_m, nonnegative=True)
         require_finite("ground_margin_m", self.ground_margin_m, nonnegative=True)
+        require_finite("fuse_gate_k", self.fuse_gate_k, nonnegative=True)
+        require_finite("fuse_correlation", self.fuse_correlation, nonnegative=True)
+        require(self.fuse_correlation <= 1.0, f"fuse_correlation must be in [0, 1], got {self.fuse_correlation}")
 
     @property
     def min_distance_cm(self) -> int:
