@@ -122,6 +122,10 @@ def main(argv=None) -> int:
         from bench import compute
 
         return compute.main(argv[1:])
+    if argv[:1] == ["telemetry_ablation"]:  # its own command line (python -m bench.telemetry_ablation --help)
+        from bench import telemetry_ablation
+
+        return telemetry_ablation.main(argv[1:])
     ap = argparse.ArgumentParser(
         prog="python -m bench",
         description="Benchmarks of the estimation core against the source papers' scenarios (seeds 000 and 004).",
@@ -178,6 +182,9 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the section")
     sub.add_parser("hostile", help="soak and fuzz: long lockstep SITL hover under hostile MAVLink traffic and blackouts "
                                    "(options: python -m bench hostile --help)", add_help=False)
+    sub.add_parser("telemetry_ablation", help="SITL campaigns with parts of the simulated telemetry error switched off: "
+                                              "which error makes the forward σ over-confident (options: python -m bench "
+                                              "telemetry_ablation --help)", add_help=False)
     sub.add_parser("compute", help="CPU per 640×480 frame of the whole pipeline on one core, compiled kernels vs the numpy "
                                    "reference (options: python -m bench compute --help)", add_help=False)
     p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")
