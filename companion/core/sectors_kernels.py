@@ -265,9 +265,9 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
 
     # ---- per sector: counts, n-th nearest obstacle point -----------------------------------------
     veto_on = cfg[_K_VETO] != 0
-    sig_pub = sig.copy()
-    est = d_h.copy()
+    sig_pub, est = sig, d_h  # published σ and estimate of each point: its own unless fused
     if cfg[_K_FUSE_G] > 0:
+        sig_pub, est = sig.copy(), d_h.copy()
         _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, in_band & conv & near & ~mem, cfg[_K_FUSE_G],
                                 cfg[_K_FUSE_RHO], cfg[_K_SIGMA_K], max_m, sig_pub, est)
     n_obs = np.zeros(SECTOR_COUNT, np.int64)
@@ -289,15 +289,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
         elif in_band[i] and veto_on and near[i]:
             n_veto[idx[i]] += 1
     sel = np.flatnonzero(obs_pts)
-    order = sel[np.argsort(d_cons[sel], kind="mergesort")]  # by range, ties by index (the reference's lexsort)
-    starts = np.zeros(SECTOR_COUNT + 1, np.int64)
-    for s in range(SECTOR_COUNT):
-        starts[s + 1] = starts[s] + n_obs[s]
-    fill = starts[:SECTOR_COUNT].copy()
-    ranked = np.empty(sel.size, np.int64)
-    for i in order:
-        ranked[fill[idx[i]]] = i
-        fill[idx[i]] += 1
+    starts, ranked = _rank_in_sectors(idx, d_cons, sel)
     pick = np.full(SECTOR_COUNT, -1, np.int64)
     nearest_pick = np.full(SECTOR_COUNT, -1, np.int64)
     for s in range(SECTOR_COUNT):
@@ -439,6 +431,24 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
             near_vals, near_sector)
 
 
+@_jit.njit(inline="always")
+def _rank_in_sectors(idx, value, sel):
+    """Points ``sel`` grouped by sector, each group by ``value`` (ties by index: the reference's
+    lexsort): (starts (73,), ranked): sector s holds ``ranked[starts[s]:starts[s + 1]]``."""
+    order = sel[np.argsort(value[sel], kind="mergesort")]
+    starts = np.zeros(SECTOR_COUNT + 1, np.int64)
+    for i in order:
+        starts[idx[i] + 1] += 1
+    for s in range(SECTOR_COUNT):
+        starts[s + 1] += starts[s]
+    fill = starts[:SECTOR_COUNT].copy()
+    ranked = np.empty(sel.size, np.int64)
+    for i in order:
+        ranked[fill[idx[i]]] = i
+        fill[idx[i]] += 1
+    return starts, ranked
+
+
 @_jit.njit
 def _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, cand, gate_k, rho, sigma_k, max_m, sig_pub, est):
     """:func:`companion.core.sectors._fuse_nearest_surface` in place on ``d_cons``, ``sig_pub`` and ``est``
@@ -447,17 +457,7 @@ def _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, cand, gate_k, rho, si
     sel = np.flatnonzero(cand)
     if sel.size < 2:
         return
-    order = sel[np.argsort(d_cons[sel], kind="mergesort")]
-    count = np.zeros(SECTOR_COUNT + 1, np.int64)
-    for i in order:
-        count[idx[i] + 1] += 1
-    for s in range(SECTOR_COUNT):
-        count[s + 1] += count[s]
-    fill = count[:SECTOR_COUNT].copy()
-    ranked = np.empty(sel.size, np.int64)
-    for i in order:
-        ranked[fill[idx[i]]] = i
-        fill[idx[i]] += 1
+    count, ranked = _rank_in_sectors(idx, d_cons, sel)
     member = np.zeros(sel.size, np.bool_)
     for s in range(SECTOR_COUNT):
         lo, hi = count[s], count[s + 1]
