@@ -110,8 +110,9 @@ class AnchoredInverseDepthEKF:
         self.config = config
         self.sigma_xy = np.array([config.sigma_px / fx, config.sigma_px / fy])
         self.ids = np.zeros(0, dtype=np.int64)
-        #: state size: (θ, φ, ρ), plus the drift rate β when attitude drift is modelled
-        self.n = 6 if config.attitude_drift_deg_s > 0 else 3
+        #: state size n, whether the gyro bias b is x[3:6], and the index of the position-error states δ (−1: none):
+        #: x = (θ, φ, ρ, [b], [δ]) (:meth:`AnchoredEKFConfig.layout`)
+        self.n, self.drift, self.i_pos = config.layout()
         self.x = np.zeros((0, self.n))
         self.P = np.zeros((0, self.n, self.n))
         self.R_world_camA = np.zeros((0, 3, 3))
@@ -123,11 +124,18 @@ class AnchoredInverseDepthEKF:
         self.nis_avg = np.zeros(0)  # mean NIS over the last ~nis_window measurements (consistency with a static point)
         self.nis_count = np.zeros(0, dtype=np.int64)  # measurements in nis_avg
         self.n_looming = np.zeros(0, dtype=np.int64)  # accepted looming (scale) updates
+        self.t_last = np.zeros(0)  # time δ's covariance was last propagated to (§ Position error states)
         #: the pixel kernels' constants: (σ_px/f)² + σ_att² (2,), σ_p, χ²₂ gate, iterations, reject limit,
         #: NIS window, mean-NIS limit (§ Measurement noise, § Update, § Bookkeeping)
         self._kernel_constants = (
-            self.sigma_xy**2 + np.radians(config.attitude_sigma_deg) ** 2, float(config.position_sigma_m), config.gate_threshold,
-            config.iterations, config.max_consecutive_rejects, float(config.nis_window), float(config.max_mean_nis))
+            self.sigma_xy**2 + np.radians(config.attitude_sigma_deg) ** 2, self._white_position_sigma, config.gate_threshold,
+            config.iterations, config.max_consecutive_rejects, float(config.nis_window), float(config.max_mean_nis),
+            self.i_pos, float(config.position_diffusion))
+
+    @property
+    def _white_position_sigma(self) -> float:
+        """σ_p of the white position term of R: 0 when the error is carried by the δ states instead."""
+        return 0.0 if self.config.position_states else float(self.config.position_sigma_m)
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -180,17 +188,19 @@ class AnchoredInverseDepthEKF:
         P0[:, :2, :2] = J @ Rxy @ np.swapaxes(J, 1, 2)
         P0[:, 2, 2] = srho**2
         x0 = np.stack([theta, phi, rho], 1)
-        if self.n == 6:
+        if self.drift:
             sb = np.radians(cfg.attitude_drift_deg_s)
-            P0[:, 3:, 3:] = sb**2 * np.eye(3)
-            x0 = np.concatenate([x0, np.zeros((m, 3))], 1)
+            P0[:, 3:6, 3:6] = sb**2 * np.eye(3)
+        # δ = e(t) − e(t_anchor) is exactly 0 at the anchor: zero mean, zero variance (§ Position error states)
+        x0 = np.concatenate([x0, np.zeros((m, self.n - 3))], 1)
         zi = np.zeros(m, np.int64)
         self._insert(dict(ids=ids, x=x0, P=P0, R_world_camA=R, p_world_camA=p, t_anchor=t, n_updates=zi,
-                          n_rejects=zi, diverged=np.zeros(m, bool), nis_avg=np.zeros(m), nis_count=zi, n_looming=zi))
+                          n_rejects=zi, diverged=np.zeros(m, bool), nis_avg=np.zeros(m), nis_count=zi, n_looming=zi,
+                          t_last=np.array(t, float)))
 
     #: per-landmark arrays, all aligned with ``ids`` (kept sorted ascending)
     _FIELDS = ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged", "nis_avg",
-               "nis_count", "n_looming")
+               "nis_count", "n_looming", "t_last")
 
     def _insert(self, rows: dict) -> None:
         """Merge new landmarks (every field of :data:`_FIELDS`, ids not yet present) keeping ids sorted."""
@@ -209,7 +219,7 @@ class AnchoredInverseDepthEKF:
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         if len(ids) == 0:
             return
-        if other.n != self.n or np.any(other.contains(ids)):
+        if other.config.layout() != self.config.layout() or np.any(other.contains(ids)):
             raise InputError("move_to: the other bank must have the same state size and none of the ids")
         rows = self.index_of(ids)
         other._insert({name: getattr(self, name)[rows] for name in self._FIELDS})
@@ -217,25 +227,41 @@ class AnchoredInverseDepthEKF:
 
     # -- model ----------------------------------------------------------------------------------
     @staticmethod
-    def measure(x, R_world_camA, p_world_camA, R_world_cam, p_world_cam, dt=None):
+    def measure(x, R_world_camA, p_world_camA, R_world_cam, p_world_cam, dt=None, position_states=False):
         """h_c (N,3), predicted z (N,2) and H (N,2,n) for states x (N,n) seen from (R_world_cam, C).
 
         The current pose may be shared, (3,3) and (3,), or per landmark, (N,3,3) and (N,3).
-        With n = 6 the last three states are the gyro bias b and ``dt`` (N,) is t − t_anchor.
+        x = (θ, φ, ρ, [b], [δ]): with ``position_states`` the last three states are δ; the gyro bias
+        b is present when the remaining size is 6, and then ``dt`` (N,) is t − t_anchor.
         """
         R_cam_world = np.swapaxes(R_world_cam, -1, -2)
-        D = (0.5 * dt)[:, None, None] * (R_world_camA + R_world_cam) if x.shape[1] == 6 else None
-        return _predict(x, _ray_map(R_world_camA), p_world_camA - p_world_cam, R_cam_world, D)
+        i_pos = x.shape[1] - 3 if position_states else -1
+        drift = x.shape[1] - 3 * bool(position_states) == 6
+        D = (0.5 * dt)[:, None, None] * (R_world_camA + R_world_cam) if drift else None
+        return _predict(x, _ray_map(R_world_camA), p_world_camA - p_world_cam, R_cam_world, D, i_pos)
 
     def measurement_variance(self, x: np.ndarray) -> np.ndarray:
         """Diagonal of R (M,2) at states x (M,n): pixel noise, white attitude noise of the telemetry
         and 2 (ρ σ_p)² for the anchor and current position errors ⟂ to the ray (normalized units)."""
         att = np.radians(self.config.attitude_sigma_deg) ** 2
         var = self.sigma_xy**2 + att
-        if self.config.position_sigma_m > 0:
-            pos = 2.0 * (np.maximum(x[:, 2], 0.0) * self.config.position_sigma_m) ** 2
+        if self._white_position_sigma > 0:  # not with the δ states (§ Position error states)
+            pos = 2.0 * (np.maximum(x[:, 2], 0.0) * self._white_position_sigma) ** 2
             return var + pos[:, None]
         return np.broadcast_to(var, (len(x), 2))
+
+    def _propagate(self, rows, t) -> None:
+        """§ Position error states, process: Var δ += q Δt per axis (q = 2σ_p²/τ, Δt = t − the row's
+        last propagation, ≥ 0), for bank rows ``rows`` (distinct) to time ``t`` (scalar or per row)."""
+        if self.i_pos < 0 or len(rows) == 0:
+            return
+        t = np.broadcast_to(np.asarray(t, float), (len(rows),))
+        dt = np.maximum(t - self.t_last[rows], 0.0)
+        i = self.i_pos + np.arange(3)
+        P = self.P[rows]
+        P[:, i, i] += self.config.position_diffusion * dt[:, None]
+        self.P[rows] = P
+        self.t_last[rows] = np.maximum(self.t_last[rows], t)
 
     # -- update ---------------------------------------------------------------------------------
     def update(self, ids, xy, R_world_cam, p_world_cam, t) -> UpdateResult:
@@ -322,6 +348,8 @@ class AnchoredInverseDepthEKF:
         ends = np.cumsum([len(r) for _, _, r, _ in parts])
         if ends[-1] == 0:
             return [_no_update(ids) for _, ids, _, _ in parts]
+        for bank, _, r, _ in parts:
+            bank._propagate(r, t)
         gather = [np.concatenate([getattr(b, name)[r] for b, _, r, _ in parts])
                   for name in ("x", "P", "R_world_camA", "p_world_camA", "t_anchor")]
         x, P, good, nis, reason = parts[0][0]._solve(*gather, np.concatenate([z for *_, z in parts]), Rc, C, t)
@@ -335,6 +363,7 @@ class AnchoredInverseDepthEKF:
         """The iterated EKF update of bank rows ``rows`` (validated inputs): (accepted, nis, reason)."""
         if jit.ENABLED:
             return self._kernel_rows(rows, z, Rc, C, t)
+        self._propagate(rows, t)
         x, P, good, nis, reason = self._solve(
             self.x[rows], self.P[rows], self.R_world_camA[rows], self.p_world_camA[rows], self.t_anchor[rows], z, Rc, C, t
         )
@@ -361,7 +390,7 @@ class AnchoredInverseDepthEKF:
     def _kernel_bank(self) -> tuple:
         """The bank arrays the pixel kernels read and update in place."""
         return (self.x, self.P, self.R_world_camA, self.p_world_camA, self.t_anchor, self.n_updates, self.n_rejects,
-                self.diverged, self.nis_avg, self.nis_count)
+                self.diverged, self.nis_avg, self.nis_count, self.t_last)
 
     def _kernel_sequences(self, rows, z, Rc, C, t, count):
         """Run :func:`ekf_anchored_kernels.update_pixel_sequences` on bank rows ``rows`` with observations
@@ -382,7 +411,8 @@ class AnchoredInverseDepthEKF:
         var = self.measurement_variance(x0)
         R_cam_world = np.swapaxes(Rc, -1, -2)
         a = pA - C
-        D = (0.5 * (t - tA))[:, None, None] * (RA + Rc) if self.n == 6 else None
+        D = (0.5 * (t - tA))[:, None, None] * (RA + Rc) if self.drift else None
+        i_pos = self.i_pos
 
         def gain(H):
             """P0 Hᵀ (M,n,2) and S⁻¹ (M,2,2), S = H P0 Hᵀ + R."""
@@ -392,7 +422,7 @@ class AnchoredInverseDepthEKF:
             S[:, 1, 1] += var[:, 1]
             return PHt, _inv2(S)
 
-        h, zhat, H = _predict(x0, ray_map, a, R_cam_world, D)
+        h, zhat, H = _predict(x0, ray_map, a, R_cam_world, D, i_pos)
         behind = h[:, 2] <= 1e-9
         y = z - zhat
         PHt, Si = gain(H)
@@ -408,7 +438,7 @@ class AnchoredInverseDepthEKF:
         innov = y  # at x_0 the H_0 (x0 − x_0) term vanishes
         for it in range(cfg.iterations):
             if it > 0:
-                h, zhat, H = _predict(xi, ray_map, a, R_cam_world, D)
+                h, zhat, H = _predict(xi, ray_map, a, R_cam_world, D, i_pos)
                 PHt, Si = gain(H)
                 K = PHt @ Si
                 ok &= h[:, 2] > 1e-9
@@ -446,18 +476,20 @@ class AnchoredInverseDepthEKF:
     # -- looming (module docstring, docs/derivations/looming.md) ------------------------------
     @staticmethod
     def measure_looming(x, R_world_camA, p_world_camA, R_world_cam_prev, p_world_cam_prev, R_world_cam, p_world_cam,
-                        dt_prev=None, dt=None):
+                        dt_prev=None, dt=None, position_states=False):
         """Predicted scale change h_s (N,) and H_s (N,n) of states x (N,n) between the previous pose
         (R_world_cam_prev, p_world_cam_prev) and the current one; poses (3,3)/(3,) or per landmark.
-        With n = 6, ``dt_prev`` and ``dt`` (N,) are t' − t_anchor and t − t_anchor."""
+        Layout as in :meth:`measure`; with the drift states ``dt_prev`` and ``dt`` (N,) are t' − t_anchor
+        and t − t_anchor."""
         n = len(x)
         RA = np.broadcast_to(np.asarray(R_world_camA, float), (n, 3, 3))
-        drift = x.shape[1] == 6
+        i_pos = x.shape[1] - 3 if position_states else -1
+        drift = x.shape[1] - 3 * bool(position_states) == 6
         zero = np.zeros(n)
         args = _looming_args(RA, np.asarray(p_world_camA, float), zero, np.asarray(R_world_cam_prev, float),
                              np.asarray(p_world_cam_prev, float), dt_prev if drift else zero,
                              np.asarray(R_world_cam, float), np.asarray(p_world_cam, float), dt if drift else zero, drift)
-        _, _, hs, Hs = _looming_predict(x, *args)
+        _, _, hs, Hs = _looming_predict(x, *args, i_pos)
         return hs, Hs
 
     def update_looming(self, ids, scale, scale_sigma, R_world_cam_prev, p_world_cam_prev, t_prev,
@@ -521,6 +553,8 @@ class AnchoredInverseDepthEKF:
         use = np.flatnonzero(reason == UPDATED)
         ends = np.cumsum([len(r) for r in rows])
         starts = np.concatenate([[0], ends[:-1]])
+        for (bank, *_), r in zip(parts, rows):
+            bank._propagate(r, t)
         if len(use):
             bank_of = np.searchsorted(ends, use, side="right")
             gather = {name: np.concatenate([getattr(b, name)[r] for (b, *_), r in zip(parts, rows)])[use]
@@ -549,17 +583,17 @@ class AnchoredInverseDepthEKF:
         cfg = self.config
         c = np.ascontiguousarray
         _kernels.update_looming_rows(
-            self.x, self.P, self.R_world_camA, self.p_world_camA, self.t_anchor, self.n_looming, rows, c(sc), c(sg),
-            c(Rp), c(Cp), t_prev, c(Rc), c(C), t, float(cfg.looming_sigma_floor), cfg.looming_gate_threshold,
-            cfg.looming_iterations, accepted, nis, reason)
+            self.x, self.P, self.R_world_camA, self.p_world_camA, self.t_anchor, self.n_looming, self.t_last, rows, c(sc),
+            c(sg), c(Rp), c(Cp), t_prev, c(Rc), c(C), t, float(cfg.looming_sigma_floor), cfg.looming_gate_threshold,
+            cfg.looming_iterations, self.i_pos, float(cfg.position_diffusion), accepted, nis, reason)
         return UpdateResult(ids, accepted, nis, reason)
 
     def _solve_looming(self, x0, P0, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t):
         """Iterated scalar EKF update (Joseph form) of states x0 (M,n), P0 (M,n,n) with scale
         measurements z (M,) of variance var (M,): (x, P, accepted, nis, reason)."""
         cfg = self.config
-        args = _looming_args(RA, pA, tA, Rp, Cp, t_prev, Rc, C, t, self.n == 6)
-        hzp, hzn, hs, Hs = _looming_predict(x0, *args)
+        args = _looming_args(RA, pA, tA, Rp, Cp, t_prev, Rc, C, t, self.drift)
+        hzp, hzn, hs, Hs = _looming_predict(x0, *args, self.i_pos)
         behind = (hzp <= 1e-9) | (hzn <= 1e-9)
         PHt = (P0 @ Hs[:, :, None])[:, :, 0]  # (M,n)
         S = np.einsum("ni,ni->n", Hs, PHt) + var
@@ -575,7 +609,7 @@ class AnchoredInverseDepthEKF:
         H = Hs
         for it in range(cfg.looming_iterations):
             if it > 0:
-                hzp, hzn, hs, H = _looming_predict(xi, *args)
+                hzp, hzn, hs, H = _looming_predict(xi, *args, self.i_pos)
                 ok &= (hzp > 1e-9) & (hzn > 1e-9)
                 PHt = (P0 @ H[:, :, None])[:, :, 0]
                 S = np.einsum("ni,ni->n", H, PHt) + var
@@ -603,7 +637,7 @@ class AnchoredInverseDepthEKF:
             p_world, rng, rsig, srho = np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros(n)
             valid, converged = np.zeros(n, bool), np.zeros(n, bool)
             _kernels.estimates(x, self.P, self.R_world_camA, self.p_world_camA, self.diverged, self.n_updates, C,
-                               float(cfg.max_range_m), float(cfg.converged_rel_sigma), cfg.min_updates,
+                               float(cfg.max_range_m), float(cfg.converged_rel_sigma), cfg.min_updates, self.i_pos,
                                p_world, rng, rsig, srho, valid, converged)
             return LandmarkEstimates(self.ids.copy(), p_world, rng, rsig, x[:, 2].copy(), srho, converged, valid)
         rho = x[:, 2]
@@ -613,15 +647,24 @@ class AnchoredInverseDepthEKF:
         Rm = np.einsum("nij,njk->nik", self.R_world_camA, _ray_columns(x[:, 0], x[:, 1]))  # R [m, ∂m/∂θ, ∂m/∂φ]
         mw = Rm[:, :, 0]
         a = self.p_world_camA - C
+        # the range's states: (θ, φ, ρ), and δ when carried (the true C_A − C is a + δ)
+        idx = [0, 1, 2] if self.i_pos < 0 else [0, 1, 2, self.i_pos, self.i_pos + 1, self.i_pos + 2]
+        if self.i_pos >= 0:
+            a = a + x[:, self.i_pos : self.i_pos + 3]
         g = rho_eff[:, None] * a + mw  # ρ · (p − C)
         ng = np.linalg.norm(g, axis=1)
         rng = np.minimum(ng / rho_eff, cfg.max_range_m)
-        J = np.zeros((len(x), 3))
+        J = np.zeros((len(x), len(idx)))
         J[:, :2] = np.einsum("ni,nik->nk", g, Rm[:, :, 1:]) / (ng * rho_eff)[:, None]
         J[:, 2] = np.einsum("ni,ni->n", g, a) / (ng * rho_eff) - ng / rho_eff**2
-        rsig = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", J, self.P[:, :3, :3], J), 0.0))
+        if self.i_pos >= 0:
+            J[:, 3:] = g / ng[:, None]  # ∂|a + δ + R m/ρ|/∂δ: the unit vector to the point
+        P_r = self.P[:, idx][:, :, idx]
+        rsig = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", J, P_r, J), 0.0))
         rsig = np.minimum(rsig, cfg.max_range_m)
         p_world = self.p_world_camA + mw / rho_eff[:, None]
+        if self.i_pos >= 0:  # in the telemetry's world frame as of now: C + (C_A − C + δ) + R m/ρ
+            p_world = p_world + x[:, self.i_pos : self.i_pos + 3]
         valid = ~self.diverged & (rho > -3.0 * srho)
         converged = valid & (rho > rho_floor) & (rsig < cfg.converged_rel_sigma * rng) & (self.n_updates >= cfg.min_updates)
         return LandmarkEstimates(self.ids.copy(), p_world, rng, rsig, rho.copy(), srho, converged, valid)

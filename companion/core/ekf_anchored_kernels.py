@@ -14,7 +14,8 @@ Every equation is named after the section of docs/derivations/ekf_anchored.md (�
 model, § Jacobian, § Measurement noise, § Update, § Bookkeeping, § Outputs) or looming.md
 (§ Inverse-depth form, § Jacobian, § Noise, gate and update) that derives it.
 
-State x = (θ, φ, ρ) or (θ, φ, ρ, b) (n = 3 or 6), covariance P (n×n), anchor pose (R_A, C_A, t_A);
+State x = (θ, φ, ρ, [b], [δ]) (n = 3, 6 or 9: the gyro bias b when ``drift``, the position-error
+states δ at index ``i_pos`` ≥ 0, § Position error states), covariance P (n×n), anchor pose (R_A, C_A, t_A);
 the bank's arrays are updated in place at the given rows (the rows of one call must be distinct).
 """
 
@@ -104,20 +105,23 @@ def drift_integral(RA, Rc, dt):
 
 
 @njit(error_model="numpy", inline="always")
-def hc_jacobian(x, RA, a, R_cam_world, D, V, first_row):
+def hc_jacobian(x, RA, a, R_cam_world, D, V, first_row, drift, i_pos):
     """[h_c | ∂h_c/∂x] (3 × (1+n)) into V at state x, § Measurement model and § Jacobian; rows
     ``first_row``…2 only (0: all; 2: h_z and its gradient, for looming).
 
-    ``RA`` = R_world_camA, ``R_cam_world`` = R_cᵀ and the drift integral ``D`` (read when n = 6)
-    are 9-tuples, ``a`` = C_A − C a 3-tuple.
+    ``RA`` = R_world_camA, ``R_cam_world`` = R_cᵀ and the drift integral ``D`` (read when ``drift``)
+    are 9-tuples, ``a`` = C_A − C (reported) a 3-tuple; ``i_pos`` the index of δ in x (−1: none).
 
         m = (cos φ sin θ, −sin φ, cos φ cos θ), ∂m/∂θ = (cos φ cos θ, 0, −cos φ sin θ),
         ∂m/∂φ = (−sin φ sin θ, −cos φ, −sin φ cos θ)
+        with δ: a ← a + δ (§ Position error states)
         g = ρ a + R_A m;  [g | ∂g/∂(θ, φ, ρ)] = [g | R_A ∂m/∂θ | R_A ∂m/∂φ | a]
-        n = 3:  V = R_cᵀ [g | ∂g/∂(θ, φ, ρ)]
-        n = 6:  w = D b, E = Exp(w);  V = [R_cᵀ E [g | ∂g/∂(θ, φ, ρ)] | −R_cᵀ [E g]× J_l D]
+        no drift:  V = R_cᵀ [g | ∂g/∂(θ, φ, ρ)]
+        drift:     w = D b, E = Exp(w);  V = [R_cᵀ E [g | ∂g/∂(θ, φ, ρ)] | −R_cᵀ [E g]× J_l D]
+        with δ, its columns: ∂h_c/∂δ = ρ R_cᵀ E (E = I without drift)
     """
-    n = x.shape[0]
+    if i_pos >= 0:
+        a = (a[0] + x[i_pos], a[1] + x[i_pos + 1], a[2] + x[i_pos + 2])
     ct, st = math.cos(x[0]), math.sin(x[0])
     cp, sp = math.cos(x[1]), math.sin(x[1])
     rho = x[2]
@@ -126,7 +130,7 @@ def hc_jacobian(x, RA, a, R_cam_world, D, V, first_row):
     g_th = matvec3(RA, cp * ct, 0.0, -cp * st)  # ∂g/∂θ = R_A ∂m/∂θ
     g_ph = matvec3(RA, -sp * st, -cp, -sp * ct)  # ∂g/∂φ = R_A ∂m/∂φ
     M = R_cam_world
-    if n == 6:  # attitude drift
+    if drift:  # attitude drift
         w = matvec3(D, x[3], x[4], x[5])
         E, J_l = exp_and_left_jacobian(w[0], w[1], w[2])
         Eg = matvec3(E, g[0], g[1], g[2])
@@ -142,16 +146,20 @@ def hc_jacobian(x, RA, a, R_cam_world, D, V, first_row):
         V[i, 1] = m0 * g_th[0] + m1 * g_th[1] + m2 * g_th[2]
         V[i, 2] = m0 * g_ph[0] + m1 * g_ph[1] + m2 * g_ph[2]
         V[i, 3] = m0 * a[0] + m1 * a[1] + m2 * a[2]
+        if i_pos >= 0:
+            V[i, 1 + i_pos] = rho * m0
+            V[i, 2 + i_pos] = rho * m1
+            V[i, 3 + i_pos] = rho * m2
 
 
 @njit(error_model="numpy", inline="always")
-def predict_pixel(x, RA, a, R_cam_world, D, zhat, H, V):
+def predict_pixel(x, RA, a, R_cam_world, D, zhat, H, V, drift, i_pos):
     """Predicted z̄ = (h_x/h_z, h_y/h_z) into ``zhat`` and H = ∂z/∂x (2×n) into ``H`` at x; returns h_z.
 
     § Jacobian: ∂z/∂h_c = (1/h_z) [I₂ | −z], applied to the rows of ∂h_c/∂x (:func:`hc_jacobian`).
     """
     n = x.shape[0]
-    hc_jacobian(x, RA, a, R_cam_world, D, V, 0)
+    hc_jacobian(x, RA, a, R_cam_world, D, V, 0, drift, i_pos)
     hz = V[2, 0]
     inv_hz = 1.0 / (hz if abs(hz) > _HZ_GUARD else _HZ_GUARD)
     zhat[0] = V[0, 0] * inv_hz
@@ -192,22 +200,43 @@ def pixel_gain(P0, H, var0, var1, PHt, K):
 @njit(error_model="numpy")
 def pixel_workspace(n):
     """Scratch of :func:`update_pixel`, allocated once per kernel call: x₀, x_i (n), P_new (n×n),
-    H (2×n), P₀Hᵀ, K (n×2), V = [h_c | ∂h_c/∂x] (3×7), z̄ (2)."""
+    H (2×n), P₀Hᵀ, K (n×2), V = [h_c | ∂h_c/∂x] (3×(1+n)), z̄ (2)."""
     return (np.empty(n), np.empty(n), np.empty((n, n)), np.empty((2, n)), np.empty((n, 2)), np.empty((n, 2)),
-            np.zeros((3, 7)), np.empty(2))
+            np.zeros((3, 1 + n)), np.empty(2))
 
 
 @njit(error_model="numpy")
-def update_pixel(x, P, RA, pA, tA, z, Rc, C, t, var_px, position_sigma, gate, iterations, ws):
+def layout_drift(n, i_pos):
+    """Whether x carries the gyro bias b (x[3:6]): n = 6 without δ, n = 9 with it."""
+    return n - (3 if i_pos >= 0 else 0) == 6
+
+
+@njit(error_model="numpy")
+def propagate(P, t_last, r, t, i_pos, q):
+    """§ Position error states, process, for bank row r: Var δ += q Δt per axis, Δt = t − t_last[r] ≥ 0,
+    then t_last[r] = max(t_last[r], t).  Nothing without δ (i_pos < 0)."""
+    if i_pos < 0:
+        return
+    dt = t - t_last[r]
+    if dt > 0:
+        for k in range(3):
+            P[r, i_pos + k, i_pos + k] += q * dt
+        t_last[r] = t
+
+
+@njit(error_model="numpy")
+def update_pixel(x, P, RA, pA, tA, z, Rc, C, t, var_px, position_sigma, gate, iterations, ws, i_pos):
     """One landmark's iterated EKF pixel update (§ Update); x (n,) and P (n×n) are overwritten only
     when accepted.  Returns (accepted, NIS at the first linearization, reason code).
 
     Anchor R_A (3×3), C_A (3,), t_A; measurement z (2,) from the pose R_c (3×3), C (3,) at t.
     ``var_px`` (2,) = (σ_px/f)² + σ_att² per axis and ``position_sigma`` = σ_p (§ Measurement noise);
-    ``gate`` = χ²₂(p); ``iterations`` relinearizations (1 = plain EKF); ``ws`` = :func:`pixel_workspace`.
+    ``gate`` = χ²₂(p); ``iterations`` relinearizations (1 = plain EKF); ``ws`` = :func:`pixel_workspace`;
+    ``i_pos`` the index of δ in x (−1: none; δ's covariance already propagated to t by :func:`propagate`).
     """
     x0, xi, P_new, H, PHt, K, V, zhat = ws
     n = x.shape[0]
+    drift = layout_drift(n, i_pos)
     for i in range(n):
         x0[i] = x[i]
     # § Measurement noise: R = diag((σ_px/f)² + σ_att² + 2 (max(ρ₀, 0) σ_p)²), evaluated at the prior x₀
@@ -223,7 +252,7 @@ def update_pixel(x, P, RA, pA, tA, z, Rc, C, t, var_px, position_sigma, gate, it
     D = drift_integral(RA_, Rc_, t - tA)
     R_cam_world = mat3_transposed(Rc)
     # § Update step 1, predict and gate at x₀: y = z − h(x₀), S = H P₀ Hᵀ + R, NIS = yᵀ S⁻¹ y
-    hz = predict_pixel(x0, RA_, a, R_cam_world, D, zhat, H, V)
+    hz = predict_pixel(x0, RA_, a, R_cam_world, D, zhat, H, V, drift, i_pos)
     y0 = z[0] - zhat[0]
     y1 = z[1] - zhat[1]
     i00, i01, i10, i11 = pixel_gain(P, H, var0, var1, PHt, K)
@@ -236,7 +265,7 @@ def update_pixel(x, P, RA, pA, tA, z, Rc, C, t, var_px, position_sigma, gate, it
     for i in range(n):  # first step: at x_0 = x₀ the H_0 (x₀ − x_0) term vanishes, the innovation is y
         xi[i] = x0[i] + (K[i, 0] * y0 + K[i, 1] * y1)
     for _ in range(1, iterations):
-        hz = predict_pixel(xi, RA_, a, R_cam_world, D, zhat, H, V)
+        hz = predict_pixel(xi, RA_, a, R_cam_world, D, zhat, H, V, drift, i_pos)
         if not hz > _HZ_MIN:  # an iterate behind the camera: update dropped; reason stays UPDATED, as in the reference
             return False, nis, UPDATED
         pixel_gain(P, H, var0, var1, PHt, K)
@@ -304,13 +333,13 @@ def commit(r, accepted, nis, n_updates, n_rejects, diverged, nis_avg, nis_count,
 
 
 @njit(error_model="numpy")
-def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count,
+def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count, t_last,
                            rows, z, Rc, C, t, count, var_px, position_sigma, gate, iterations, max_rejects, nis_window,
-                           max_mean_nis, accepted, nis, reason):
+                           max_mean_nis, i_pos, q, accepted, nis, reason):
     """Fuse, for each listed landmark i (bank row ``rows[i]``), its observations j < ``count[i]`` in
     order (z (M,K,2) from poses Rc (M,K,3,3), C (M,K,3) at times t (M,K)), each followed by :func:`commit`.
 
-    The bank arrays (x … nis_count) are updated in place; ``accepted`` (M,K) bool, ``nis`` (M,K) and
+    The bank arrays (x … t_last) are updated in place (δ's covariance propagated before each update); ``accepted`` (M,K) bool, ``nis`` (M,K) and
     ``reason`` (M,K) int8 are written per observation.  One frame of ``update_banks`` is K = 1; a
     buffered replay (``update_sequence``) is K slots: landmarks are independent, so landmark by
     landmark equals the reference's slot-by-slot batches.
@@ -319,8 +348,9 @@ def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis
     for i in range(rows.shape[0]):
         r = rows[i]
         for j in range(count[i]):
+            propagate(P, t_last, r, t[i, j], i_pos, q)
             ok, nis_ij, reason_ij = update_pixel(x[r], P[r], RA[r], pA[r], tA[r], z[i, j], Rc[i, j], C[i, j], t[i, j],
-                                                 var_px, position_sigma, gate, iterations, ws)
+                                                 var_px, position_sigma, gate, iterations, ws, i_pos)
             accepted[i, j] = ok
             nis[i, j] = nis_ij
             reason[i, j] = reason_ij
@@ -329,17 +359,18 @@ def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis
 
 
 @njit(error_model="numpy")
-def update_pixel_rows(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count,
+def update_pixel_rows(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count, t_last,
                       rows, z, Rc, C, t, var_px, position_sigma, gate, iterations, max_rejects, nis_window, max_mean_nis,
-                      accepted, nis, reason):
+                      i_pos, q, accepted, nis, reason):
     """One frame: fuse z[i] (M,2) into bank row ``rows[i]``, all seen from the pose Rc (3,3), C (3,)
     at t, each followed by :func:`commit`; ``accepted``, ``nis``, ``reason`` (M,) written per landmark.
     The same as :func:`update_pixel_sequences` with K = 1 and that pose in every slot."""
     ws = pixel_workspace(x.shape[1])
     for i in range(rows.shape[0]):
         r = rows[i]
+        propagate(P, t_last, r, t, i_pos, q)
         ok, nis_i, reason_i = update_pixel(x[r], P[r], RA[r], pA[r], tA[r], z[i], Rc, C, t, var_px, position_sigma,
-                                           gate, iterations, ws)
+                                           gate, iterations, ws, i_pos)
         accepted[i] = ok
         nis[i] = nis_i
         reason[i] = reason_i
@@ -350,19 +381,19 @@ def update_pixel_rows(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg,
 @njit(error_model="numpy")
 def looming_workspace(n):
     """Scratch of :func:`update_looming`: x₀, x_i, H_s, P₀H_sᵀ, K (n), A = I − K H_s, A P₀, P_new (n×n),
-    the third rows of [h_c | ∂h_c/∂x] at the previous and the current pose (3×7 each, row 2 used)."""
+    the third rows of [h_c | ∂h_c/∂x] at the previous and the current pose (3×(1+n) each, row 2 used)."""
     return (np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty((n, n)), np.empty((n, n)),
-            np.empty((n, n)), np.zeros((3, 7)), np.zeros((3, 7)))
+            np.empty((n, n)), np.zeros((3, 1 + n)), np.zeros((3, 1 + n)))
 
 
 @njit(error_model="numpy", inline="always")
-def predict_looming(x, RA, a_prev, R_cam_world_prev, D_prev, a, R_cam_world, D, Hs, Vp, Vn):
+def predict_looming(x, RA, a_prev, R_cam_world_prev, D_prev, a, R_cam_world, D, Hs, Vp, Vn, drift, i_pos):
     """looming.md § Inverse-depth form and § Jacobian at x: returns (h_z', h_z, h_s = h_z'/h_z) and
     H_s = (∂h_z'/∂x − h_s ∂h_z/∂x)/h_z into ``Hs`` (n); h_z', h_z and their gradients are the third
-    row of [h_c | ∂h_c/∂x] (:func:`hc_jacobian`) at the previous and the current pose."""
+    row of [h_c | ∂h_c/∂x] (:func:`hc_jacobian`) at the previous and the current pose (the same δ at both)."""
     n = x.shape[0]
-    hc_jacobian(x, RA, a_prev, R_cam_world_prev, D_prev, Vp, 2)
-    hc_jacobian(x, RA, a, R_cam_world, D, Vn, 2)
+    hc_jacobian(x, RA, a_prev, R_cam_world_prev, D_prev, Vp, 2, drift, i_pos)
+    hc_jacobian(x, RA, a, R_cam_world, D, Vn, 2, drift, i_pos)
     hz_prev, hz_now = Vp[2, 0], Vn[2, 0]
     inv = 1.0 / (hz_now if abs(hz_now) > _HZ_GUARD else _HZ_GUARD)
     hs = hz_prev * inv
@@ -372,12 +403,13 @@ def predict_looming(x, RA, a_prev, R_cam_world_prev, D_prev, a, R_cam_world, D, 
 
 
 @njit(error_model="numpy")
-def update_looming(x, P, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t, gate, iterations, ws):
+def update_looming(x, P, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t, gate, iterations, ws, i_pos):
     """One landmark's looming update (looming.md § Noise, gate and update): scalar z = scale, R_s = ``var``,
     χ²₁ ``gate``, iterated ``iterations`` times, Joseph form; x, P overwritten only when accepted.
     Previous pose (Rp, Cp, t_prev), current (Rc, C, t).  Returns (accepted, NIS at the first linearization, reason code)."""
     x0, xi, H, PHt, K, A, AP, P_new, Vp, Vn = ws
     n = x.shape[0]
+    drift = layout_drift(n, i_pos)
     for i in range(n):
         x0[i] = x[i]
     RA_ = mat3(RA)
@@ -386,7 +418,7 @@ def update_looming(x, P, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t, gate, ite
     D_prev = drift_integral(RA_, mat3(Rp), t_prev - tA)
     D = drift_integral(RA_, mat3(Rc), t - tA)
     Rcw_prev, Rcw = mat3_transposed(Rp), mat3_transposed(Rc)
-    hzp, hzn, hs = predict_looming(x0, RA_, a_prev, Rcw_prev, D_prev, a, Rcw, D, H, Vp, Vn)
+    hzp, hzn, hs = predict_looming(x0, RA_, a_prev, Rcw_prev, D_prev, a, Rcw, D, H, Vp, Vn, drift, i_pos)
     S = _looming_gain(P, H, var, PHt, K)  # P₀ H_sᵀ, S = H_s P₀ H_sᵀ + R_s, K = P₀ H_sᵀ / S
     y = z - hs
     nis = y * y / S
@@ -397,7 +429,7 @@ def update_looming(x, P, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t, gate, ite
     for i in range(n):
         xi[i] = x0[i] + K[i] * y
     for _ in range(1, iterations):  # iterated EKF, as the pixel update
-        hzp, hzn, hs = predict_looming(xi, RA_, a_prev, Rcw_prev, D_prev, a, Rcw, D, H, Vp, Vn)
+        hzp, hzn, hs = predict_looming(xi, RA_, a_prev, Rcw_prev, D_prev, a, Rcw, D, H, Vp, Vn, drift, i_pos)
         if not (hzp > _HZ_MIN and hzn > _HZ_MIN):
             return False, nis, UPDATED
         _looming_gain(P, H, var, PHt, K)
@@ -444,15 +476,17 @@ def _looming_gain(P0, H, var, PHt, K):
 
 
 @njit(error_model="numpy")
-def update_looming_rows(x, P, RA, pA, tA, n_looming, rows, z, sigma, Rp, Cp, t_prev, Rc, C, t, sigma_floor, gate,
-                        iterations, accepted, nis, reason):
+def update_looming_rows(x, P, RA, pA, tA, n_looming, t_last, rows, z, sigma, Rp, Cp, t_prev, Rc, C, t, sigma_floor, gate,
+                        iterations, i_pos, q, accepted, nis, reason):
     """Looming updates of bank rows ``rows`` with scales z (M,) of σ ``sigma`` (M,) between the shared
     previous (Rp, Cp, t_prev) and current (Rc, C, t) poses; bank arrays updated in place, ``n_looming``
     counts accepted ones.  A NaN scale is skipped (LOOM_NAN), a non-positive or non-finite scale or σ
-    refused (LOOM_NONPOSITIVE), both with NIS NaN; R_s = σ² + σ_floor²."""
+    refused (LOOM_NONPOSITIVE), both with NIS NaN; R_s = σ² + σ_floor².  Every listed row's δ covariance
+    is first propagated to t (:func:`propagate`)."""
     ws = looming_workspace(x.shape[1])
     for i in range(rows.shape[0]):
         r = rows[i]
+        propagate(P, t_last, r, t, i_pos, q)
         zi, si = z[i], sigma[i]
         accepted[i] = False
         nis[i] = np.nan
@@ -464,7 +498,7 @@ def update_looming_rows(x, P, RA, pA, tA, n_looming, rows, z, sigma, Rp, Cp, t_p
             continue
         var = si * si + sigma_floor * sigma_floor
         ok, nis_i, reason_i = update_looming(x[r], P[r], RA[r], pA[r], tA[r], zi, var, Rp, Cp, t_prev, Rc, C, t, gate,
-                                             iterations, ws)
+                                             iterations, ws, i_pos)
         accepted[i] = ok
         nis[i] = nis_i
         reason[i] = reason_i
@@ -474,16 +508,20 @@ def update_looming_rows(x, P, RA, pA, tA, n_looming, rows, z, sigma, Rp, Cp, t_p
 
 # -- outputs ------------------------------------------------------------------------------------------
 @njit(error_model="numpy")
-def estimates(x, P, RA, pA, diverged, n_updates, C, max_range, converged_rel_sigma, min_updates,
+def estimates(x, P, RA, pA, diverged, n_updates, C, max_range, converged_rel_sigma, min_updates, i_pos,
               p_world, rng, rsig, srho, valid, converged):
     """§ Outputs and convergence, per landmark, relative to the camera centre C (3,), into the (N,…) outputs:
 
-        ρ_eff = max(ρ, 1/max_range), g = ρ_eff (C_A − C) + R_A m, r = min(|g|/ρ_eff, max_range),
-        ∂r/∂(θ, φ) = gᵀ R_A ∂m/∂(θ, φ) / (|g| ρ_eff), ∂r/∂ρ = gᵀ (C_A − C)/(|g| ρ_eff) − |g|/ρ_eff²,
-        σ_r = min(√(J P_[θφρ] Jᵀ), max_range), p_world = C_A + R_A m / ρ_eff,
+        a = C_A − C (+ δ when i_pos ≥ 0), ρ_eff = max(ρ, 1/max_range), g = ρ_eff a + R_A m,
+        r = min(|g|/ρ_eff, max_range),
+        ∂r/∂(θ, φ) = gᵀ R_A ∂m/∂(θ, φ) / (|g| ρ_eff), ∂r/∂ρ = gᵀ a/(|g| ρ_eff) − |g|/ρ_eff², ∂r/∂δ = g/|g|,
+        σ_r = min(√(J P_[θφρ(δ)] Jᵀ), max_range), p_world = C_A (+ δ) + R_A m / ρ_eff,
         valid = not diverged and ρ > −3 σ_ρ, converged = valid, ρ > 1/max_range, σ_r < k r, n_updates ≥ min.
     """
     rho_floor = 1.0 / max_range
+    J = np.zeros(6)
+    idx = np.array([0, 1, 2, max(i_pos, 0), max(i_pos, 0) + 1, max(i_pos, 0) + 2])
+    nj = 6 if i_pos >= 0 else 3
     for l in range(x.shape[0]):
         th, ph, rho = x[l, 0], x[l, 1], x[l, 2]
         ct, st, cp, sp = math.cos(th), math.sin(th), math.cos(ph), math.sin(ph)
@@ -497,8 +535,12 @@ def estimates(x, P, RA, pA, diverged, n_updates, C, max_range, converged_rel_sig
         for i in range(3):
             mw = R[i, 0] * (cp * st) - R[i, 1] * sp + R[i, 2] * (cp * ct)  # R_A m
             a_i = pA[l, i] - C[i]
-            g_i = rho_eff * a_i + mw
             p_world[l, i] = pA[l, i] + mw / rho_eff
+            if i_pos >= 0:
+                a_i = a_i + x[l, i_pos + i]
+                p_world[l, i] = p_world[l, i] + x[l, i_pos + i]
+            g_i = rho_eff * a_i + mw
+            J[3 + i] = g_i  # ∂r/∂δ_i = g_i/|g|, normalized below
             ng2 += g_i * g_i
             gm_t += g_i * (R[i, 0] * (cp * ct) - R[i, 2] * (cp * st))
             gm_p += g_i * (-R[i, 0] * (sp * st) - R[i, 1] * cp - R[i, 2] * (sp * ct))
@@ -511,6 +553,16 @@ def estimates(x, P, RA, pA, diverged, n_updates, C, max_range, converged_rel_sig
         var = (J0 * (P[l, 0, 0] * J0 + P[l, 0, 1] * J1 + P[l, 0, 2] * J2)
                + J1 * (P[l, 1, 0] * J0 + P[l, 1, 1] * J1 + P[l, 1, 2] * J2)
                + J2 * (P[l, 2, 0] * J0 + P[l, 2, 1] * J1 + P[l, 2, 2] * J2))
+        if nj == 6:  # J P Jᵀ over (θ, φ, ρ, δ)
+            J[0], J[1], J[2] = J0, J1, J2
+            for k in range(3, 6):
+                J[k] = J[k] / ng
+            var = 0.0
+            for i in range(6):
+                s = 0.0
+                for k in range(6):
+                    s += P[l, idx[i], idx[k]] * J[k]
+                var += J[i] * s
         sr = min(math.sqrt(max(var, 0.0)), max_range)
         rng[l] = r
         rsig[l] = sr
@@ -521,8 +573,9 @@ def estimates(x, P, RA, pA, diverged, n_updates, C, max_range, converged_rel_sig
 
 @jit.register_warmup
 def warm_up() -> None:
-    """Compile (or load) every kernel on one landmark with 3 and 6 states, in the array layouts the filter passes."""
-    for n in (3, 6):
+    """Compile (or load) every kernel on one landmark with 3, 6 and 9 states (with and without δ), in the array
+    layouts the filter passes (one signature serves them all: the layout is a run-time argument)."""
+    for n, i_pos in ((3, -1), (6, -1), (6, 3), (9, 6)):
         x = np.zeros((1, n))
         x[0, 2] = 0.1
         P = np.eye(n)[None] * 1e-4
@@ -530,14 +583,14 @@ def warm_up() -> None:
         i64, b = np.zeros(1, np.int64), np.zeros(1, bool)
         rows, one = np.zeros(1, np.int64), np.ones(1, np.int64)
         Rc, C = np.eye(3), np.array([0.0, 0.0, -1.0])
-        update_pixel_sequences(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(),
+        update_pixel_sequences(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(), np.zeros(1),
                                rows, np.zeros((1, 1, 2)), Rc[None, None].copy(), C[None, None].copy(), np.ones((1, 1)),
-                               one, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0,
+                               one, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 1e-3,
                                np.zeros((1, 1), bool), np.zeros((1, 1)), np.zeros((1, 1), np.int8))
-        update_pixel_rows(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(),
-                          rows, np.zeros((1, 2)), Rc, C, 1.0, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0,
+        update_pixel_rows(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(), np.zeros(1),
+                          rows, np.zeros((1, 2)), Rc, C, 1.0, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 1e-3,
                           np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
-        update_looming_rows(x, P, RA, pA, tA, i64.copy(), rows, np.ones(1), np.zeros(1), Rc, np.zeros(3), 0.0, Rc, C, 1.0,
-                            0.003, 10.8, 1, np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
-        estimates(x, P, RA, pA, b, i64, np.zeros(3), 1e4, 0.1, 3, np.zeros((1, 3)), np.zeros(1), np.zeros(1), np.zeros(1),
-                  np.zeros(1, bool), np.zeros(1, bool))
+        update_looming_rows(x, P, RA, pA, tA, i64.copy(), np.zeros(1), rows, np.ones(1), np.zeros(1), Rc, np.zeros(3), 0.0,
+                            Rc, C, 1.0, 0.003, 10.8, 1, i_pos, 1e-3, np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
+        estimates(x, P, RA, pA, b, i64, np.zeros(3), 1e4, 0.1, 3, i_pos, np.zeros((1, 3)), np.zeros(1), np.zeros(1),
+                  np.zeros(1), np.zeros(1, bool), np.zeros(1, bool))

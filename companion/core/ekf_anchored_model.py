@@ -38,6 +38,17 @@ Each landmark estimates its own copy of b from its own pixels only, so every fil
 proper posterior of its own measurements (the bank does not pool b across landmarks).  Without
 drift (n = 3 states) the same equations hold with b = 0.
 
+Position error states (docs/derivations/ekf_anchored.md § Position error states).  The telemetry's
+position is C_reported = C_true + e(t), with e a first-order Gauss–Markov error (σ_p, τ), correlated
+over a landmark's life.  When ``position_tau_s`` > 0 each filter carries three more states, last in x:
+δ = e(t) − e(t_anchor) (world frame, m).  The true C_A − C is then the reported one plus δ:
+
+    g = ρ (p_world_camA − C + δ) + R_world_camA · m(θ, φ),   ∂h_c/∂δ = ρ R_cam_world Exp(w)
+
+and δ is a random walk between updates, Var δ growing by q Δt per axis with q = 2σ_p²/τ (the
+Gauss–Markov difference over Δt ≪ τ); it starts at 0 with zero variance at the anchor.  The white
+2 (ρ σ_p)² of R is then dropped: the error is in the state instead.
+
 Looming (docs/derivations/looming.md).  A small surface patch facing the camera images
 with a size ∝ 1/Z, Z its depth along the optical axis, so the patch scale change between the
 previous frame (pose R_world_cam', C', time t') and the current one (R_world_cam, C, t) measured
@@ -87,6 +98,7 @@ class AnchoredEKFConfig:
     attitude_sigma_deg: float = 0.0  # white attitude error of each telemetry pose
     attitude_drift_deg_s: float = 0.03  # σ of the gyro bias per axis (°/s); > 0 adds 3 bias states
     position_sigma_m: float = 0.1  # σ of the telemetry's camera position error per axis (m), seen as ρ·σ at the landmark
+    position_tau_s: float = 0.0  # correlation time of that error (s); > 0 adds 3 states δ = e(t) − e(t_anchor) per landmark
     converged_rel_sigma: float = 0.1  # converged when range σ / range is below this
     min_updates: int = 3  # ... and at least this many accepted updates
     max_consecutive_rejects: int = 5  # then the landmark is flagged diverged
@@ -110,6 +122,7 @@ class AnchoredEKFConfig:
         require(isinstance(self.max_consecutive_rejects, int) and self.max_consecutive_rejects >= 1, "max_consecutive_rejects must be >= 1")
         require_finite("max_range_m", self.max_range_m, positive=True)
         require_finite("position_sigma_m", self.position_sigma_m, nonnegative=True)
+        require_finite("position_tau_s", self.position_tau_s, nonnegative=True)
         require_finite("nis_window", self.nis_window)
         require(self.nis_window >= 1.0, f"nis_window must be >= 1, got {self.nis_window}")
         require_finite("max_mean_nis", self.max_mean_nis, nonnegative=True)
@@ -122,6 +135,24 @@ class AnchoredEKFConfig:
             0.5 < self.looming_gate_probability < 1.0,
             f"looming_gate_probability must be in (0.5, 1), got {self.looming_gate_probability}",
         )
+
+    @property
+    def position_states(self) -> bool:
+        """True when each filter carries the position-error difference δ (§ Position error states)."""
+        return self.position_tau_s > 0 and self.position_sigma_m > 0
+
+    @property
+    def position_diffusion(self) -> float:
+        """q = 2σ_p²/τ (m²/s per axis): the growth rate of Var δ, the difference of a first-order
+        Gauss–Markov error (σ_p, τ) over Δt ≪ τ (§ Position error states); 0 without the states."""
+        return 2.0 * self.position_sigma_m**2 / self.position_tau_s if self.position_states else 0.0
+
+    def layout(self) -> tuple[int, bool, int]:
+        """(n, drift, i_pos): state size, whether the gyro-bias states b are in x (x[3:6]) and the index
+        of δ in x (−1 when absent).  x = (θ, φ, ρ, [b], [δ])."""
+        drift = self.attitude_drift_deg_s > 0
+        i_pos = (6 if drift else 3) if self.position_states else -1
+        return 3 + 3 * drift + 3 * (i_pos >= 0), drift, i_pos
 
     @property
     def gate_threshold(self) -> float:
@@ -265,15 +296,15 @@ def _ray_map(R_world_camA: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(RM.transpose(0, 2, 1, 3)).reshape(n, 6, 12)
 
 
-def _predict(x, ray_map, a, R_cam_world, D):
+def _predict(x, ray_map, a, R_cam_world, D, i_pos=-1):
     """h_c (N,3), z (N,2) and H (N,2,n) of the module docstring at states x (N,n).
 
     ``ray_map`` = :func:`_ray_map` of the anchor rotations, ``a`` = p_world_camA − C (N,3),
     ``R_cam_world`` (3,3) or (N,3,3) and the drift integral ``D`` (N,3,3; None without drift
     states): the parts that stay fixed over the iterated-EKF relinearizations, computed once per
-    update by the caller.
+    update by the caller.  ``i_pos``: index of the position-error states δ in x (−1: none).
     """
-    V = _hc_jacobian(x, ray_map, a, R_cam_world, D)
+    V = _hc_jacobian(x, ray_map, a, R_cam_world, D, i_pos)
     h = V[:, :, 0]
     hz = h[:, 2]
     inv_hz = 1.0 / np.where(np.abs(hz) > 1e-12, hz, 1e-12)
@@ -283,19 +314,25 @@ def _predict(x, ray_map, a, R_cam_world, D):
     return h, z, H
 
 
-def _hc_jacobian(x, ray_map, a, R_cam_world, D):
+def _hc_jacobian(x, ray_map, a, R_cam_world, D, i_pos=-1):
     """[h_c | ∂h_c/∂x] (N, 3, 1+n) at states x (N,n); arguments as in :func:`_predict`."""
     n = len(x)
+    if i_pos >= 0:  # the true C_A − C is the reported one plus δ (§ Position error states)
+        a = a + x[:, i_pos : i_pos + 3]
     # W = [g | ∂g/∂(θ, φ, ρ)] with g = ρ a + R_world_camA m, ∂g/∂θ = R ∂m/∂θ, ∂g/∂φ = R ∂m/∂φ, ∂g/∂ρ = a
     W = (_ray_products(x[:, :2])[:, None, :] @ ray_map).reshape(n, 3, 4)
     W[:, :, 3] = a
     W[:, :, 0] += x[:, 2:3] * a
+    E = None
     if D is not None:  # [Exp(w) g | Exp(w) ∂g/∂(θ, φ, ρ) | −[Exp(w) g]× J_l(w) D]
-        E, J_l = _exp_and_left_jacobian((D @ x[:, 3:, None])[:, :, 0])
+        E, J_l = _exp_and_left_jacobian((D @ x[:, 3:6, None])[:, :, 0])
         W7 = np.empty((n, 3, 7))
         np.matmul(E, W, out=W7[:, :, :4])
         np.matmul((W7[:, :, 0] @ -SKEW_MAP).reshape(n, 3, 3), J_l @ D, out=W7[:, :, 4:])
         W = W7
+    if i_pos >= 0:  # ∂g/∂δ = ρ I, so ∂(Exp(w) g)/∂δ = ρ Exp(w)
+        rho = x[:, 2, None, None]
+        W = np.concatenate([W, rho * E if E is not None else rho * _I3], axis=2)
     if R_cam_world.ndim == 2:  # one pose for all: a single (3,3)·(3, N·k) product
         k = W.shape[2]
         V = (R_cam_world @ W.transpose(1, 0, 2).reshape(3, n * k)).reshape(3, n, k).transpose(1, 0, 2)
@@ -317,11 +354,12 @@ def _looming_args(RA, pA, tA, Rp, Cp, t_prev, Rc, C, t, drift: bool):
     return np.concatenate([ray_map, ray_map]), a2, R2, D2
 
 
-def _looming_predict(x, ray_map2, a2, R2, D2):
+def _looming_predict(x, ray_map2, a2, R2, D2, i_pos=-1):
     """h_z' (N,), h_z (N,), h_s = h_z'/h_z (N,) and H_s (N,n) of the looming model (module docstring)
-    at states x (N,n); the other arguments from :func:`_looming_args` (one evaluation for both poses)."""
+    at states x (N,n); the other arguments from :func:`_looming_args` (one evaluation for both poses;
+    the same δ at both, ``i_pos`` its index or −1)."""
     n = len(x)
-    V = _hc_jacobian(np.concatenate([x, x]), ray_map2, a2, R2, D2)[:, 2, :]
+    V = _hc_jacobian(np.concatenate([x, x]), ray_map2, a2, R2, D2, i_pos)[:, 2, :]
     Vp, Vn = V[:n], V[n:]
     hz_prev, hz_now = Vp[:, 0], Vn[:, 0]
     inv = 1.0 / np.where(np.abs(hz_now) > 1e-12, hz_now, 1e-12)
