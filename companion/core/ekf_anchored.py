@@ -130,7 +130,7 @@ class AnchoredInverseDepthEKF:
         self._kernel_constants = (
             self.sigma_xy**2 + np.radians(config.attitude_sigma_deg) ** 2, self._white_position_sigma, config.gate_threshold,
             config.iterations, config.max_consecutive_rejects, float(config.nis_window), float(config.max_mean_nis),
-            self.i_pos, float(config.position_diffusion))
+            self.i_pos, float(config.position_variance_limit), float(config.position_tau_s))
 
     @property
     def _white_position_sigma(self) -> float:
@@ -251,15 +251,19 @@ class AnchoredInverseDepthEKF:
         return np.broadcast_to(var, (len(x), 2))
 
     def _propagate(self, rows, t) -> None:
-        """§ Position error states, process: Var δ += q Δt per axis (q = 2σ_p²/τ, Δt = t − the row's
-        last propagation, ≥ 0), for bank rows ``rows`` (distinct) to time ``t`` (scalar or per row)."""
+        """§ Position error states, process: for bank rows ``rows`` (distinct) advanced from their last
+        propagation t_last to ``t`` (scalar or per row; nothing where t ≤ t_last), Var δ per axis grows by
+        2σ_p² (exp(−(t_last − t_A)/τ) − exp(−(t − t_A)/τ)), so that it equals the Gauss–Markov difference's
+        2σ_p² (1 − exp(−(t − t_A)/τ)) at every update when no measurement has informed it."""
         if self.i_pos < 0 or len(rows) == 0:
             return
         t = np.broadcast_to(np.asarray(t, float), (len(rows),))
-        dt = np.maximum(t - self.t_last[rows], 0.0)
+        t_last, tA = self.t_last[rows], self.t_anchor[rows]
+        tau = float(self.config.position_tau_s)
+        grow = np.where(t > t_last, self.config.position_variance_limit * (np.exp(-(t_last - tA) / tau) - np.exp(-(t - tA) / tau)), 0.0)
         i = self.i_pos + np.arange(3)
         P = self.P[rows]
-        P[:, i, i] += self.config.position_diffusion * dt[:, None]
+        P[:, i, i] += grow[:, None]
         self.P[rows] = P
         self.t_last[rows] = np.maximum(self.t_last[rows], t)
 
@@ -585,7 +589,8 @@ class AnchoredInverseDepthEKF:
         _kernels.update_looming_rows(
             self.x, self.P, self.R_world_camA, self.p_world_camA, self.t_anchor, self.n_looming, self.t_last, rows, c(sc),
             c(sg), c(Rp), c(Cp), t_prev, c(Rc), c(C), t, float(cfg.looming_sigma_floor), cfg.looming_gate_threshold,
-            cfg.looming_iterations, self.i_pos, float(cfg.position_diffusion), accepted, nis, reason)
+            cfg.looming_iterations, self.i_pos, float(cfg.position_variance_limit), float(cfg.position_tau_s), accepted, nis,
+            reason)
         return UpdateResult(ids, accepted, nis, reason)
 
     def _solve_looming(self, x0, P0, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t):

@@ -212,15 +212,16 @@ def layout_drift(n, i_pos):
 
 
 @njit(error_model="numpy")
-def propagate(P, t_last, r, t, i_pos, q):
-    """§ Position error states, process, for bank row r: Var δ += q Δt per axis, Δt = t − t_last[r] ≥ 0,
-    then t_last[r] = max(t_last[r], t).  Nothing without δ (i_pos < 0)."""
+def propagate(P, t_last, tA, r, t, i_pos, pos_var, pos_tau):
+    """§ Position error states, process, for bank row r advanced from t_last[r] to t > t_last[r]: Var δ per
+    axis grows by 2σ_p² (exp(−(t_last − t_A)/τ) − exp(−(t − t_A)/τ)) (``pos_var`` = 2σ_p², ``pos_tau`` = τ),
+    then t_last[r] = t.  Nothing without δ (i_pos < 0) or when t ≤ t_last[r]."""
     if i_pos < 0:
         return
-    dt = t - t_last[r]
-    if dt > 0:
+    if t > t_last[r]:
+        grow = pos_var * (math.exp(-(t_last[r] - tA[r]) / pos_tau) - math.exp(-(t - tA[r]) / pos_tau))
         for k in range(3):
-            P[r, i_pos + k, i_pos + k] += q * dt
+            P[r, i_pos + k, i_pos + k] += grow
         t_last[r] = t
 
 
@@ -335,7 +336,7 @@ def commit(r, accepted, nis, n_updates, n_rejects, diverged, nis_avg, nis_count,
 @njit(error_model="numpy")
 def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count, t_last,
                            rows, z, Rc, C, t, count, var_px, position_sigma, gate, iterations, max_rejects, nis_window,
-                           max_mean_nis, i_pos, q, accepted, nis, reason):
+                           max_mean_nis, i_pos, pos_var, pos_tau, accepted, nis, reason):
     """Fuse, for each listed landmark i (bank row ``rows[i]``), its observations j < ``count[i]`` in
     order (z (M,K,2) from poses Rc (M,K,3,3), C (M,K,3) at times t (M,K)), each followed by :func:`commit`.
 
@@ -348,7 +349,7 @@ def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis
     for i in range(rows.shape[0]):
         r = rows[i]
         for j in range(count[i]):
-            propagate(P, t_last, r, t[i, j], i_pos, q)
+            propagate(P, t_last, tA, r, t[i, j], i_pos, pos_var, pos_tau)
             ok, nis_ij, reason_ij = update_pixel(x[r], P[r], RA[r], pA[r], tA[r], z[i, j], Rc[i, j], C[i, j], t[i, j],
                                                  var_px, position_sigma, gate, iterations, ws, i_pos)
             accepted[i, j] = ok
@@ -361,14 +362,14 @@ def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis
 @njit(error_model="numpy")
 def update_pixel_rows(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count, t_last,
                       rows, z, Rc, C, t, var_px, position_sigma, gate, iterations, max_rejects, nis_window, max_mean_nis,
-                      i_pos, q, accepted, nis, reason):
+                      i_pos, pos_var, pos_tau, accepted, nis, reason):
     """One frame: fuse z[i] (M,2) into bank row ``rows[i]``, all seen from the pose Rc (3,3), C (3,)
     at t, each followed by :func:`commit`; ``accepted``, ``nis``, ``reason`` (M,) written per landmark.
     The same as :func:`update_pixel_sequences` with K = 1 and that pose in every slot."""
     ws = pixel_workspace(x.shape[1])
     for i in range(rows.shape[0]):
         r = rows[i]
-        propagate(P, t_last, r, t, i_pos, q)
+        propagate(P, t_last, tA, r, t, i_pos, pos_var, pos_tau)
         ok, nis_i, reason_i = update_pixel(x[r], P[r], RA[r], pA[r], tA[r], z[i], Rc, C, t, var_px, position_sigma,
                                            gate, iterations, ws, i_pos)
         accepted[i] = ok
@@ -477,7 +478,7 @@ def _looming_gain(P0, H, var, PHt, K):
 
 @njit(error_model="numpy")
 def update_looming_rows(x, P, RA, pA, tA, n_looming, t_last, rows, z, sigma, Rp, Cp, t_prev, Rc, C, t, sigma_floor, gate,
-                        iterations, i_pos, q, accepted, nis, reason):
+                        iterations, i_pos, pos_var, pos_tau, accepted, nis, reason):
     """Looming updates of bank rows ``rows`` with scales z (M,) of σ ``sigma`` (M,) between the shared
     previous (Rp, Cp, t_prev) and current (Rc, C, t) poses; bank arrays updated in place, ``n_looming``
     counts accepted ones.  A NaN scale is skipped (LOOM_NAN), a non-positive or non-finite scale or σ
@@ -486,7 +487,7 @@ def update_looming_rows(x, P, RA, pA, tA, n_looming, t_last, rows, z, sigma, Rp,
     ws = looming_workspace(x.shape[1])
     for i in range(rows.shape[0]):
         r = rows[i]
-        propagate(P, t_last, r, t, i_pos, q)
+        propagate(P, t_last, tA, r, t, i_pos, pos_var, pos_tau)
         zi, si = z[i], sigma[i]
         accepted[i] = False
         nis[i] = np.nan
@@ -585,12 +586,12 @@ def warm_up() -> None:
         Rc, C = np.eye(3), np.array([0.0, 0.0, -1.0])
         update_pixel_sequences(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(), np.zeros(1),
                                rows, np.zeros((1, 1, 2)), Rc[None, None].copy(), C[None, None].copy(), np.ones((1, 1)),
-                               one, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 1e-3,
+                               one, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 0.02, 30.0,
                                np.zeros((1, 1), bool), np.zeros((1, 1)), np.zeros((1, 1), np.int8))
         update_pixel_rows(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(), np.zeros(1),
-                          rows, np.zeros((1, 2)), Rc, C, 1.0, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 1e-3,
+                          rows, np.zeros((1, 2)), Rc, C, 1.0, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 0.02, 30.0,
                           np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
         update_looming_rows(x, P, RA, pA, tA, i64.copy(), np.zeros(1), rows, np.ones(1), np.zeros(1), Rc, np.zeros(3), 0.0,
-                            Rc, C, 1.0, 0.003, 10.8, 1, i_pos, 1e-3, np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
+                            Rc, C, 1.0, 0.003, 10.8, 1, i_pos, 0.02, 30.0, np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
         estimates(x, P, RA, pA, b, i64, np.zeros(3), 1e4, 0.1, 3, i_pos, np.zeros((1, 3)), np.zeros(1), np.zeros(1),
                   np.zeros(1), np.zeros(1, bool), np.zeros(1, bool))

@@ -45,8 +45,8 @@ over a landmark's life.  When ``position_tau_s`` > 0 each filter carries three m
 
     g = ρ (p_world_camA − C + δ) + R_world_camA · m(θ, φ),   ∂h_c/∂δ = ρ R_cam_world Exp(w)
 
-and δ is a random walk between updates, Var δ growing by q Δt per axis with q = 2σ_p²/τ (the
-Gauss–Markov difference over Δt ≪ τ); it starts at 0 with zero variance at the anchor.  The white
+and between updates Var δ grows per axis as the Gauss–Markov difference does, to
+2σ_p² (1 − exp(−(t − t_anchor)/τ)) (``AnchoredEKFConfig.delta_variance``); δ starts at 0 with zero variance at the anchor.  The white
 2 (ρ σ_p)² of R is then dropped: the error is in the state instead.
 
 Looming (docs/derivations/looming.md).  A small surface patch facing the camera images
@@ -142,10 +142,16 @@ class AnchoredEKFConfig:
         return self.position_tau_s > 0 and self.position_sigma_m > 0
 
     @property
-    def position_diffusion(self) -> float:
-        """q = 2σ_p²/τ (m²/s per axis): the growth rate of Var δ, the difference of a first-order
-        Gauss–Markov error (σ_p, τ) over Δt ≪ τ (§ Position error states); 0 without the states."""
-        return 2.0 * self.position_sigma_m**2 / self.position_tau_s if self.position_states else 0.0
+    def position_variance_limit(self) -> float:
+        """2σ_p² (m² per axis): Var δ for t − t_anchor ≫ τ, the variance of the difference of two
+        independent samples of the Gauss–Markov error (§ Position error states); 0 without the states."""
+        return 2.0 * self.position_sigma_m**2 if self.position_states else 0.0
+
+    def delta_variance(self, dt):
+        """Var δ per axis a time ``dt`` (≥ 0) after the anchor: 2σ_p² (1 − exp(−dt/τ)) (§ Position error states)."""
+        if not self.position_states:
+            return 0.0 * np.asarray(dt, float)
+        return self.position_variance_limit * -np.expm1(-np.asarray(dt, float) / self.position_tau_s)
 
     def layout(self) -> tuple[int, bool, int]:
         """(n, drift, i_pos): state size, whether the gyro-bias states b are in x (x[3:6]) and the index
