@@ -249,7 +249,7 @@ def test_gauss_markov_position_error_honest_with_states(path, kind):
           else dict(sigma=0.1, speed=4.0, dist=(10.0, 40.0), lat=5.0, T=6.0))
     runs = 40
     states = AnchoredEKFConfig(**BARE, position_sigma_m=kw["sigma"], position_tau_s=30.0)
-    white = AnchoredEKFConfig(**BARE, position_sigma_m=kw["sigma"])
+    white = AnchoredEKFConfig(**BARE, position_sigma_m=kw["sigma"], position_tau_s=0.0)
     nees_s, cov_s = _gauss_markov_flight(states, runs, **kw)
     nees_w, cov_w = _gauss_markov_flight(white, runs, **kw)
     # ~130–160 NEES samples but only 40 position-error paths (the landmarks of one run share theirs): the
