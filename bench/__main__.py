@@ -122,6 +122,10 @@ def main(argv=None) -> int:
         from bench import compute
 
         return compute.main(argv[1:])
+    if argv[:1] == ["position_states"]:  # its own command line (python -m bench.position_states --help)
+        from bench import position_states
+
+        return position_states.main(argv[1:])
     if argv[:1] == ["telemetry_ablation"]:  # its own command line (python -m bench.telemetry_ablation --help)
         from bench import telemetry_ablation
 
@@ -185,6 +189,9 @@ def main(argv=None) -> int:
     sub.add_parser("telemetry_ablation", help="SITL campaigns with parts of the simulated telemetry error switched off: "
                                               "which error makes the forward σ over-confident (options: python -m bench "
                                               "telemetry_ablation --help)", add_help=False)
+    sub.add_parser("position_states", help="the anchored EKF under a Gauss–Markov position error, white model vs the "
+                                           "position-error states: range NEES and coverage (options: python -m bench "
+                                           "position_states --help)", add_help=False)
     sub.add_parser("compute", help="CPU per 640×480 frame of the whole pipeline on one core, compiled kernels vs the numpy "
                                    "reference (options: python -m bench compute --help)", add_help=False)
     p = sub.add_parser("timing", help="per-stage timings on one core", description="per-stage timings on one core")

@@ -204,39 +204,12 @@ def test_range_sigma_includes_delta():
     np.testing.assert_allclose(e.p_world[0], [0.0, 0.0, 20.3], atol=1e-9)
 
 
-def _gauss_markov_flight(cfg, runs, sigma, tau=30.0, speed=8.0, dist=(30.0, 80.0), lat=8.0, n=8, T=3.0, hz=20):
-    """Seeded Monte Carlo: a camera flying along its axis, telemetry positions with a Gauss–Markov error
-    (σ, τ); the range at the end against the truth.  Returns (range NEES, ±2σ coverage) of the landmarks in view
-    at the end."""
-    K, dt, f = int(T * hz), 1.0 / hz, 500.0
-    t = np.arange(K) * dt
-    C = np.stack([np.zeros(K), np.sin(2 * t), speed * t], 1)
-    R = so3_exp(np.stack([0.02 * np.sin(t), 0.03 * np.sin(1.3 * t), 0.02 * t], 1))
-    a = np.exp(-dt / tau)
-    nees, cover = [], []
-    for r in range(runs):
-        g = np.random.default_rng(1000 + r)
-        p = np.stack([g.uniform(-lat, lat, n), g.uniform(-lat / 2, lat / 2, n), g.uniform(*dist, n)], 1)
-        e = np.zeros((K, 3))
-        e[0] = g.normal(scale=sigma, size=3)
-        for k in range(1, K):
-            e[k] = a * e[k - 1] + sigma * np.sqrt(1 - a * a) * g.standard_normal(3)
-        C_rep = C + e
-        ekf = AnchoredInverseDepthEKF(cfg, f, f)
-        ids = np.arange(n)
-        for k in range(K):
-            pc = (p - C[k]) @ R[k]
-            xy = pc[:, :2] / pc[:, 2:3] + g.normal(scale=1.0 / f, size=(n, 2))
-            seen = (pc[:, 2] > 0) & np.all(np.abs(xy) < 0.6, 1)  # in a 62° field of view
-            if k == 0:
-                ekf.add(ids, xy, R[0], C_rep[0], t[0], 1.0 / np.mean(dist), 1.0 / dist[0])
-            else:
-                ekf.update(ids[seen], xy[seen], R[k], C_rep[k], t[k])
-        est = ekf.estimates(C_rep[-1])
-        err = (est.range - np.linalg.norm(p - C[-1], axis=1))[seen]  # the landmarks still in view
-        nees.append(err**2 / est.range_sigma[seen] ** 2)
-        cover.append(np.abs(err) <= 2 * est.range_sigma[seen])
-    return np.concatenate(nees), np.concatenate(cover)
+def _gauss_markov_flight(cfg, runs, **kw):
+    """bench.position_states' seeded flights: (range NEES, within ±2σ) of the landmarks in view at the end."""
+    from bench.position_states import gauss_markov_flight
+
+    e, s, _ = gauss_markov_flight(cfg, runs, **kw)
+    return e**2 / s**2, np.abs(e) <= 2 * s
 
 
 @pytest.mark.parametrize("kind", ["fixed-wing", "quad"])
@@ -245,8 +218,9 @@ def test_gauss_markov_position_error_honest_with_states(path, kind):
     is ≈ 1 and ±2σ covers ≈ 95 % (≥ 90 % asserted); the same flights with the error treated as white noise are
     over-confident (NEES ≈ 3.5–4.3, ±2σ ≈ 70 % at 100 runs): a correlated error does not average out."""
     path(True)
-    kw = (dict(sigma=0.5, speed=30.0, dist=(100.0, 250.0), lat=30.0, T=5.0) if kind == "fixed-wing"
-          else dict(sigma=0.1, speed=4.0, dist=(10.0, 40.0), lat=5.0, T=6.0))
+    from bench.position_states import CASES
+
+    kw = CASES[kind]
     runs = 40
     states = AnchoredEKFConfig(**BARE, position_sigma_m=kw["sigma"], position_tau_s=30.0)
     white = AnchoredEKFConfig(**BARE, position_sigma_m=kw["sigma"], position_tau_s=0.0)
@@ -257,3 +231,20 @@ def test_gauss_markov_position_error_honest_with_states(path, kind):
     assert 0.5 <= nees_s.mean() <= 1.71, nees_s.mean()
     assert cov_s.mean() >= 0.9, cov_s.mean()  # 95.4 % expected; ~40 independent paths
     assert nees_w.mean() > 2.0 and cov_w.mean() < 0.85, (nees_w.mean(), cov_w.mean())
+
+
+def test_bench_command_prints_every_case(capsys):
+    """python -m bench.position_states: a table row (and a JSON entry) per case and model."""
+    from bench import position_states
+
+    assert position_states.main(["--runs", "3", "--json"]) == 0
+    import json
+
+    res = json.loads(capsys.readouterr().out)
+    assert set(res) == {"quad/white", "quad/states", "fixed-wing/white", "fixed-wing/states"}
+    assert all(r["runs"] == 3 and r["landmarks"] > 0 and np.isfinite(r["nees_mean"]) for r in res.values())
+    assert position_states.main(["--runs", "2"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ")]
+    assert len(rows) == 1 + 4  # header + a row per case and model
+    with pytest.raises(SystemExit):
+        position_states.main(["--runs", "1"])
