@@ -16,7 +16,7 @@ from companion.core.ekf_anchored import AnchoredEKFConfig, AnchoredInverseDepthE
 from companion.core.frames import so3_exp
 from companion.errors import ConfigError
 
-from test_ekf_anchored_kernels import same_banks, same_results
+from test_ekf_anchored_kernels import flight_bank, same_banks, same_results
 
 BARE = dict(attitude_drift_deg_s=0.0, max_mean_nis=0.0)
 #: (attitude_drift_deg_s, position_tau_s) → (n, drift, i_pos)
@@ -134,24 +134,9 @@ def test_process_grows_the_delta_variance_also_when_rejected(path, kernels):
     assert bank.P[0, 3, 3] < 2 * 0.5**2
 
 
-def _bank(drift, seed=0, n=30, frames=12, **extra):
-    g = np.random.default_rng(seed)
-    f = 400.0
-    cfg = AnchoredEKFConfig(**{**BARE, "attitude_drift_deg_s": drift, "position_sigma_m": 0.3, "position_tau_s": 20.0,
-                               "iterations": 3, **extra})
-    bank = AnchoredInverseDepthEKF(cfg, f, f)
-    ids = np.arange(100, 100 + n)
-    p = np.stack([g.uniform(-8, 8, n), g.uniform(-4, 4, n), g.uniform(8, 60, n)], 1)
-    k = np.arange(frames)
-    t = 0.05 * k
-    C = np.stack([0.3 * np.sin(t), 0.1 * np.cos(2 * t), 1.5 * k * 0.05 * 6], 1)
-    R = so3_exp(np.stack([0.02 * np.sin(3 * t), 0.03 * np.sin(2 * t), 0.01 * k], 1))
-    pc = np.einsum("kji,knj->kni", R, p[None] - C[:, None])
-    xy = pc[..., :2] / pc[..., 2:] + g.normal(scale=1.0 / f, size=(frames, n, 2))
-    xy[g.integers(1, frames, 4), g.integers(0, n, 4)] += 0.2
-    C_rep = C + g.normal(scale=0.05, size=C.shape).cumsum(0)  # a drifting reported position
-    bank.add(ids, xy[0], R[0], C_rep[0], t[0], g.uniform(0.005, 0.05, n), 0.03)
-    return bank, ids, xy, R, C_rep, t
+def _bank(drift, seed=0):
+    """test_ekf_anchored_kernels' flight bank with the position-error states (and the gyro bias when ``drift``)."""
+    return flight_bank(seed=seed, attitude_drift_deg_s=drift, position_sigma_m=0.3, position_tau_s=20.0, iterations=3)
 
 
 @pytest.mark.parametrize("drift", [0.0, 0.03])
