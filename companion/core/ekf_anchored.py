@@ -11,7 +11,10 @@ Update: iterated EKF (Gauss–Newton on the prior + measurement cost, ``iteratio
 P = (I − K H) P₀ at the last linearization, symmetrized (the looming update below uses the Joseph form).
 Measurement noise R = (σ_px/f)² + σ_att² (white attitude noise of each telemetry sample)
 + 2 (ρ σ_p)² (the telemetry's position error at the anchor and now, seen from the landmark at
-inverse depth ρ; treated as white, an approximation for GPS-like correlated error).
+inverse depth ρ; treated as white, an approximation for GPS-like correlated error).  With
+``position_tau_s`` > 0 that last term is replaced by the position-error states δ, whose covariance
+grows between updates (:meth:`AnchoredInverseDepthEKF._propagate`, before every pixel or looming
+update of a landmark, accepted or not).
 
 The numpy code here is the *reference*: every operation is batched over landmarks, arrays of shape
 (N, 3), (N, 3, 3), no loop per landmark.  When compiled kernels are on (:mod:`companion.core.jit`)
@@ -125,8 +128,9 @@ class AnchoredInverseDepthEKF:
         self.nis_count = np.zeros(0, dtype=np.int64)  # measurements in nis_avg
         self.n_looming = np.zeros(0, dtype=np.int64)  # accepted looming (scale) updates
         self.t_last = np.zeros(0)  # time δ's covariance was last propagated to (§ Position error states)
-        #: the pixel kernels' constants: (σ_px/f)² + σ_att² (2,), σ_p, χ²₂ gate, iterations, reject limit,
-        #: NIS window, mean-NIS limit (§ Measurement noise, § Update, § Bookkeeping)
+        #: the pixel kernels' constants: (σ_px/f)² + σ_att² (2,), the white σ_p (0 with the δ states), χ²₂ gate,
+        #: iterations, reject limit, NIS window, mean-NIS limit, the index of δ (−1: none), 2σ_p² and τ of its
+        #: process (§ Measurement noise, § Update, § Bookkeeping, § Position error states)
         self._kernel_constants = (
             self.sigma_xy**2 + np.radians(config.attitude_sigma_deg) ** 2, self._white_position_sigma, config.gate_threshold,
             config.iterations, config.max_consecutive_rejects, float(config.nis_window), float(config.max_mean_nis),
@@ -501,7 +505,8 @@ class AnchoredInverseDepthEKF:
         """Fuse one looming measurement per listed landmark: ``scale`` (M,) = image size now / in the
         previous frame (pose R_world_cam_prev, p_world_cam_prev at t_prev) with σ ``scale_sigma``
         (M,) or None (the floor only).  NaN scales are skipped (``LOOM_NAN``), non-positive or
-        infinite ones refused (``LOOM_NONPOSITIVE``); neither raises."""
+        infinite ones refused (``LOOM_NONPOSITIVE``); neither raises.  With the position-error states
+        every listed landmark's δ covariance is first propagated to t, skipped or not (time has passed)."""
         return self.update_looming_banks([(self, ids, scale, scale_sigma)], R_world_cam_prev, p_world_cam_prev, t_prev,
                                          R_world_cam, p_world_cam, t)[0]
 
