@@ -71,20 +71,13 @@ def gauss_markov_flight(cfg, runs: int, sigma: float, tau: float = 30.0, speed: 
     return np.concatenate(err), np.concatenate(sig), np.concatenate(run)
 
 
-def nees_band(runs: int, p: float = 0.95) -> tuple[float, float]:
-    """Two-sided band of the mean of ``runs`` independent χ²₁ samples."""
-    from scipy.stats import chi2
-
-    lo, hi = chi2.ppf([(1 - p) / 2, (1 + p) / 2], runs)
-    return float(lo / runs), float(hi / runs)
-
-
 def run(runs: int = 100) -> dict:
     """Every case × model: NEES (mean, median, band), coverage, RMS error, median σ."""
     from companion.core.ekf_anchored import AnchoredEKFConfig
+    from flightsim.score.stats import coverage, nees_band
 
     out = {}
-    band = nees_band(runs)
+    band = nees_band(runs)  # the mean of `runs` independent χ²₁ samples (one per run: its landmarks share the error)
     for case, kw in CASES.items():
         for model, tau in MODELS.items():
             cfg = AnchoredEKFConfig(attitude_drift_deg_s=0.0, max_mean_nis=0.0, position_sigma_m=kw["sigma"], position_tau_s=tau)
@@ -93,7 +86,7 @@ def run(runs: int = 100) -> dict:
             out[f"{case}/{model}"] = dict(
                 case=case, model=model, landmarks=int(len(e)), runs=runs, nees_mean=float(nees.mean()),
                 nees_median=float(np.median(nees)), band=band, consistent=bool(band[0] <= nees.mean() <= band[1]),
-                within_1sigma=float(np.mean(np.abs(e) <= s)), within_2sigma=float(np.mean(np.abs(e) <= 2 * s)),
+                within_1sigma=coverage(e, s, 1.0), within_2sigma=coverage(e, s, 2.0),
                 rms_error_m=float(np.sqrt(np.mean(e**2))), median_sigma_m=float(np.median(s)))
     return out
 

@@ -58,6 +58,7 @@ from companion.core.ekf_anchored_model import (  # noqa: F401
     _ray_columns,
     _ray_map,
     angles_of,
+    layout_of,
     inverse_depth_state,
     ray,
     ray_jacobian,
@@ -239,8 +240,7 @@ class AnchoredInverseDepthEKF:
         b is present when the remaining size is 6, and then ``dt`` (N,) is t − t_anchor.
         """
         R_cam_world = np.swapaxes(R_world_cam, -1, -2)
-        i_pos = x.shape[1] - 3 if position_states else -1
-        drift = x.shape[1] - 3 * bool(position_states) == 6
+        drift, i_pos = layout_of(x.shape[1], position_states)
         D = (0.5 * dt)[:, None, None] * (R_world_camA + R_world_cam) if drift else None
         return _predict(x, _ray_map(R_world_camA), p_world_camA - p_world_cam, R_cam_world, D, i_pos)
 
@@ -257,19 +257,18 @@ class AnchoredInverseDepthEKF:
     def _propagate(self, rows, t) -> None:
         """§ Position error states, process: for bank rows ``rows`` (distinct) advanced from their last
         propagation t_last to ``t`` (scalar or per row; nothing where t ≤ t_last), Var δ per axis grows by
-        2σ_p² (exp(−(t_last − t_A)/τ) − exp(−(t − t_A)/τ)), so that it equals the Gauss–Markov difference's
-        2σ_p² (1 − exp(−(t − t_A)/τ)) at every update when no measurement has informed it."""
+        V(t − t_A) − V(t_last − t_A), V = :meth:`AnchoredEKFConfig.delta_variance`, so that it equals the
+        Gauss–Markov difference's 2σ_p² (1 − exp(−(t − t_A)/τ)) at every update when no measurement has informed it."""
         if self.i_pos < 0 or len(rows) == 0:
             return
         t = np.broadcast_to(np.asarray(t, float), (len(rows),))
         t_last, tA = self.t_last[rows], self.t_anchor[rows]
-        tau = float(self.config.position_tau_s)
-        grow = np.where(t > t_last, self.config.position_variance_limit * (np.exp(-(t_last - tA) / tau) - np.exp(-(t - tA) / tau)), 0.0)
+        later = t > t_last
+        V = self.config.delta_variance
+        grow = np.where(later, V(t - tA) - V(t_last - tA), 0.0)
         i = self.i_pos + np.arange(3)
-        P = self.P[rows]
-        P[:, i, i] += grow[:, None]
-        self.P[rows] = P
-        self.t_last[rows] = np.maximum(self.t_last[rows], t)
+        self.P[rows[:, None], i, i] += grow[:, None]
+        self.t_last[rows] = np.where(later, t, t_last)
 
     # -- update ---------------------------------------------------------------------------------
     def update(self, ids, xy, R_world_cam, p_world_cam, t) -> UpdateResult:
@@ -491,8 +490,7 @@ class AnchoredInverseDepthEKF:
         and t − t_anchor."""
         n = len(x)
         RA = np.broadcast_to(np.asarray(R_world_camA, float), (n, 3, 3))
-        i_pos = x.shape[1] - 3 if position_states else -1
-        drift = x.shape[1] - 3 * bool(position_states) == 6
+        drift, i_pos = layout_of(x.shape[1], position_states)
         zero = np.zeros(n)
         args = _looming_args(RA, np.asarray(p_world_camA, float), zero, np.asarray(R_world_cam_prev, float),
                              np.asarray(p_world_cam_prev, float), dt_prev if drift else zero,

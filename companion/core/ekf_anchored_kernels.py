@@ -207,19 +207,20 @@ def pixel_workspace(n):
 
 @njit(error_model="numpy")
 def layout_drift(n, i_pos):
-    """Whether x carries the gyro bias b (x[3:6]): n = 6 without δ, n = 9 with it."""
+    """Whether x carries the gyro bias b (x[3:6]): n = 6 without δ, n = 9 with it (the rule of
+    ekf_anchored_model.layout_of, compiled)."""
     return n - (3 if i_pos >= 0 else 0) == 6
 
 
 @njit(error_model="numpy")
 def propagate(P, t_last, tA, r, t, i_pos, pos_var, pos_tau):
     """§ Position error states, process, for bank row r advanced from t_last[r] to t > t_last[r]: Var δ per
-    axis grows by 2σ_p² (exp(−(t_last − t_A)/τ) − exp(−(t − t_A)/τ)) (``pos_var`` = 2σ_p², ``pos_tau`` = τ),
-    then t_last[r] = t.  Nothing without δ (i_pos < 0) or when t ≤ t_last[r]."""
+    axis grows by V(t − t_A) − V(t_last − t_A), V(Δ) = 2σ_p² (1 − exp(−Δ/τ)) (``pos_var`` = 2σ_p², ``pos_tau`` = τ;
+    AnchoredEKFConfig.delta_variance), then t_last[r] = t.  Nothing without δ (i_pos < 0) or when t ≤ t_last[r]."""
     if i_pos < 0:
         return
     if t > t_last[r]:
-        grow = pos_var * (math.exp(-(t_last[r] - tA[r]) / pos_tau) - math.exp(-(t - tA[r]) / pos_tau))
+        grow = pos_var * (math.exp(-(t_last[r] - tA[r]) / pos_tau) - math.exp(-(t - tA[r]) / pos_tau))  # V(t) − V(t_last)
         for k in range(3):
             P[r, i_pos + k, i_pos + k] += grow
         t_last[r] = t
@@ -551,10 +552,11 @@ def estimates(x, P, RA, pA, diverged, n_updates, C, max_range, converged_rel_sig
         J0 = gm_t / (ng * rho_eff)
         J1 = gm_p / (ng * rho_eff)
         J2 = ga / (ng * rho_eff) - ng / rho_eff**2
-        var = (J0 * (P[l, 0, 0] * J0 + P[l, 0, 1] * J1 + P[l, 0, 2] * J2)
-               + J1 * (P[l, 1, 0] * J0 + P[l, 1, 1] * J1 + P[l, 1, 2] * J2)
-               + J2 * (P[l, 2, 0] * J0 + P[l, 2, 1] * J1 + P[l, 2, 2] * J2))
-        if nj == 6:  # J P Jᵀ over (θ, φ, ρ, δ)
+        if nj == 3:
+            var = (J0 * (P[l, 0, 0] * J0 + P[l, 0, 1] * J1 + P[l, 0, 2] * J2)
+                   + J1 * (P[l, 1, 0] * J0 + P[l, 1, 1] * J1 + P[l, 1, 2] * J2)
+                   + J2 * (P[l, 2, 0] * J0 + P[l, 2, 1] * J1 + P[l, 2, 2] * J2))
+        else:  # J P Jᵀ over (θ, φ, ρ, δ)
             J[0], J[1], J[2] = J0, J1, J2
             for k in range(3, 6):
                 J[k] = J[k] / ng

@@ -157,8 +157,8 @@ class AnchoredEKFConfig:
         """(n, drift, i_pos): state size, whether the gyro-bias states b are in x (x[3:6]) and the index
         of δ in x (−1 when absent).  x = (θ, φ, ρ, [b], [δ])."""
         drift = self.attitude_drift_deg_s > 0
-        i_pos = (6 if drift else 3) if self.position_states else -1
-        return 3 + 3 * drift + 3 * (i_pos >= 0), drift, i_pos
+        n = 3 + 3 * drift + 3 * self.position_states
+        return (n, *layout_of(n, self.position_states))
 
     @property
     def gate_threshold(self) -> float:
@@ -208,6 +208,12 @@ class LandmarkEstimates:
     inv_depth_sigma: np.ndarray  # (N,)
     converged: np.ndarray  # (N,) bool
     valid: np.ndarray  # (N,) bool: not diverged, ρ not significantly negative
+
+
+def layout_of(n: int, position_states: bool) -> tuple[bool, int]:
+    """(drift, i_pos) of a state vector of size ``n`` = (θ, φ, ρ, [b], [δ]): the gyro bias b is x[3:6]
+    when what is left without δ has 6 entries; δ, when carried, is last (i_pos = n − 3, else −1)."""
+    return n - 3 * bool(position_states) == 6, (n - 3 if position_states else -1)
 
 
 def ray(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
