@@ -51,7 +51,7 @@ from companion.core.obstacle_map import ObstacleMap, live_view, map_entries, poi
 from companion.core.prediction import make_track_predictor
 from companion.core.priority import detection_priority, live_points_per_sector
 from companion.core.sectors import Sectors, compute_sectors
-from companion.core.tracks import TrackManager
+from companion.core.tracks import DROP_REFERENCE, TrackManager
 from companion.errors import CompanionError
 from companion.telemetry import TelemetryBuffer
 
@@ -410,12 +410,17 @@ class Pipeline:
             predict = make_track_predictor(self.camera, self.config.prediction, self._cam_prev, (R_wc, p_wc), depth_of)
         stage = res.stage_cpu_s
         c0 = time.thread_time()
-        tf = self.tracks.step(gray, t, self._k, predict, priority_mask=self._detection_priority(res, R_wb, v_w))
+        tf = self.tracks.step(gray, t, self._k, predict, priority_mask=self._detection_priority(res, R_wb, v_w), R_world_cam=R_wc)
         c1 = time.thread_time()
         stage["track"] = c1 - c0
         self._k += 1
         if len(tf.dropped_ids):
             self.estimator.drop(tf.dropped_ids)
+            inconsistent = tf.dropped_ids[tf.drop_reason == DROP_REFERENCE]
+            if len(inconsistent):  # an occlusion edge or a drifted track: what it left in the map goes too
+                self.counters["tracks_reference_mismatch"] += len(inconsistent)
+                if self.map is not None:
+                    self.map.forget(inconsistent + self._key_base)
         out = self.estimator.process(t, R_wc, p_wc, tf.ids, tf.uv, scale=tf.scale, scale_sigma=tf.scale_sigma)  # looming (§7)
         if len(out.retired_ids):
             self.tracks.kill(out.retired_ids)

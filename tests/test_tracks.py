@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.core import ncc
+from companion.core import ncc, tracks
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.harris import HarrisConfig
 from companion.core.ncc import NCCConfig
@@ -222,3 +222,124 @@ def test_killed_tracks_end_for_good(scene):
     fr = tm.step(scene.render(np.array([1.0, 0.5])), 1 / 30, 1)
     assert not np.any(np.isin(fr.ids, victims)), "a killed track must not be observed again"
     assert tm.n_live <= 60 and set(fr.ids.tolist()) <= set(first.ids[10:].tolist()) | set(fr.new_ids.tolist())
+
+
+# ---- the reference-patch check (feature monitoring: occlusion edges and drift) ---------------------
+
+def _layers(fg, bg, k, x0=160):
+    """A static near layer left of column ``x0`` over a far texture sliding right by 1 px per frame:
+    corners on the boundary are T-junctions whose two halves move apart."""
+    img = bg.render((1.0 * k, 0.0))
+    img[:, :x0] = fg.render((0.0, 0.0))[:, :x0]
+    return img
+
+
+def _fates(tm, frames, R=lambda k: None):
+    f0 = tm.step(frames(0), 0.0, 0, R_world_cam=R(0))
+    x0 = dict(zip(f0.ids.tolist(), f0.uv[:, 0]))
+    fate = {}
+    for k in range(1, 16):
+        fr = tm.step(frames(k), k / 30.0, k, R_world_cam=R(k))
+        for i, r in zip(fr.dropped_ids.tolist(), fr.drop_reason.tolist()):
+            fate.setdefault(i, r)
+    return x0, fate
+
+
+@pytest.mark.parametrize("threshold", [0.5, 0.7])
+def test_reference_check_drops_t_junctions_and_keeps_surface_points(threshold):
+    fg, bg = Scene(seed=1), Scene(seed=2)
+    frames = lambda k: _layers(fg, bg, k)  # noqa: E731
+    kw = dict(max_tracks=200, redetect_fraction=0.0)
+    x_off, fate_off = _fates(manager(reference_min_ncc=0.0, **kw), frames)
+    x_on, fate_on = _fates(manager(reference_min_ncc=threshold, **kw), frames)
+    assert x_off == x_on  # same corners either way
+    edge = [i for i, x in x_on.items() if abs(x - 160) < 5]
+    inner = [i for i, x in x_on.items() if abs(x - 160) > 15]
+    assert len(edge) >= 4 and len(inner) >= 100
+    # frame-to-frame matching keeps the T-junctions: the template is re-cut where the track sits
+    assert not any(fate_off.get(i) == tracks.DROP_REFERENCE for i in x_off)
+    assert sum(i not in fate_off for i in edge) >= 0.8 * len(edge)
+    # the reference check drops them, and no point inside either layer
+    assert sum(fate_on.get(i) == tracks.DROP_REFERENCE for i in edge) >= 0.8 * len(edge)
+    assert not any(fate_on.get(i) == tracks.DROP_REFERENCE for i in inner)
+    assert DROP_REASON_NAMES[tracks.DROP_REFERENCE] == "reference mismatch"
+
+
+def _rolled(base, k, deg):
+    M = cv2.getRotationMatrix2D(((W - 1) / 2, (H - 1) / 2), deg * k, 1.0)
+    return cv2.warpAffine(base, M, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def _Rz(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_reference_check_undoes_the_camera_rotation(scene):
+    """The camera rolls 1.5° per frame about its optical axis (the image turns the other way):
+    with the attitude the check warps each reference by the rotation's homography and keeps every
+    track; without it the turned patches stop matching; with a wrong attitude all of them go."""
+    base = scene.render((0.0, 0.0))
+    frames = lambda k: _rolled(base, k, 1.5)  # noqa: E731
+    kw = dict(max_tracks=150, redetect_fraction=0.0, reference_min_ncc=0.5)
+    for R, expect in ((lambda k: _Rz(np.radians(1.5 * k)), "none"), (lambda k: None, "some"),
+                      (lambda k: _Rz(np.radians(-1.5 * k)), "all")):
+        x, fate = _fates(manager(**kw), frames, R)
+        n_ref = sum(r == tracks.DROP_REFERENCE for r in fate.values())
+        if expect == "none":
+            assert n_ref == 0
+        elif expect == "some":
+            assert n_ref >= 10
+        else:
+            assert n_ref >= 0.8 * len(x)
+
+
+def test_reference_check_keeps_tracks_through_a_zoom(scene):
+    """Looming: the image grows 1.5 % per frame about its centre; the reference is compared at the
+    scale change since it was cut, so only tracks that leave the image end."""
+    base = scene.render((0.0, 0.0))
+
+    def frames(k):
+        M = cv2.getRotationMatrix2D(((W - 1) / 2, (H - 1) / 2), 0.0, 1.015 ** k)
+        return cv2.warpAffine(base, M, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+    x, fate = _fates(manager(max_tracks=150, redetect_fraction=0.0, reference_min_ncc=0.5), frames)
+    assert len(x) == 150 and not any(r == tracks.DROP_REFERENCE for r in fate.values())
+
+
+def test_reference_check_on_a_translation_changes_nothing(scene):
+    steps = np.array([[0, 0], [1.25, 0.5], [1.5, -0.75], [2.0, 0.25], [0.75, 1.0], [-1.0, 0.5], [3.0, 0.0], [0.5, -2.25]])
+    shifts = np.cumsum(np.tile(steps, (3, 1)), 0)
+    out = []
+    for thr in (0.0, 0.7):
+        tm = manager(reference_min_ncc=thr)
+        fr = [tm.step(scene.render(s), k / 30.0, k) for k, s in enumerate(shifts)]
+        assert not any(np.any(f.drop_reason == tracks.DROP_REFERENCE) for f in fr)
+        out.append(fr[-1])
+    assert np.array_equal(out[0].ids, out[1].ids) and np.array_equal(out[0].uv, out[1].uv)
+
+
+def test_zncc_patches():
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(3, 7, 7))
+    b = np.stack([2 * a[0] + 5, -a[1], rng.normal(size=(7, 7))])
+    r = tracks.zncc_patches(a, b)
+    assert r[0] == pytest.approx(1.0) and r[1] == pytest.approx(-1.0)
+    ref = np.corrcoef(a[2].ravel(), b[2].ravel())[0, 1]
+    assert r[2] == pytest.approx(ref, rel=1e-5)
+    flat = tracks.zncc_patches(np.ones((1, 5, 5)), a[:1, :5, :5])
+    assert np.isnan(flat[0])
+
+
+@pytest.mark.parametrize("bad", [dict(reference_min_ncc=-0.1), dict(reference_min_ncc=1.0), dict(reference_min_ncc=float("nan")),
+                                 dict(reference_half=1), dict(reference_half=2.5), dict(reference_refresh_frames=0),
+                                 dict(reference_refresh_frames=True)])
+def test_reference_settings_are_validated(bad):
+    with pytest.raises(ConfigError):
+        TrackConfig(**bad)
+
+
+def test_reference_check_rejects_a_bad_attitude(scene):
+    tm = manager(reference_min_ncc=0.5)
+    with pytest.raises(InputError, match="R_world_cam"):
+        tm.step(scene.render((0.0, 0.0)), 0.0, 0, R_world_cam=np.full((3, 3), np.nan))

@@ -50,14 +50,31 @@ from companion.core import ncc as _ncc
 from companion.core.camera import CameraModel
 from companion.core.harris import HarrisConfig, as_gray_u8, detect_harris
 from companion.core.ncc import NCCConfig, extract_templates, match_ncc, match_templates
+from companion.core.ncc_templates import _bilinear, extract_scaled_templates
 from companion.errors import InputError
 
 #: Drop reasons in :attr:`TrackFrame.drop_reason`: the NCC verdicts of :mod:`companion.core.ncc`
 #: (OUT_OF_IMAGE, FLAT_TEMPLATE, LOW_SCORE, AMBIGUOUS, PEAK_AT_EDGE, EDGE_TEMPLATE) plus:
 DROP_DUPLICATE = 10  # two tracks converged onto the same point: the younger one is dropped
+DROP_REFERENCE = 11  # the track's reference patch no longer matches where it is: an occlusion edge or drift
 
-DROP_REASON_NAMES = {**_ncc.REASON_NAMES, DROP_DUPLICATE: "duplicate"}
+DROP_REASON_NAMES = {**_ncc.REASON_NAMES, DROP_DUPLICATE: "duplicate", DROP_REFERENCE: "reference mismatch"}
 del DROP_REASON_NAMES[_ncc.OK]
+
+def zncc_patches(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N,) zero-mean normalized cross-correlation of the patch pairs ``a[i]``, ``b[i]`` ((N, h, w));
+    NaN where either patch is flat (no variance), which a caller must treat as "not measured"."""
+    a = np.asarray(a, np.float32).reshape(len(a), -1)
+    b = np.asarray(b, np.float32).reshape(len(b), -1)
+    a = a - a.mean(axis=1, keepdims=True)
+    b = b - b.mean(axis=1, keepdims=True)
+    den = np.sqrt(np.einsum("ij,ij->i", a, a) * np.einsum("ij,ij->i", b, b))
+    num = np.einsum("ij,ij->i", a, b)
+    out = np.full(len(a), np.nan)
+    ok = den > 1e-6
+    out[ok] = num[ok] / den[ok]
+    return out
+
 
 Predictor = Callable[[np.ndarray, np.ndarray], "tuple[np.ndarray, np.ndarray | float]"]
 
@@ -77,6 +94,9 @@ class TrackConfig:
     priority_min_tracks: int = 20  # refill (into the region only) when it holds fewer live tracks than this, whatever the total (0 = off)
     priority_band_range_m: float = 8.0  # the flight-path band of the region: rows within ± band_half_height_m at this range (pipeline)
     priority_path_half_width_deg: float = 15.0  # ... and the columns within this bearing of the flight path (pipeline)
+    reference_min_ncc: float = 0.5  # a track whose reference patch correlates below this where it now is is dropped (0 = off)
+    reference_half: int = 7  # half size of the reference patch: (2h+1)² px
+    reference_refresh_frames: int = 1000  # a passing reference patch is re-cut after this many frames
 
     def __post_init__(self) -> None:
         require(isinstance(self.max_tracks, int) and self.max_tracks >= 1, f"max_tracks must be an integer >= 1, got {self.max_tracks!r}")
@@ -95,6 +115,13 @@ class TrackConfig:
         require_finite("priority_band_range_m", self.priority_band_range_m, positive=True)
         require_finite("priority_path_half_width_deg", self.priority_path_half_width_deg, nonnegative=True)
         require(self.priority_path_half_width_deg <= 180, "priority_path_half_width_deg must be <= 180")
+        require_finite("reference_min_ncc", self.reference_min_ncc, nonnegative=True)
+        require(self.reference_min_ncc < 1.0, f"reference_min_ncc must be < 1, got {self.reference_min_ncc}")
+        require(isinstance(self.reference_half, int) and not isinstance(self.reference_half, bool) and self.reference_half >= 2,
+                f"reference_half must be an integer >= 2, got {self.reference_half!r}")
+        require(isinstance(self.reference_refresh_frames, int) and not isinstance(self.reference_refresh_frames, bool)
+                and self.reference_refresh_frames >= 1,
+                f"reference_refresh_frames must be an integer >= 1, got {self.reference_refresh_frames!r}")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -186,6 +213,15 @@ class TrackManager:
         self._h_uv = np.zeros((s, hlen, 2))
         self._h_frame = np.zeros((s, hlen), np.int64)
         self._h_t = np.zeros((s, hlen))
+        rr = 2 * config.reference_half + 1
+        self._ref = np.zeros((s, rr, rr), np.float32)  # reference patch (see _check_reference)
+        self._ref_ok = np.zeros(s, bool)  # the reference patch fitted in the image when cut
+        self._ref_uv = np.zeros((s, 2))  # the pixel it was cut at
+        self._ref_frame = np.zeros(s, np.int64)  # frame it was cut in
+        self._ref_scale = np.ones(s)  # patch scale change since then
+        self._ref_R = np.tile(np.eye(3), (s, 1, 1))  # camera attitude R_world_cam when it was cut (identity: unknown)
+        self._ref_R_ok = np.zeros(s, bool)
+        self._R_now: np.ndarray | None = None
         self._slot_of: dict[int, int] = {}
         self._next_id = 0
         self._prev_gray: np.ndarray | None = None
@@ -297,7 +333,7 @@ class TrackManager:
         return uv_pred, radius
 
     def step(self, gray: np.ndarray, t: float, frame_index: int, predict: Predictor | None = None,
-             priority_mask: np.ndarray | None = None) -> TrackFrame:
+             priority_mask: np.ndarray | None = None, R_world_cam: np.ndarray | None = None) -> TrackFrame:
         """Track all live tracks into ``gray``, drop failures, refill with Harris corners.
 
         ``gray``: 2-D uint8 frame of the camera's size; ``t``: capture time in seconds, strictly
@@ -311,8 +347,16 @@ class TrackManager:
         ``priority_share`` of its budget to corners inside it first and the rest anywhere; with
         ``priority_min_tracks`` > 0 a refill into the region alone also runs when it holds fewer
         live tracks than that, even with enough tracks in total.
+
+        ``R_world_cam``: optional camera attitude of this frame (telemetry); the reference-patch check
+        (``reference_min_ncc`` > 0) then undoes the camera's rotation since each reference was cut.
         """
         gray, t, frame_index = self._check_inputs(gray, t, frame_index)
+        if R_world_cam is not None:
+            R_world_cam = np.asarray(R_world_cam, float)
+            if R_world_cam.shape != (3, 3) or not np.all(np.isfinite(R_world_cam)):
+                raise InputError("R_world_cam must be a finite 3×3 rotation matrix")
+        self._R_now = R_world_cam
         if priority_mask is not None:
             priority_mask = np.asarray(priority_mask)
             if priority_mask.shape != gray.shape:
@@ -391,6 +435,12 @@ class TrackManager:
                     drop_slots.append(dup)
                     drop_codes.append(np.full(len(dup), DROP_DUPLICATE, np.int8))
                     s_ok = np.setdiff1d(s_ok, dup)
+            if cfg.reference_min_ncc > 0 and len(s_ok):
+                bad = self._check_reference(gray, s_ok, frame_index)
+                if len(bad):
+                    drop_slots.append(bad)
+                    drop_codes.append(np.full(len(bad), DROP_REFERENCE, np.int8))
+                    s_ok = np.setdiff1d(s_ok, bad)
             matched_slots = s_ok
 
         dropped_ids = np.zeros(0, np.int64)
@@ -438,7 +488,7 @@ class TrackManager:
                 if len(pts):
                     new_slots = np.flatnonzero(self._id < 0)[: len(pts)]
                     pts = pts[: len(new_slots)]
-                    self._birth(new_slots, pts, t, frame_index)
+                    self._birth(new_slots, pts, t, frame_index, gray)
 
         self._prev_gray = gray.copy()  # the caller may reuse its frame buffer
         self._prev_t = t
@@ -462,7 +512,7 @@ class TrackManager:
             scale_sigma=self._scale_sigma[obs].copy(),
         )
 
-    def _birth(self, slots: np.ndarray, pts: np.ndarray, t: float, frame_index: int) -> None:
+    def _birth(self, slots: np.ndarray, pts: np.ndarray, t: float, frame_index: int, gray: np.ndarray) -> None:
         n = len(slots)
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
@@ -483,6 +533,79 @@ class TrackManager:
         self._h_frame[slots, 0] = frame_index
         self._h_t[slots, 0] = t
         self._slot_of.update(zip(ids.tolist(), slots.tolist()))
+        if self.config.reference_min_ncc > 0:
+            self._cut_reference(gray, slots, frame_index)
+
+    def _cut_reference(self, gray: np.ndarray, slots: np.ndarray, frame_index: int) -> None:
+        """Cut the reference patch of ``slots`` at their current pixels (sub-pixel centred)."""
+        if len(slots) == 0:
+            return
+        tpl, _, inside = extract_scaled_templates(gray, self._uv[slots], self.config.reference_half, np.ones(len(slots)))
+        self._ref[slots] = tpl[:, 1:-1, 1:-1]
+        self._ref_ok[slots] = inside
+        self._ref_frame[slots] = frame_index
+        self._ref_uv[slots] = self._uv[slots]
+        self._ref_scale[slots] = 1.0
+        self._ref_R_ok[slots] = self._R_now is not None
+        if self._R_now is not None:
+            self._ref_R[slots] = self._R_now
+
+    def _warped_patches(self, gray: np.ndarray, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The patches at the slots' current pixels sampled on the grid their reference patches map to:
+        offset d of the reference becomes S·J·d now, with S the scale change since the reference and
+        J the 2×2 Jacobian, at the reference pixel, of the infinite homography K R K⁻¹ of the camera's
+        rotation since then (R = R_world_cam,nowᵀ R_world_cam,ref; identity where either attitude is
+        unknown).  Returns the (N, 2h+1, 2h+1) float32 patches and whether each fitted in the image."""
+        h = self.config.reference_half
+        n = len(slots)
+        J = np.tile(np.eye(2), (n, 1, 1))
+        rot = self._ref_R_ok[slots] if self._R_now is not None else np.zeros(n, bool)
+        if np.any(rot):
+            sr = slots[rot]
+            R = np.einsum("ji,njk->nik", self._R_now, self._ref_R[sr])  # reference camera → current camera
+            c = self.camera.config
+            x_ref = np.column_stack([(self._ref_uv[sr][:, 0] - c.cx) / c.fx, (self._ref_uv[sr][:, 1] - c.cy) / c.fy, np.ones(len(sr))])
+            q = np.einsum("nij,nj->ni", R, x_ref)
+            # d(q[:2]/q[2]) / d(x, y) in normalized units, then to pixels
+            Jn = (R[:, :2, :2] * q[:, 2, None, None] - q[:, :2, None] * R[:, 2, None, :2]) / (q[:, 2] ** 2)[:, None, None]
+            Jp = Jn * np.array([[1.0, c.fx / c.fy], [c.fy / c.fx, 1.0]])
+            J[rot] = np.where(np.isfinite(Jp) & (q[:, 2] > 1e-6)[:, None, None], Jp, J[rot])
+        A = J * self._ref_scale[slots, None, None]
+        off = np.arange(-h, h + 1, dtype=float)
+        dx, dy = np.meshgrid(off, off)  # (rows = y, cols = x)
+        X = self._uv[slots, 0, None, None] + A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy
+        Y = self._uv[slots, 1, None, None] + A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
+        H, W = gray.shape
+        inside = (X.min(axis=(1, 2)) >= 0) & (X.max(axis=(1, 2)) <= W - 1) & (Y.min(axis=(1, 2)) >= 0) & (Y.max(axis=(1, 2)) <= H - 1)
+        return _bilinear(gray.astype(np.float32), X, Y), inside
+
+    def _check_reference(self, gray: np.ndarray, slots: np.ndarray, frame_index: int) -> np.ndarray:
+        """Slots among the matched ``slots`` whose reference patch no longer matches (feature monitoring,
+        Shi & Tomasi 1994, "Good features to track": compare the feature's patch now with the one it
+        started from, warped by the motion since; docs/derivations/tracking.md).
+
+        Frame-to-frame matching re-cuts the template every frame, so a track follows whatever its
+        window holds: at an occlusion edge (a T-junction of a near edge over a far texture) the two
+        layers slide apart and the track rides between them, and its triangulated range lies
+        between the two surfaces.  Here the patch cut ``reference_refresh_frames`` ago or fewer,
+        resampled by the scale change measured since (the product of the per-frame scale changes,
+        the predicted rate where one was not measured), is correlated (zero-mean NCC) with the patch
+        at the new match; below ``reference_min_ncc`` the track is returned.  Passing references
+        older than ``reference_refresh_frames`` are re-cut at the new match (bounding the rotation
+        and perspective change a check must tolerate); references that did not fit in the image
+        are re-cut and not checked."""
+        cfg = self.config
+        self._ref_scale[slots] *= self._scale_rate[slots]
+        has = self._ref_ok[slots]
+        sl = slots[has]
+        bad = np.zeros(0, np.int64)
+        if len(sl):
+            cur, inside = self._warped_patches(gray, sl)
+            ncc = zncc_patches(self._ref[sl], cur)
+            bad = sl[inside & (ncc < cfg.reference_min_ncc)]
+        due = slots[~has | (frame_index - self._ref_frame[slots] >= cfg.reference_refresh_frames)]
+        self._cut_reference(gray, np.setdiff1d(due, bad), frame_index)
+        return bad
 
     def _duplicates(self, slots: np.ndarray, dist: float) -> np.ndarray:
         """Slots whose track lies within ``dist`` px of an older (smaller id) matched track.
