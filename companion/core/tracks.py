@@ -221,6 +221,8 @@ class TrackManager:
         self._ref_scale = np.ones(s)  # patch scale change since then
         self._ref_R = np.tile(np.eye(3), (s, 1, 1))  # camera attitude R_world_cam when it was cut (identity: unknown)
         self._ref_R_ok = np.zeros(s, bool)
+        off = np.arange(-config.reference_half, config.reference_half + 1, dtype=float)
+        self._ref_grid = np.meshgrid(off, off)
         self._R_now: np.ndarray | None = None
         self._slot_of: dict[int, int] = {}
         self._next_id = 0
@@ -571,12 +573,16 @@ class TrackManager:
             Jp = Jn * np.array([[1.0, c.fx / c.fy], [c.fy / c.fx, 1.0]])
             J[rot] = np.where(np.isfinite(Jp) & (q[:, 2] > 1e-6)[:, None, None], Jp, J[rot])
         A = J * self._ref_scale[slots, None, None]
-        off = np.arange(-h, h + 1, dtype=float)
-        dx, dy = np.meshgrid(off, off)  # (rows = y, cols = x)
-        X = self._uv[slots, 0, None, None] + A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy
-        Y = self._uv[slots, 1, None, None] + A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
+        u, v = self._uv[slots, 0, None, None], self._uv[slots, 1, None, None]
+        # the grid is an affine image of the offsets: its extremes are at the four corners (same arithmetic)
+        cx, cy = np.array([[[-h, h, -h, h]]], float), np.array([[[-h, -h, h, h]]], float)
+        Xc = u + A[:, 0, 0, None, None] * cx + A[:, 0, 1, None, None] * cy
+        Yc = v + A[:, 1, 0, None, None] * cx + A[:, 1, 1, None, None] * cy
         H, W = gray.shape
-        inside = (X.min(axis=(1, 2)) >= 0) & (X.max(axis=(1, 2)) <= W - 1) & (Y.min(axis=(1, 2)) >= 0) & (Y.max(axis=(1, 2)) <= H - 1)
+        inside = (Xc.min(axis=(1, 2)) >= 0) & (Xc.max(axis=(1, 2)) <= W - 1) & (Yc.min(axis=(1, 2)) >= 0) & (Yc.max(axis=(1, 2)) <= H - 1)
+        dx, dy = self._ref_grid  # (rows = y, cols = x)
+        X = u + A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy
+        Y = v + A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
         return _bilinear(gray.astype(np.float32), X, Y), inside
 
     def _check_reference(self, gray: np.ndarray, slots: np.ndarray, frame_index: int) -> np.ndarray:
