@@ -29,6 +29,11 @@ the next frame (the track's last measured scale) departs from 1 by more than
 ``template_rescale_threshold`` — close in, where a patch grows several % per frame — the template
 is resampled at that scale before the search, so NCC still correlates and the track survives.
 
+Reference-patch check (``reference_min_ncc`` > 0; docs/derivations/tracking.md): each track also keeps
+the patch it was born with; after every match that patch, warped by the camera's rotation since (the
+caller's ``R_world_cam``) and the scale change since, is correlated with the patch at the match, and a
+track below the threshold ends with :data:`DROP_REFERENCE` — an occlusion-edge corner or a drifted track.
+
 Storage is a fixed set of ``max_tracks`` slots held in numpy arrays (positions, scores, failure
 counts and a ring buffer of the last ``max_history`` observations per slot), so a step costs a
 handful of vectorized operations plus the matcher — no Python object per track per frame.
