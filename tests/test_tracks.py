@@ -343,3 +343,31 @@ def test_reference_check_rejects_a_bad_attitude(scene):
     tm = manager(reference_min_ncc=0.5)
     with pytest.raises(InputError, match="R_world_cam"):
         tm.step(scene.render((0.0, 0.0)), 0.0, 0, R_world_cam=np.full((3, 3), np.nan))
+
+
+def test_reference_kernel_equals_the_numpy_reference(scene):
+    """The compiled check (companion/core/tracks_kernels.py) against _warped_patches + zncc_patches:
+    the same in-image verdicts, NCC equal to float rounding, on warped, scaled and partly outside grids."""
+    from companion.core import tracks_kernels
+
+    img = scene.render((0.0, 0.0))
+    rng = np.random.default_rng(7)
+    n = 200
+    tm = manager(max_tracks=n, reference_min_ncc=0.5)
+    slots = np.arange(n)
+    tm._uv[:] = np.column_stack([rng.uniform(-5, W + 5, n), rng.uniform(-5, H + 5, n)])  # some grids leave the image
+    A = np.eye(2)[None] * rng.uniform(0.7, 1.4, (n, 1, 1)) + rng.normal(0, 0.15, (n, 2, 2))
+    cur, inside = tm._warped_patches(img, slots, A)
+    noise = rng.uniform(5, 120, (n, 1, 1)) * rng.standard_normal(cur.shape)
+    tm._ref[:] = (cur + noise).astype(np.float32)  # related patches, more or less: NCC spread over (0, 1)
+    ref_ncc = tracks.zncc_patches(tm._ref, cur)
+    ncc, ins = np.empty(n), np.empty(n, bool)
+    tracks_kernels.reference_ncc_k(img, tm._ref, np.ascontiguousarray(tm._uv), A, ncc, ins)
+    assert np.array_equal(ins, inside) and 20 < inside.sum() < n
+    assert np.all(np.isnan(ncc[~ins]))
+    assert np.max(np.abs(ncc[ins] - ref_ncc[ins])) < 1e-5
+    assert np.ptp(ncc[ins]) > 0.3
+    flat = np.full((1, 15, 15), 7.0, np.float32)
+    one = np.empty(1)
+    tracks_kernels.reference_ncc_k(img, flat, np.array([[160.0, 120.0]]), np.eye(2)[None], one, np.empty(1, bool))
+    assert np.isnan(one[0])

@@ -51,7 +51,9 @@ from typing import Callable
 import numpy as np
 
 from companion.config import require, require_finite
+from companion.core import jit as _jit
 from companion.core import ncc as _ncc
+from companion.core import tracks_kernels as _tk
 from companion.core.camera import CameraModel
 from companion.core.harris import HarrisConfig, as_gray_u8, detect_harris
 from companion.core.ncc import NCCConfig, extract_templates, match_ncc, match_templates
@@ -557,13 +559,11 @@ class TrackManager:
         if self._R_now is not None:
             self._ref_R[slots] = self._R_now
 
-    def _warped_patches(self, gray: np.ndarray, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The patches at the slots' current pixels sampled on the grid their reference patches map to:
-        offset d of the reference becomes S·J·d now, with S the scale change since the reference and
-        J the 2×2 Jacobian, at the reference pixel, of the infinite homography K R K⁻¹ of the camera's
-        rotation since then (R = R_world_cam,nowᵀ R_world_cam,ref; identity where either attitude is
-        unknown).  Returns the (N, 2h+1, 2h+1) float32 patches and whether each fitted in the image."""
-        h = self.config.reference_half
+    def _reference_warp(self, slots: np.ndarray) -> np.ndarray:
+        """(N, 2, 2) the warp S·J of the slots' reference offsets into the current frame: S the scale
+        change since the reference and J the 2×2 Jacobian, at the reference pixel, of the infinite
+        homography K R K⁻¹ of the camera's rotation since then (R = R_world_cam,nowᵀ R_world_cam,ref;
+        J = I where either attitude is unknown)."""
         n = len(slots)
         J = np.tile(np.eye(2), (n, 1, 1))
         rot = self._ref_R_ok[slots] if self._R_now is not None else np.zeros(n, bool)
@@ -577,7 +577,13 @@ class TrackManager:
             Jn = (R[:, :2, :2] * q[:, 2, None, None] - q[:, :2, None] * R[:, 2, None, :2]) / (q[:, 2] ** 2)[:, None, None]
             Jp = Jn * np.array([[1.0, c.fx / c.fy], [c.fy / c.fx, 1.0]])
             J[rot] = np.where(np.isfinite(Jp) & (q[:, 2] > 1e-6)[:, None, None], Jp, J[rot])
-        A = J * self._ref_scale[slots, None, None]
+        return J * self._ref_scale[slots, None, None]
+
+    def _warped_patches(self, gray: np.ndarray, slots: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The numpy reference of the check's sampling: the patches at the slots' current pixels
+        sampled where the reference offsets d land, uv + A·d (bilinear, border replicated).  Returns
+        the (N, 2h+1, 2h+1) float32 patches and whether each grid lies inside the image."""
+        h = self.config.reference_half
         u, v = self._uv[slots, 0, None, None], self._uv[slots, 1, None, None]
         # the grid is an affine image of the offsets: its extremes are at the four corners (same arithmetic)
         cx, cy = np.array([[[-h, h, -h, h]]], float), np.array([[[-h, -h, h, h]]], float)
@@ -589,6 +595,20 @@ class TrackManager:
         X = u + A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy
         Y = v + A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
         return _bilinear(gray.astype(np.float32), X, Y), inside
+
+    def _reference_ncc(self, gray: np.ndarray, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) NCC of the slots' reference patches with the frame where they now map to, and (N,) bool
+        whether that grid lies in the image: the compiled kernel (companion/core/tracks_kernels.py)
+        when kernels are enabled, else :meth:`_warped_patches` and :func:`zncc_patches`."""
+        A = self._reference_warp(slots)
+        if _jit.ENABLED:
+            ncc = np.empty(len(slots))
+            inside = np.empty(len(slots), bool)
+            _tk.reference_ncc_k(np.ascontiguousarray(gray), self._ref[slots], np.ascontiguousarray(self._uv[slots]),
+                                np.ascontiguousarray(A), ncc, inside)
+            return ncc, inside
+        cur, inside = self._warped_patches(gray, slots, A)
+        return zncc_patches(self._ref[slots], cur), inside
 
     def _check_reference(self, gray: np.ndarray, slots: np.ndarray, frame_index: int) -> np.ndarray:
         """Slots among the matched ``slots`` whose reference patch no longer matches (feature monitoring,
@@ -611,8 +631,7 @@ class TrackManager:
         sl = slots[has]
         bad = np.zeros(0, np.int64)
         if len(sl):
-            cur, inside = self._warped_patches(gray, sl)
-            ncc = zncc_patches(self._ref[sl], cur)
+            ncc, inside = self._reference_ncc(gray, sl)
             bad = sl[inside & (ncc < cfg.reference_min_ncc)]
         due = slots[~has | (frame_index - self._ref_frame[slots] >= cfg.reference_refresh_frames)]
         self._cut_reference(gray, np.setdiff1d(due, bad), frame_index)
