@@ -9,6 +9,7 @@ Subcommands:
   compute   CPU per 640×480 frame of the whole pipeline on one core (bench/compute.py)
   hostile   soak and fuzz: a long lockstep SITL hover under hostile MAVLink traffic and telemetry blackouts
             (bench/hostile.py; not part of `all`: the real run is 30 simulated minutes)
+  too_near  the too-near cells of finished SITL campaigns split by cause (bench/too_near.py; reads campaigns, flies nothing)
   all       all of these plus the simulator's speed; with --write FILE, rewrite docs/BENCHMARKS.md
 """
 
@@ -112,24 +113,16 @@ def cmd_timing(args) -> dict:
     return timing.run_all(repeats=args.repeats)
 
 
+#: subcommands that are modules with their own argparse (``python -m bench NAME …`` = ``python -m bench.NAME …``)
+OWN_COMMAND_LINE = ("hostile", "compute", "position_states", "telemetry_ablation", "too_near")
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["hostile"]:  # its own command line (python -m bench.hostile --help)
-        from bench import hostile
+    if argv[:1] and argv[0] in OWN_COMMAND_LINE:  # its own command line (python -m bench.<name> --help)
+        import importlib
 
-        return hostile.main(argv[1:])
-    if argv[:1] == ["compute"]:  # its own command line (python -m bench.compute --help)
-        from bench import compute
-
-        return compute.main(argv[1:])
-    if argv[:1] == ["position_states"]:  # its own command line (python -m bench.position_states --help)
-        from bench import position_states
-
-        return position_states.main(argv[1:])
-    if argv[:1] == ["telemetry_ablation"]:  # its own command line (python -m bench.telemetry_ablation --help)
-        from bench import telemetry_ablation
-
-        return telemetry_ablation.main(argv[1:])
+        return importlib.import_module(f"bench.{argv[0]}").main(argv[1:])
     ap = argparse.ArgumentParser(
         prog="python -m bench",
         description="Benchmarks of the estimation core against the source papers' scenarios (seeds 000 and 004).",
@@ -189,6 +182,9 @@ def main(argv=None) -> int:
     sub.add_parser("telemetry_ablation", help="SITL campaigns with parts of the simulated telemetry error switched off: "
                                               "which error makes the forward σ over-confident (options: python -m bench "
                                               "telemetry_ablation --help)", add_help=False)
+    sub.add_parser("too_near", help="the too-near cells of finished SITL campaigns split by cause (beside an obstacle, "
+                                    "the k·σ offset, short) and the forward sector republished with other k (options: "
+                                    "python -m bench too_near --help)", add_help=False)
     sub.add_parser("position_states", help="the anchored EKF under a Gauss–Markov position error, white model vs the "
                                            "position-error states: range NEES and coverage (options: python -m bench "
                                            "position_states --help)", add_help=False)

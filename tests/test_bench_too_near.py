@@ -86,3 +86,10 @@ def test_cli_tables_and_json(campaign, capsys):
 def test_cli_missing_runs_is_a_clear_error(tmp_path, capsys):
     assert too_near.main([str(tmp_path)]) == 2
     assert "no runs/*/score_series.npz" in capsys.readouterr().err
+
+
+def test_python_m_bench_dispatches_to_it(campaign, capsys):
+    from bench.__main__ import main
+
+    assert main(["too_near", str(campaign), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)[0]["cells"]["too_near_in_view"] == 2
