@@ -101,7 +101,7 @@ class TrackConfig:
     priority_min_tracks: int = 20  # refill (into the region only) when it holds fewer live tracks than this, whatever the total (0 = off)
     priority_band_range_m: float = 8.0  # the flight-path band of the region: rows within ± band_half_height_m at this range (pipeline)
     priority_path_half_width_deg: float = 15.0  # ... and the columns within this bearing of the flight path (pipeline)
-    reference_min_ncc: float = 0.5  # a track whose reference patch correlates below this where it now is is dropped (0 = off)
+    reference_min_ncc: float = 0.0  # a track whose reference patch correlates below this where it now is is dropped (0 = off)
     reference_half: int = 7  # half size of the reference patch: (2h+1)² px
     reference_refresh_frames: int = 1000  # a passing reference patch is re-cut after this many frames
 
