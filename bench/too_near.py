@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.score.config import REP_RANGE, ScoreConfig
+from flightsim.score.summary import matches_neighbour
 
 #: k values the forward sector is republished with
 K_VALUES = (2.0, 1.5, 1.0)
@@ -56,14 +57,7 @@ def cell_breakdown(z, cfg: ScoreConfig) -> dict[str, int]:
         obstacle = scored & np.isfinite(T) & (T <= mx)
         rng = obstacle & (np.asarray(z["od_rep"]) == REP_RANGE)
         near = rng & (T - r > cfg.tolerance(np.where(np.isfinite(T), T, 0.0)))
-    Tn_all = np.where(obstacle, T, np.nan)
-    beside = np.zeros(near.shape, bool)
-    for k in range(1, cfg.beside_sectors + 1):
-        for shift in (k, -k):
-            Tn = np.roll(Tn_all, shift, axis=1)
-            with np.errstate(invalid="ignore"):
-                beside |= np.isfinite(Tn) & (np.abs(r - Tn) <= cfg.tolerance(np.where(np.isfinite(Tn), Tn, 0.0)))
-    beside &= near
+    beside = matches_neighbour(r, np.where(obstacle, T, np.nan), cfg.beside_sectors, cfg) & near
     iv = np.asarray(z["od_in_view"], bool)
     out = {}
     for name, sel in (("in_view", iv), ("out_of_view", ~iv)):

@@ -571,7 +571,8 @@ class TrackManager:
             sr = slots[rot]
             R = np.einsum("ji,njk->nik", self._R_now, self._ref_R[sr])  # reference camera → current camera
             c = self.camera.config
-            x_ref = np.column_stack([(self._ref_uv[sr][:, 0] - c.cx) / c.fx, (self._ref_uv[sr][:, 1] - c.cy) / c.fy, np.ones(len(sr))])
+            uv_ref = self._ref_uv[sr]
+            x_ref = np.column_stack([(uv_ref[:, 0] - c.cx) / c.fx, (uv_ref[:, 1] - c.cy) / c.fy, np.ones(len(sr))])
             q = np.einsum("nij,nj->ni", R, x_ref)
             # d(q[:2]/q[2]) / d(x, y) in normalized units, then to pixels
             Jn = (R[:, :2, :2] * q[:, 2, None, None] - q[:, :2, None] * R[:, 2, None, :2]) / (q[:, 2] ** 2)[:, None, None]

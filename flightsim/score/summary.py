@@ -166,18 +166,23 @@ def false_obstacles_beside(ev: Evaluation, m: CellMasks, sectors: int) -> np.nda
     the true range of an obstacle cell at most ``sectors`` sectors away in the same message — a
     real obstacle claimed at the right range on a neighbouring bearing (a thin pole's remembered
     point spread over its bearing σ), as opposed to a phantom range."""
-    out = np.zeros(m.false_clear.shape, bool)
     if sectors < 1 or not np.any(m.false_clear):
-        return out
-    cfg = ev.config
+        return np.zeros(m.false_clear.shape, bool)
     T = np.where(ev.od_tcls == TRUTH_OBSTACLE, ev.od_truth, np.nan)
-    r = ev.od_r
+    return matches_neighbour(ev.od_r, T, sectors, ev.config) & m.false_clear
+
+
+def matches_neighbour(r: np.ndarray, T_obstacle: np.ndarray, sectors: int, cfg) -> np.ndarray:
+    """(N, 72) bool: the published range ``r`` of a cell matches, within ``cfg.tolerance``, the true range of an
+    obstacle cell at most ``sectors`` sectors away in the same message (``T_obstacle``: the truth of obstacle
+    cells, NaN elsewhere) — a real obstacle reported on a neighbouring bearing."""
+    out = np.zeros(np.shape(r), bool)
     for k in range(1, sectors + 1):
         for shift in (k, -k):
-            Tn = np.roll(T, shift, axis=1)  # the truth of the sector k away
+            Tn = np.roll(T_obstacle, shift, axis=1)  # the truth of the sector k away
             with np.errstate(invalid="ignore"):
                 out |= np.isfinite(Tn) & (np.abs(r - Tn) <= cfg.tolerance(np.where(np.isfinite(Tn), Tn, 0.0)))
-    return out & m.false_clear
+    return out
 
 
 def summarize(ev: Evaluation) -> dict:
