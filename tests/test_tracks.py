@@ -371,3 +371,58 @@ def test_reference_kernel_equals_the_numpy_reference(scene):
     one = np.empty(1)
     tracks_kernels.reference_ncc_k(img, flat, np.array([[160.0, 120.0]]), np.eye(2)[None], one, np.empty(1, bool))
     assert np.isnan(one[0])
+
+
+def _half_textured(scene, textured_right: bool):
+    """The scene's texture on the left half (and on the right half too when ``textured_right``), flat grey elsewhere."""
+    img = scene.render((0.0, 0.0))
+    if not textured_right:
+        img = img.copy()
+        img[:, W // 2 :] = 128
+    return img
+
+
+@pytest.mark.parametrize("backoff", [0, 3])
+def test_refill_backs_off_while_the_image_holds_no_free_texture(scene, monkeypatch, backoff):
+    """A refill that finds (almost) nothing pauses the refills for ``refill_backoff_frames`` frames; new
+    texture is taken up at the next refill, and refills that find plenty do not back off."""
+    calls = []
+    real = tracks.detect_harris
+
+    def counting(gray, *a, **kw):
+        pts, resp = real(gray, *a, **kw)
+        calls.append((len(calls), kw.get("max_corners"), len(pts)))
+        return pts, resp
+
+    monkeypatch.setattr(tracks, "detect_harris", counting)
+    tm = manager(max_tracks=300, redetect_fraction=1.0, refill_backoff_frames=backoff, refill_backoff_yield=0.25)
+    refill_frames = []
+    for k in range(14):
+        n_before = len(calls)
+        fr = tm.step(_half_textured(scene, textured_right=k >= 7), k / 30.0, k)
+        if len(calls) > n_before:
+            refill_frames.append(k)
+        if k == 0:
+            n_first = len(fr.new_ids)
+            assert 0.25 * 300 < n_first < 200  # the left half holds far fewer corners than 300
+        if k >= 1 and k < 7 and len(calls) > n_before:
+            assert calls[-1][2] < 0.25 * calls[-1][1], "with the left half taken, a refill finds little"
+    if backoff == 0:
+        assert refill_frames == list(range(14)), "without back-off every short frame refills"
+    else:
+        # 0: the first fill (plenty, no back-off); 1: finds little -> 2, 3, 4 skipped; 5 -> 6, 7, 8 skipped;
+        # 9: the right half's new texture is found (plenty) -> no back-off, 10 refills again
+        assert refill_frames[:4] == [0, 1, 5, 9], refill_frames
+        assert 10 in refill_frames
+    assert tm.n_live > n_first + 50, "the texture that appeared is tracked after the back-off"
+
+
+def test_refill_backoff_settings_are_validated():
+    with pytest.raises(ConfigError):
+        TrackConfig(refill_backoff_frames=-1)
+    with pytest.raises(ConfigError):
+        TrackConfig(refill_backoff_frames=2.5)
+    with pytest.raises(ConfigError):
+        TrackConfig(refill_backoff_yield=1.5)
+    with pytest.raises(ConfigError):
+        TrackConfig(refill_backoff_yield=float("nan"))

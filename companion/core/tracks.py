@@ -7,7 +7,10 @@ Tracks the matcher rejects are dropped (or, with ``max_failures`` > 1, searched 
 frames with the template kept from their last observation); when fewer than
 ``redetect_fraction`` × ``max_tracks`` tracks remain, new Harris corners are detected away from
 the survivors (``min_new_distance_px``) to refill up to ``max_tracks``.  The number of tracks
-never exceeds ``max_tracks``.
+never exceeds ``max_tracks``.  A refill that finds fewer than ``refill_backoff_yield`` × the corners it
+asked for means the image holds no free texture (a small image is full long before ``max_tracks``);
+the next ``refill_backoff_frames`` frames then skip the refill (Harris over the whole image, the
+tracker's costliest step when it runs every frame for a handful of corners).
 
 Template source: each match uses the template cut from the **previous** frame, at the track's
 last matched position — not from the anchor frame.  Over a few frames of flight the appearance of
@@ -104,6 +107,8 @@ class TrackConfig:
     reference_min_ncc: float = 0.0  # a track whose reference patch correlates below this where it now is is dropped (0 = off)
     reference_half: int = 7  # half size of the reference patch: (2h+1)² px
     reference_refresh_frames: int = 1000  # a passing reference patch is re-cut after this many frames
+    refill_backoff_frames: int = 0  # after a refill that found little, this many frames without one (0 = refill whenever short)
+    refill_backoff_yield: float = 0.25  # "found little": fewer corners than this share of those asked for
 
     def __post_init__(self) -> None:
         require(isinstance(self.max_tracks, int) and self.max_tracks >= 1, f"max_tracks must be an integer >= 1, got {self.max_tracks!r}")
@@ -129,6 +134,11 @@ class TrackConfig:
         require(isinstance(self.reference_refresh_frames, int) and not isinstance(self.reference_refresh_frames, bool)
                 and self.reference_refresh_frames >= 1,
                 f"reference_refresh_frames must be an integer >= 1, got {self.reference_refresh_frames!r}")
+        require(isinstance(self.refill_backoff_frames, int) and not isinstance(self.refill_backoff_frames, bool)
+                and self.refill_backoff_frames >= 0,
+                f"refill_backoff_frames must be an integer >= 0, got {self.refill_backoff_frames!r}")
+        require_finite("refill_backoff_yield", self.refill_backoff_yield, nonnegative=True)
+        require(self.refill_backoff_yield <= 1.0, f"refill_backoff_yield must be <= 1, got {self.refill_backoff_yield}")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -236,6 +246,7 @@ class TrackManager:
         self._prev_gray: np.ndarray | None = None
         self._prev_t: float | None = None
         self._prev_frame: int | None = None
+        self._no_refill_before = -1  # frame index: refill back-off (see refill_backoff_frames)
         self._just_dropped: dict[int, int] = {}  # id → row of _dropped, the tracks dropped in the latest step
         self._dropped: dict = {}
         self._dropped_frame = 0
@@ -472,8 +483,11 @@ class TrackManager:
         n_live = self.n_live
         use_pri = priority_mask is not None and (cfg.priority_share > 0 or cfg.priority_min_tracks > 0)
         full = n_live < cfg.redetect_fraction * cfg.max_tracks or self._prev_gray is None
+        backing_off = self._prev_gray is not None and frame_index < self._no_refill_before
+        if backing_off:
+            full = False  # the last refill found the image full: neither kind runs for now
         starving = False
-        if use_pri and not full and cfg.priority_min_tracks > 0:
+        if use_pri and not full and not backing_off and cfg.priority_min_tracks > 0:
             q = np.rint(self._uv[self._id >= 0]).astype(np.int64)
             h, w = gray.shape
             inb = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
@@ -494,6 +508,8 @@ class TrackManager:
                 pts, _ = detect_harris(
                     gray, self.harris, exclude_pts=survivors, exclude_radius=cfg.min_new_distance_px, max_corners=want, **kw
                 )
+                if cfg.refill_backoff_frames > 0 and len(pts) < cfg.refill_backoff_yield * want:
+                    self._no_refill_before = frame_index + 1 + cfg.refill_backoff_frames
                 if len(pts):
                     new_slots = np.flatnonzero(self._id < 0)[: len(pts)]
                     pts = pts[: len(new_slots)]
