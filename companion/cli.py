@@ -366,7 +366,7 @@ def cmd_run(args) -> int:
         companion.run(stop, duration=args.duration, lockstep=sim_clock is not None)
         if source.size_error:
             raise ConfigError(source.size_error)
-        log.info("stopped: %s", dict(companion.counters))
+        log.info("stopped: %s; pipeline: %s", dict(companion.counters), dict(sorted(companion.pipeline.counters.items())))
         if sim_clock is not None:
             ts = link.timesync
             off = ts.offset_s

@@ -51,7 +51,7 @@ from companion.core.obstacle_map import ObstacleMap, live_view, map_entries, poi
 from companion.core.prediction import make_track_predictor
 from companion.core.priority import detection_priority, live_points_per_sector
 from companion.core.sectors import Sectors, compute_sectors
-from companion.core.tracks import DROP_REFERENCE, TrackManager
+from companion.core.tracks import DROP_REFERENCE, REFILL_NONE, REFILL_RUN, TrackManager
 from companion.errors import CompanionError
 from companion.telemetry import TelemetryBuffer
 
@@ -414,6 +414,8 @@ class Pipeline:
         c1 = time.thread_time()
         stage["track"] = c1 - c0
         self._k += 1
+        if tf.refill != REFILL_NONE:  # new corners searched for, or that search held back (refill back-off)
+            self.counters["refills_run" if tf.refill == REFILL_RUN else "refills_paused"] += 1
         if len(tf.dropped_ids):
             self.estimator.drop(tf.dropped_ids)
             inconsistent = tf.dropped_ids[tf.drop_reason == DROP_REFERENCE]

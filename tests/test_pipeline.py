@@ -283,6 +283,9 @@ def test_wall_ahead_gives_forward_ranges_with_correct_fields(rig):
     fps = [m.value for t, m in nv if m.name == "MR_FPS" and t > T0 + 2.0]
     assert fps and fps[-1] == pytest.approx(30.0, abs=3.0)
     assert r.companion.counters["frames_processed"] >= 74  # 76 frames in 2.5 s of flight
+    # every frame after the first either needed no new corners, searched for them, or had that search held back
+    pc = r.companion.pipeline.counters
+    assert pc["refills_run"] >= 1 and pc["refills_run"] + pc["refills_paused"] <= r.companion.counters["frames_processed"]
 
 
 def test_no_texture_is_unknown_never_clear(rig):

@@ -402,6 +402,9 @@ def test_refill_backs_off_while_the_image_holds_no_free_texture(scene, monkeypat
         fr = tm.step(_half_textured(scene, textured_right=k >= 7), k / 30.0, k)
         if len(calls) > n_before:
             refill_frames.append(k)
+            assert fr.refill == tracks.REFILL_RUN
+        else:  # always short of tracks here: a frame without a refill is one the back-off held
+            assert fr.refill == tracks.REFILL_PAUSED
         if k == 0:
             n_first = len(fr.new_ids)
             assert 0.25 * 300 < n_first < 200  # the left half holds far fewer corners than 300
@@ -426,3 +429,24 @@ def test_refill_backoff_settings_are_validated():
         TrackConfig(refill_backoff_yield=1.5)
     with pytest.raises(ConfigError):
         TrackConfig(refill_backoff_yield=float("nan"))
+    with pytest.raises(ConfigError):
+        TrackConfig(refill_backoff_priority=1)
+
+
+@pytest.mark.parametrize("topup", [True, False])
+def test_refill_pause_spares_the_priority_region_top_up(scene, topup):
+    """During a pause the priority region's own top-up still runs (``refill_backoff_priority``): texture that
+    appears there is seeded at once, not after the pause."""
+    tm = manager(max_tracks=300, redetect_fraction=1.0, refill_backoff_frames=3, refill_backoff_yield=0.25,
+                 refill_backoff_priority=topup, priority_min_tracks=20)
+    region = np.zeros((H, W), bool)
+    region[:, W // 2 + 20 :] = True  # the right half, where texture appears at frame 7
+    seeded_at = None
+    for k in range(10):
+        fr = tm.step(_half_textured(scene, textured_right=k >= 7), k / 30.0, k, priority_mask=region)
+        in_region = fr.new_ids[region[np.rint(fr.uv[np.isin(fr.ids, fr.new_ids), 1]).astype(int),
+                                      np.rint(fr.uv[np.isin(fr.ids, fr.new_ids), 0]).astype(int)]] if len(fr.new_ids) else []
+        if k >= 7 and seeded_at is None and len(in_region) >= 10:
+            seeded_at = k
+    # frames 1, 5 pause (found little) -> 6, 7, 8 held for the plain refill; 9 runs it
+    assert seeded_at == (7 if topup else 9), seeded_at

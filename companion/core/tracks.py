@@ -10,7 +10,8 @@ the survivors (``min_new_distance_px``) to refill up to ``max_tracks``.  The num
 never exceeds ``max_tracks``.  A refill that finds fewer than ``refill_backoff_yield`` × the corners it
 asked for means the image holds no free texture (a small image is full long before ``max_tracks``);
 the next ``refill_backoff_frames`` frames then skip the refill (Harris over the whole image, the
-tracker's costliest step when it runs every frame for a handful of corners).
+tracker's costliest step when it runs every frame for a handful of corners); with
+``refill_backoff_priority`` the priority region's own top-up (``priority_min_tracks``) still runs.
 
 Template source: each match uses the template cut from the **previous** frame, at the track's
 last matched position — not from the anchor frame.  Over a few frames of flight the appearance of
@@ -86,6 +87,9 @@ def zncc_patches(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+#: What :meth:`TrackManager.step` did about new corners (:attr:`TrackFrame.refill`).
+REFILL_NONE, REFILL_RUN, REFILL_PAUSED = 0, 1, 2
+
 Predictor = Callable[[np.ndarray, np.ndarray], "tuple[np.ndarray, np.ndarray | float]"]
 
 
@@ -109,6 +113,7 @@ class TrackConfig:
     reference_refresh_frames: int = 1000  # a passing reference patch is re-cut after this many frames
     refill_backoff_frames: int = 0  # after a refill that found little, this many frames without one (0 = refill whenever short)
     refill_backoff_yield: float = 0.25  # "found little": fewer corners than this share of those asked for
+    refill_backoff_priority: bool = True  # the priority region's top-up (priority_min_tracks) still runs during a pause
 
     def __post_init__(self) -> None:
         require(isinstance(self.max_tracks, int) and self.max_tracks >= 1, f"max_tracks must be an integer >= 1, got {self.max_tracks!r}")
@@ -139,6 +144,8 @@ class TrackConfig:
                 f"refill_backoff_frames must be an integer >= 0, got {self.refill_backoff_frames!r}")
         require_finite("refill_backoff_yield", self.refill_backoff_yield, nonnegative=True)
         require(self.refill_backoff_yield <= 1.0, f"refill_backoff_yield must be <= 1, got {self.refill_backoff_yield}")
+        require(isinstance(self.refill_backoff_priority, bool),
+                f"refill_backoff_priority must be true or false, got {self.refill_backoff_priority!r}")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -171,6 +178,7 @@ class TrackFrame:
     drop_reason: np.ndarray  # (D,) int8, see DROP_REASON_NAMES
     scale: np.ndarray | None = None  # (M,) patch scale change since the previous frame (looming), NaN = not measured
     scale_sigma: np.ndarray | None = None  # (M,) its σ, NaN = not measured
+    refill: int = 0  # REFILL_NONE (no refill needed), REFILL_RUN (Harris ran) or REFILL_PAUSED (needed, held by the back-off)
 
     def __post_init__(self) -> None:
         if self.scale is None:
@@ -484,10 +492,11 @@ class TrackManager:
         use_pri = priority_mask is not None and (cfg.priority_share > 0 or cfg.priority_min_tracks > 0)
         full = n_live < cfg.redetect_fraction * cfg.max_tracks or self._prev_gray is None
         backing_off = self._prev_gray is not None and frame_index < self._no_refill_before
+        refill = REFILL_PAUSED if backing_off and full else REFILL_NONE
         if backing_off:
-            full = False  # the last refill found the image full: neither kind runs for now
+            full = False  # the last refill found the image full: no plain refill for now (the region's top-up may run)
         starving = False
-        if use_pri and not full and not backing_off and cfg.priority_min_tracks > 0:
+        if use_pri and not full and (not backing_off or cfg.refill_backoff_priority) and cfg.priority_min_tracks > 0:
             q = np.rint(self._uv[self._id >= 0]).astype(np.int64)
             h, w = gray.shape
             inb = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
@@ -508,6 +517,7 @@ class TrackManager:
                 pts, _ = detect_harris(
                     gray, self.harris, exclude_pts=survivors, exclude_radius=cfg.min_new_distance_px, max_corners=want, **kw
                 )
+                refill = REFILL_RUN
                 if cfg.refill_backoff_frames > 0 and len(pts) < cfg.refill_backoff_yield * want:
                     self._no_refill_before = frame_index + 1 + cfg.refill_backoff_frames
                 if len(pts):
@@ -535,6 +545,7 @@ class TrackManager:
             drop_reason=drop_reason[order_d],
             scale=self._scale[obs].copy(),
             scale_sigma=self._scale_sigma[obs].copy(),
+            refill=refill,
         )
 
     def _birth(self, slots: np.ndarray, pts: np.ndarray, t: float, frame_index: int, gray: np.ndarray) -> None:
