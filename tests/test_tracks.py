@@ -420,17 +420,12 @@ def test_refill_backs_off_while_the_image_holds_no_free_texture(scene, monkeypat
     assert tm.n_live > n_first + 50, "the texture that appeared is tracked after the back-off"
 
 
-def test_refill_backoff_settings_are_validated():
+@pytest.mark.parametrize("bad", [dict(refill_backoff_frames=-1), dict(refill_backoff_frames=2.5), dict(refill_backoff_frames=True),
+                                 dict(refill_backoff_yield=1.5), dict(refill_backoff_yield=float("nan")),
+                                 dict(refill_backoff_priority=1)])
+def test_refill_backoff_settings_are_validated(bad):
     with pytest.raises(ConfigError):
-        TrackConfig(refill_backoff_frames=-1)
-    with pytest.raises(ConfigError):
-        TrackConfig(refill_backoff_frames=2.5)
-    with pytest.raises(ConfigError):
-        TrackConfig(refill_backoff_yield=1.5)
-    with pytest.raises(ConfigError):
-        TrackConfig(refill_backoff_yield=float("nan"))
-    with pytest.raises(ConfigError):
-        TrackConfig(refill_backoff_priority=1)
+        TrackConfig(**bad)
 
 
 @pytest.mark.parametrize("topup", [True, False])
