@@ -34,6 +34,12 @@ def require_finite(name: str, value: float, *, positive: bool = False, nonnegati
         require(value >= 0, f"{name} must be >= 0, got {value!r}")
 
 
+def require_int(name: str, value: Any, *, minimum: int) -> None:
+    """Check a config value is an integer (a bool is not) and at least ``minimum``."""
+    require(isinstance(value, int) and not isinstance(value, bool) and value >= minimum,
+            f"{name} must be an integer >= {minimum}, got {value!r}")
+
+
 def _type_ok(value: Any, annotation: Any) -> bool:
     origin = typing.get_origin(annotation)
     if annotation is Any:

@@ -54,7 +54,7 @@ from typing import Callable
 
 import numpy as np
 
-from companion.config import require, require_finite
+from companion.config import require, require_finite, require_int
 from companion.core import jit as _jit
 from companion.core import ncc as _ncc
 from companion.core import tracks_kernels as _tk
@@ -134,14 +134,9 @@ class TrackConfig:
         require(self.priority_path_half_width_deg <= 180, "priority_path_half_width_deg must be <= 180")
         require_finite("reference_min_ncc", self.reference_min_ncc, nonnegative=True)
         require(self.reference_min_ncc < 1.0, f"reference_min_ncc must be < 1, got {self.reference_min_ncc}")
-        require(isinstance(self.reference_half, int) and not isinstance(self.reference_half, bool) and self.reference_half >= 2,
-                f"reference_half must be an integer >= 2, got {self.reference_half!r}")
-        require(isinstance(self.reference_refresh_frames, int) and not isinstance(self.reference_refresh_frames, bool)
-                and self.reference_refresh_frames >= 1,
-                f"reference_refresh_frames must be an integer >= 1, got {self.reference_refresh_frames!r}")
-        require(isinstance(self.refill_backoff_frames, int) and not isinstance(self.refill_backoff_frames, bool)
-                and self.refill_backoff_frames >= 0,
-                f"refill_backoff_frames must be an integer >= 0, got {self.refill_backoff_frames!r}")
+        require_int("reference_half", self.reference_half, minimum=2)
+        require_int("reference_refresh_frames", self.reference_refresh_frames, minimum=1)
+        require_int("refill_backoff_frames", self.refill_backoff_frames, minimum=0)
         require_finite("refill_backoff_yield", self.refill_backoff_yield, nonnegative=True)
         require(self.refill_backoff_yield <= 1.0, f"refill_backoff_yield must be <= 1, got {self.refill_backoff_yield}")
         require(isinstance(self.refill_backoff_priority, bool),
@@ -490,13 +485,13 @@ class TrackManager:
         new_slots = np.zeros(0, np.int64)
         n_live = self.n_live
         use_pri = priority_mask is not None and (cfg.priority_share > 0 or cfg.priority_min_tracks > 0)
-        full = n_live < cfg.redetect_fraction * cfg.max_tracks or self._prev_gray is None
-        backing_off = self._prev_gray is not None and frame_index < self._no_refill_before
-        refill = REFILL_PAUSED if backing_off and full else REFILL_NONE
-        if backing_off:
-            full = False  # the last refill found the image full: no plain refill for now (the region's top-up may run)
+        short = n_live < cfg.redetect_fraction * cfg.max_tracks or self._prev_gray is None
+        # the last refill found the image full: no plain refill for now (the region's top-up may run)
+        paused = self._prev_gray is not None and frame_index < self._no_refill_before
+        full = short and not paused
+        refill = REFILL_PAUSED if short and paused else REFILL_NONE
         starving = False
-        if use_pri and not full and (not backing_off or cfg.refill_backoff_priority) and cfg.priority_min_tracks > 0:
+        if use_pri and not full and (not paused or cfg.refill_backoff_priority) and cfg.priority_min_tracks > 0:
             q = np.rint(self._uv[self._id >= 0]).astype(np.int64)
             h, w = gray.shape
             inb = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
