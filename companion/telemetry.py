@@ -39,7 +39,8 @@ import math
 import numpy as np
 
 from companion.config import require, require_finite
-from companion.core.frames import R_to_euler_zyx, R_to_quat, euler_zyx_to_R, quat_slerp, quat_to_R, so3_exp
+from companion.core.frames import (R_to_euler_zyx_scalar, R_to_quat, R_to_quat_scalar, euler_zyx_to_R_scalar,
+                                   quat_slerp_scalar, quat_to_R, quat_to_R_scalar, so3_exp)
 
 log = logging.getLogger(__name__)
 
@@ -91,12 +92,12 @@ class Pose:
 
     @property
     def R_world_body(self) -> np.ndarray:
-        return quat_to_R(self.q_world_body)
+        return quat_to_R_scalar(self.q_world_body)
 
     @property
     def rpy(self) -> np.ndarray:
         """roll, pitch, yaw (ZYX, rad)."""
-        return R_to_euler_zyx(self.R_world_body)
+        return R_to_euler_zyx_scalar(self.R_world_body)
 
     @property
     def yaw(self) -> float:
@@ -114,46 +115,63 @@ class PoseResult:
 
 
 class _Stream:
-    """Sorted ring of (t_boot_s, values) with bounded capacity."""
+    """Sorted ring of (t_boot_s, values) with bounded capacity.
+
+    ``t``, ``v`` and ``ms`` are views of the newest ≤ ``capacity`` samples in backing arrays twice
+    that long: an in-order sample is written after the last one (the oldest falls off the front by
+    moving the view), and only when the backing end is reached are the kept samples moved back to
+    its start — each sample is copied about once, not the whole history on every message."""
 
     def __init__(self, width: int, capacity: int):
         self.capacity = capacity
-        self.t = np.empty(0)
-        self.v = np.empty((0, width))
-        self.ms = np.empty(0, dtype=np.int64)
+        self._t = np.empty(2 * capacity)
+        self._v = np.empty((2 * capacity, width))
+        self._ms = np.empty(2 * capacity, dtype=np.int64)
+        self._lo = self._hi = 0
+        self._view()
+
+    def _view(self) -> None:
+        lo, hi = self._lo, self._hi
+        self.t, self.v, self.ms = self._t[lo:hi], self._v[lo:hi], self._ms[lo:hi]
 
     def __len__(self) -> int:
-        return self.t.size
+        return self._hi - self._lo
 
     def clear(self) -> None:
-        self.t = self.t[:0]
-        self.v = self.v[:0]
-        self.ms = self.ms[:0]
+        self._lo = self._hi = 0
+        self._view()
+
+    def _store(self, t: np.ndarray, v: np.ndarray, ms: np.ndarray) -> None:
+        """Replace the contents by these (sorted) samples, the newest ``capacity`` kept."""
+        k = max(len(t) - self.capacity, 0)
+        n = len(t) - k
+        self._t[:n], self._v[:n], self._ms[:n] = t[k:], v[k:], ms[k:]
+        self._lo, self._hi = 0, n
+        self._view()
 
     def add(self, ms: int, values: np.ndarray) -> AddResult:
         t = ms * 1e-3
-        n = self.t.size
-        if n and ms == self.ms[-1]:
+        n = self._hi - self._lo
+        last = int(self._ms[self._hi - 1]) if n else 0
+        if n and ms == last:
             return AddResult.DUPLICATE
-        if n == 0 or ms > self.ms[-1]:
-            self.t = np.append(self.t, t)
-            self.v = np.vstack([self.v, values[None]])
-            self.ms = np.append(self.ms, ms)
-            result = AddResult.APPENDED
-        else:
-            i = int(np.searchsorted(self.ms, ms))
-            if i < n and self.ms[i] == ms:
-                return AddResult.DUPLICATE
-            if i == 0 and n >= self.capacity:
-                return AddResult.TOO_OLD
-            self.t = np.insert(self.t, i, t)
-            self.v = np.insert(self.v, i, values, axis=0)
-            self.ms = np.insert(self.ms, i, ms)
-            result = AddResult.INSERTED
-        if self.t.size > self.capacity:
-            k = self.t.size - self.capacity
-            self.t, self.v, self.ms = self.t[k:], self.v[k:], self.ms[k:]
-        return result
+        if n == 0 or ms > last:
+            if self._hi == len(self._t):  # backing end reached: move the kept samples to the start
+                self._store(self.t.copy(), self.v.copy(), self.ms.copy())
+            i = self._hi
+            self._t[i], self._v[i], self._ms[i] = t, values, ms
+            self._hi += 1
+            if self._hi - self._lo > self.capacity:
+                self._lo += 1
+            self._view()
+            return AddResult.APPENDED
+        i = int(np.searchsorted(self.ms, ms))
+        if i < n and self.ms[i] == ms:
+            return AddResult.DUPLICATE
+        if i == 0 and n >= self.capacity:
+            return AddResult.TOO_OLD
+        self._store(np.insert(self.t, i, t), np.insert(self.v, i, values, axis=0), np.insert(self.ms, i, ms))
+        return AddResult.INSERTED
 
     def bracket(self, t: float, max_gap: float, max_extrap: float):
         """(i0, i1, s) with value = lerp(v[i0], v[i1], s), or (None, reason) on refusal."""
@@ -251,16 +269,15 @@ class TelemetryBuffer:
                      rollspeed: float, pitchspeed: float, yawspeed: float) -> AddResult:
         """One ATTITUDE message (rad, rad/s)."""
         try:
-            rpy = np.array([roll, pitch, yaw], dtype=float)
-            rates = np.array([rollspeed, pitchspeed, yawspeed], dtype=float)
-        except (TypeError, ValueError):
+            vals = [float(a) for a in (roll, pitch, yaw, rollspeed, pitchspeed, yawspeed)]
+        except (TypeError, ValueError, OverflowError):
             self.counters["attitude_invalid"] += 1
             return AddResult.INVALID
-        if not (np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates))):
+        if not all(math.isfinite(a) for a in vals):
             self.counters["attitude_invalid"] += 1
             return AddResult.INVALID
-        q = R_to_quat(euler_zyx_to_R(*rpy))
-        return self._add(self._att, "attitude", time_boot_ms, np.concatenate([q, rates]))
+        q = R_to_quat_scalar(euler_zyx_to_R_scalar(*vals[:3]))  # = R_to_quat(euler_zyx_to_R(…)) bit for bit
+        return self._add(self._att, "attitude", time_boot_ms, np.concatenate([q, vals[3:]]))
 
     def add_local_position(self, time_boot_ms: int, x: float, y: float, z: float,
                            vx: float, vy: float, vz: float) -> AddResult:
@@ -340,7 +357,7 @@ class TelemetryBuffer:
             q = R_to_quat(R)
             rates = w.copy()
         else:
-            q = quat_slerp(a[i0, :4], a[i1, :4], s)
+            q = quat_slerp_scalar(a[i0, :4], a[i1, :4], s)
             rates = (1 - s) * a[i0, 4:7] + s * a[i1, 4:7]
         p = v = None
         if need_position:

@@ -25,6 +25,31 @@ def test_euler_zyx_to_R_scalar_is_euler_zyx_to_R_bit_for_bit():
         assert np.array_equal(frames.euler_zyx_to_R_scalar(*rpy), frames.euler_zyx_to_R(*rpy)), rpy
 
 
+def test_single_attitude_forms_are_the_vectorized_ones_bit_for_bit():
+    """The telemetry buffer's per-message forms (Python floats, numpy ufuncs only for the
+    transcendental functions) reproduce the vectorized functions exactly, near the gimbal lock,
+    at the identity, and for opposite-sign quaternion pairs in the slerp."""
+    rng = np.random.default_rng(13)
+    for k in range(20000):
+        rpy = rng.uniform(-math.pi, math.pi, 3) * rng.choice([1.0, 1e-3, 1e-9, 0.0], 3)
+        if k % 7 == 0:
+            rpy[1] = rng.choice([math.pi / 2, -math.pi / 2, 1.5707963, 0.0])
+        R = frames.euler_zyx_to_R_scalar(*rpy)
+        q = frames.R_to_quat(R)
+        assert np.array_equal(frames.R_to_quat_scalar(R), q), rpy
+        q_scaled = q * rng.uniform(0.5, 2.0)
+        assert np.array_equal(frames.quat_to_R_scalar(q_scaled), frames.quat_to_R(q_scaled)), q_scaled
+        Rq = frames.quat_to_R(q)
+        assert np.array_equal(frames.R_to_euler_zyx_scalar(Rq), frames.R_to_euler_zyx(Rq)), rpy
+        q1 = frames.R_to_quat(frames.euler_zyx_to_R(*(rpy + rng.normal(0.0, rng.choice([1e-12, 1e-6, 0.01, 3.0]), 3))))
+        q1 = -q1 if k % 5 == 0 else q1
+        s = float(rng.choice([0.0, 1.0, rng.uniform()]))
+        assert np.array_equal(frames.quat_slerp_scalar(q, q1, s), frames.quat_slerp(q, q1, s)), (q, q1, s)
+    for bad in ([math.nan, 0, 0, 1], [0.0, 0.0, 0.0, 0.0]):
+        with pytest.raises(InputError):
+            frames.quat_to_R_scalar(bad)
+
+
 def test_euler_round_trip_and_axes():
     rpy = np.stack([rng.uniform(-3, 3, 50), rng.uniform(-1.5, 1.5, 50), rng.uniform(-3, 3, 50)], 1)
     R = frames.euler_zyx_to_R(*rpy.T)

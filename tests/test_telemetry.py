@@ -92,6 +92,38 @@ def test_duplicates_out_of_order_and_too_old():
     assert buf.counters["attitude_too_old"] == 1
 
 
+def test_ring_keeps_the_newest_samples_in_order_over_many_wraps():
+    """The stream's backing arrays (twice the capacity) are compacted now and then: over a long
+    stream with late and duplicate packets the kept samples are exactly the newest ``capacity`` of
+    a plain sorted model, and interpolation reads them."""
+    cap = 8
+    buf = TelemetryBuffer(TelemetryConfig(capacity=cap, reset_threshold_s=1e9))
+    rng = np.random.default_rng(5)
+    model: dict[int, float] = {}
+    ms = 1000
+    for k in range(500):
+        ms += 20
+        stamp = ms - int(rng.choice([0, 0, 0, 10, 30, 20]))  # some late (inserted), some duplicates
+        yaw = 1e-5 * stamp
+        res = buf.add_attitude(stamp, 0, 0, yaw, 0, 0, 0)
+        kept = sorted(model)[-cap:]
+        if stamp in model:
+            assert res == AddResult.DUPLICATE
+        elif len(kept) >= cap and stamp < kept[0]:
+            assert res == AddResult.TOO_OLD
+        else:
+            model[stamp] = yaw
+        kept = sorted(model)[-cap:]
+        model = {m: model[m] for m in kept}
+        assert buf._att.ms.tolist() == kept
+        assert buf.attitude_count == len(kept)
+    a, b = kept[-2], kept[-1]
+    r = buf.pose_at_boot(0.5e-3 * (a + b), need_position=False)
+    assert r.ok and r.pose.yaw == pytest.approx(0.5e-5 * (a + b), abs=1e-9)
+    buf.clear()
+    assert buf.attitude_count == 0 and buf.add_attitude(5, 0, 0, 0, 0, 0, 0) == AddResult.APPENDED
+
+
 def test_invalid_samples_are_refused_and_counted():
     buf = TelemetryBuffer()
     assert buf.add_attitude(1000, math.nan, 0, 0, 0, 0, 0) == AddResult.INVALID

@@ -155,6 +155,82 @@ def quat_slerp(q0: np.ndarray, q1: np.ndarray, s: float | np.ndarray) -> np.ndar
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
+# -- one attitude at a time ---------------------------------------------------------------------------
+# The telemetry buffer converts every ATTITUDE and interpolates poses several times a frame; on
+# 0-d and (4,) arrays the vectorized functions above cost tens of numpy calls each (~0.1–0.3 ms a
+# call on a small computer).  These forms take Python floats: the same expressions in the same
+# order (sums left to right, as numpy reduces fewer than eight elements), IEEE-exact arithmetic in
+# Python, and numpy's own ufuncs for the transcendental functions (numpy may use its SIMD versions
+# rather than the C library's), so they give the vectorized results bit for bit (the tests check it).
+
+def R_to_quat_scalar(R) -> np.ndarray:
+    """:func:`R_to_quat` of one (3, 3) rotation matrix (Shepperd's method), bit for bit."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = (map(float, row) for row in np.asarray(R, float))
+    tr = 0.0 + r00 + r11 + r22
+    vals = (tr, r00, r11, r22)
+    case = vals.index(max(vals))  # the first of equal maxima, like np.argmax (no NaN: checked by the callers)
+    if case == 0:
+        s = float(np.sqrt(1.0 + tr)) * 2
+        q = [0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s]
+    elif case == 1:
+        s = float(np.sqrt(1.0 + r00 - r11 - r22)) * 2
+        q = [(r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s]
+    elif case == 2:
+        s = float(np.sqrt(1.0 + r11 - r00 - r22)) * 2
+        q = [(r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s]
+    else:
+        s = float(np.sqrt(1.0 + r22 - r00 - r11)) * 2
+        q = [(r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s]
+    if q[0] < 0:
+        q = [-c for c in q]
+    return np.array(q)
+
+
+def quat_to_R_scalar(q) -> np.ndarray:
+    """:func:`quat_to_R` of one quaternion ``(w, x, y, z)`` (normalized here), bit for bit; the same
+    :class:`~companion.errors.InputError` on NaN, inf or a zero norm."""
+    w, x, y, z = (float(c) for c in np.asarray(q, float).reshape(4))
+    if not (math.isfinite(w) and math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        raise InputError("quaternion contains NaN or inf")
+    n = float(np.sqrt(0.0 + w * w + x * x + y * y + z * z))
+    if n < 1e-12:
+        raise InputError("quaternion has zero norm")
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def R_to_euler_zyx_scalar(R) -> np.ndarray:
+    """:func:`R_to_euler_zyx` of one (3, 3) matrix: (3,) roll, pitch, yaw in rad, bit for bit."""
+    R = np.asarray(R, float)
+    pitch = -float(np.arcsin(min(max(float(R[2, 0]), -1.0), 1.0)))
+    roll = float(np.arctan2(float(R[2, 1]), float(R[2, 2])))
+    yaw = float(np.arctan2(float(R[1, 0]), float(R[0, 0])))
+    return np.array([roll, pitch, yaw])
+
+
+def quat_slerp_scalar(q0, q1, s: float) -> np.ndarray:
+    """:func:`quat_slerp` of two quaternions (4,) at one ``s``, bit for bit."""
+    a = [float(c) for c in q0]
+    b = [float(c) for c in q1]
+    s = float(s)
+    d = 0.0 + a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
+    if d < 0:
+        b = [-c for c in b]
+    d = abs(d)
+    theta = float(np.arccos(min(max(d, -1.0), 1.0)))
+    if theta < 1e-8:
+        w0, w1 = 1 - s, s
+    else:
+        st = float(np.sin(theta))
+        w0 = float(np.sin((1 - s) * theta)) / st
+        w1 = float(np.sin(s * theta)) / st
+    q = [w0 * a[i] + w1 * b[i] for i in range(4)]
+    n = float(np.sqrt(0.0 + q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]))
+    return np.array([c / n for c in q])
+
+
 def so3_exp(phi: np.ndarray) -> np.ndarray:
     """Rodrigues: rotation matrix of the rotation vector ``phi`` (..., 3)."""
     phi = np.asarray(phi, float)
