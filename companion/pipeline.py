@@ -46,7 +46,7 @@ from companion.core.camera import CameraConfig, CameraModel
 from companion.core.estimator import RangeEstimator, RangeOutput
 from companion.core import jit
 from companion.interrupts import interrupt_in
-from companion.core.frames import R_to_euler_zyx
+from companion.core.frames import R_to_euler_zyx_scalar
 from companion.core.obstacle_map import ObstacleMap, live_view, map_entries, points_on_current_rays, world_to_body
 from companion.core.prediction import make_track_predictor
 from companion.core.priority import detection_priority, live_points_per_sector
@@ -400,7 +400,7 @@ class Pipeline:
             return
         R_wb, p_wb, v_w, _rates = pose
         res.t_boot_capture = tel.to_boot(t)
-        rpy = R_to_euler_zyx(R_wb)
+        rpy = R_to_euler_zyx_scalar(R_wb)  # = R_to_euler_zyx(R_wb) bit for bit
         res.roll, res.pitch, res.yaw = (float(a) for a in rpy)
         R_wc, p_wc = self.camera.camera_pose(R_wb, p_wb)
 

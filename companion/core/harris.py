@@ -274,10 +274,13 @@ def _candidates(R: np.ndarray, cand: np.ndarray, b: int, radius: int) -> tuple[n
     return xs[keep], ys[keep], resp[keep]
 
 
-def _bucketed(xs: np.ndarray, ys: np.ndarray, resp: np.ndarray, config: HarrisConfig, h: int, w: int) -> np.ndarray:
+def _bucketed(xs: np.ndarray, ys: np.ndarray, resp: np.ndarray, config: HarrisConfig, h: int, w: int,
+              rel_threshold: float | None = None) -> np.ndarray:
     """Selection order of candidates sorted by descending ``resp``: round robin over the grid cells
     (every cell's strongest first, then every cell's second, ...), keeping responses >=
-    ``rel_threshold`` × their cell's strongest and at most ``cell_cap`` per cell."""
+    ``rel_threshold`` (default ``config.rel_threshold``) × their cell's strongest and at most
+    ``cell_cap`` per cell."""
+    rel = config.rel_threshold if rel_threshold is None else rel_threshold
     cell = (ys * config.grid_rows // h) * config.grid_cols + (xs * config.grid_cols // w)
     by_cell = np.lexsort((-resp, cell))
     cell_sorted = cell[by_cell]
@@ -287,7 +290,7 @@ def _bucketed(xs: np.ndarray, ys: np.ndarray, resp: np.ndarray, config: HarrisCo
     cell_max = np.empty(len(cell))
     cell_max[by_cell] = resp[by_cell][first]
     sel = np.lexsort((-resp, rank))
-    sel = sel[resp[sel] >= config.rel_threshold * cell_max[sel]]
+    sel = sel[resp[sel] >= rel * cell_max[sel]]
     if config.cell_cap > 0:
         sel = sel[rank[sel] < config.cell_cap]
     return sel
@@ -393,7 +396,7 @@ def detect_harris(
         px, py, pr = _candidates(R, pcand, b, pd)
         if len(px):
             prel = config.rel_threshold if config.priority_rel_threshold < 0 else config.priority_rel_threshold
-            psel = _bucketed(px, py, pr, dataclasses.replace(config, rel_threshold=prel), h, w)[: n_pri + min(spare, n_pri)]
+            psel = _bucketed(px, py, pr, config, h, w, prel)[: n_pri + min(spare, n_pri)]
             px, py, pr = px[psel], py[psel], pr[psel]
             # the usual ranking without the corners already taken (same pixel) or too near them
             near = _exclusion_mask((h, w), np.stack([px, py], 1).astype(float), pd)[ys, xs] != 0
