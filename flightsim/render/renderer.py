@@ -135,6 +135,7 @@ class Renderer:
         self._solids = Solids(world, self._tex, self.options, self.canvas_K, self.canvas_size, self._ub, self._vb,
                               self._frustum, self._f_mean)
         self._ground_tiles = self._tiled_ground()
+        self._ground_levels = self._ground_level_constants()
         sky = world.config.sky
         self._sky_h, self._sky_z = float(sky.horizon_grey), float(sky.zenith_grey)
 
@@ -155,6 +156,17 @@ class Renderer:
                 cached.append((np.ascontiguousarray(np.tile(t, (reps, reps))) if reps > 1 else t, reps))
             self._tex._tiled = cached
         return cached
+
+    def _ground_level_constants(self):
+        """Per ground mip level, what :meth:`_draw_ground` needs of it every frame, computed once:
+        ``(tiled texture, reps, texel size in metres, flat grey)`` — the flat grey (float32 mean of
+        the level) for levels of a few texels per period, which are drawn as their mean, else None."""
+        if self._ground_tiles is None:
+            return None
+        tex = self._tex.ground
+        tile_m = self._tex.ground_texel_m * tex[0].shape[0]
+        return [(t, reps, tile_m / tex[L].shape[0], _F32(tex[L].mean()) if tex[L].shape[0] <= 4 else None)
+                for L, (t, reps) in enumerate(self._ground_tiles)]
 
     def _setup_canvas(self) -> None:
         c = self.camera_config
@@ -386,34 +398,40 @@ class Renderer:
             alpha = (dD_f > 0).astype(_F32)
         acc = np.zeros((Hr, Wr), _F32)
         tile_m = s0 * tex[0].shape[0]
+        levels_c = self._ground_levels
         A = Kc @ R.T
-        # rows / columns of the ground region where each level has weight (λ within L ± 1)
+        # rows / columns of the ground region where each level has weight (λ within L ± 1): the
+        # first and last of them for every level at once (a few numpy calls per frame, not per level)
         r_lo, r_hi = lam.min(axis=1), lam.max(axis=1)
         c_lo, c_hi = lam.min(axis=0), lam.max(axis=0)
         lmin = int(math.floor(float(r_lo.min())))
         lmax = int(math.ceil(float(r_hi.max())))
-        for L in range(lmin, lmax + 1):
-            rr_ = np.nonzero((r_hi > L - 1.0) & (r_lo < L + 1.0))[0]
-            cc_ = np.nonzero((c_hi > L - 1.0) & (c_lo < L + 1.0))[0]
-            if len(rr_) == 0 or len(cc_) == 0:
+        levels = np.arange(lmin, lmax + 1, dtype=float)[:, None]
+        bands = []
+        for lo, hi in ((r_lo, r_hi), (c_lo, c_hi)):
+            has = (hi > levels - 1.0) & (lo < levels + 1.0)  # (levels, rows or columns)
+            bands.append((has.any(axis=1).tolist(), has.argmax(axis=1).tolist(), (has.shape[1] - 1 - has[:, ::-1].argmax(axis=1)).tolist()))
+        (r_any, r_first, r_last), (c_any, c_first, c_last) = bands
+        p_n, p_e = float(p[0]), float(p[1])
+        for k, L in enumerate(range(lmin, lmax + 1)):
+            if not (r_any[k] and c_any[k]):
                 continue
-            ya, yb = y0 + int(rr_[0]), y0 + int(rr_[-1]) + 1
-            xa, xb = x0 + int(cc_[0]), x0 + int(cc_[-1]) + 1
+            ya, yb = y0 + r_first[k], y0 + r_last[k] + 1
+            xa, xb = x0 + c_first[k], x0 + c_last[k] + 1
             sl = (slice(ya - y0, yb - y0), slice(xa - x0, xb - x0))
             w = lam[sl] - _F32(L)  # w = max(1 − |λ − L|, 0), in place
             np.abs(w, out=w)
             np.subtract(_F32(1.0), w, out=w)
             np.maximum(w, _F32(0.0), out=w)
-            t, reps = self._ground_tiles[L]
-            if tex[L].shape[0] <= 4:  # a few texels per period: only the mean grey is left
-                w *= _F32(tex[L].mean())
+            t, reps, s, flat = levels_c[L]
+            if flat is not None:  # a few texels per period: only the mean grey is left
+                w *= flat
                 acc[sl] += w
                 continue
-            s = tile_m / tex[L].shape[0]
             # tile origin (a multiple of the period) that puts the camera near the middle of t
-            N0 = round(p[0] / tile_m - 0.5 * reps) * tile_m
-            E0 = round(p[1] / tile_m - 0.5 * reps) * tile_m
-            M = np.array([[0.0, s, N0 + 0.5 * s - p[0]], [s, 0.0, E0 + 0.5 * s - p[1]], [0.0, 0.0, h]])
+            N0 = round(p_n / tile_m - 0.5 * reps) * tile_m
+            E0 = round(p_e / tile_m - 0.5 * reps) * tile_m
+            M = np.array([[0.0, s, N0 + 0.5 * s - p_n], [s, 0.0, E0 + 0.5 * s - p_e], [0.0, 0.0, h]])
             Hm = np.array([[1, 0, -xa], [0, 1, -ya], [0, 0, 1.0]]) @ A @ M
             warped = cv2.warpPerspective(t, Hm, (xb - xa, yb - ya), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
             w *= warped
