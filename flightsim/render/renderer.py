@@ -51,6 +51,7 @@ from companion.config import require, require_finite
 from companion.core.camera import CameraConfig, CameraModel
 from companion.core.frames import so3_exp
 from companion.errors import InputError
+from flightsim.render.kernels import ground_level
 from flightsim.render.solids import Solids
 
 _F32 = np.float32
@@ -388,7 +389,7 @@ class Renderer:
         x0 = int(self._cu[max(cc[0] - 1, 0)])
         x1 = int(self._cu[min(cc[-1] + 1, len(self._cu) - 1)]) + 1
         Hr, Wr = y1 - y0, x1 - x0
-        lam = cv2.resize(lam_c, (Wc, Hc), interpolation=cv2.INTER_LINEAR)[y0:y1, x0:x1]
+        lam = np.ascontiguousarray(cv2.resize(lam_c, (Wc, Hc), interpolation=cv2.INTER_LINEAR)[y0:y1, x0:x1])
         dD_f = rows[2][:, x0:x1] + cols[2][y0:y1]
         if gD > 1e-12:  # α = clip(dD / gD + ½, 0, 1), in place
             alpha = dD_f * _F32(1.0 / gD)
@@ -418,15 +419,10 @@ class Renderer:
                 continue
             ya, yb = y0 + r_first[k], y0 + r_last[k] + 1
             xa, xb = x0 + c_first[k], x0 + c_last[k] + 1
-            sl = (slice(ya - y0, yb - y0), slice(xa - x0, xb - x0))
-            w = lam[sl] - _F32(L)  # w = max(1 − |λ − L|, 0), in place
-            np.abs(w, out=w)
-            np.subtract(_F32(1.0), w, out=w)
-            np.maximum(w, _F32(0.0), out=w)
+            band = (ya - y0, yb - y0, xa - x0, xb - x0)
             t, reps, s, flat = levels_c[L]
             if flat is not None:  # a few texels per period: only the mean grey is left
-                w *= flat
-                acc[sl] += w
+                ground_level(acc, lam, band, None, L, flat)  # acc += max(1 − |λ − L|, 0) · grey
                 continue
             # tile origin (a multiple of the period) that puts the camera near the middle of t
             N0 = round(p_n / tile_m - 0.5 * reps) * tile_m
@@ -434,8 +430,7 @@ class Renderer:
             M = np.array([[0.0, s, N0 + 0.5 * s - p_n], [s, 0.0, E0 + 0.5 * s - p_e], [0.0, 0.0, h]])
             Hm = np.array([[1, 0, -xa], [0, 1, -ya], [0, 0, 1.0]]) @ A @ M
             warped = cv2.warpPerspective(t, Hm, (xb - xa, yb - ya), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-            w *= warped
-            acc[sl] += w
+            ground_level(acc, lam, band, warped, L)  # acc += max(1 − |λ − L|, 0) · texture
         # blend ground over sky with the horizon coverage (sky + α (acc − sky), in place in acc);
         # 1/Z of the plane where the centre sees it
         region = img[y0:y1, x0:x1]

@@ -23,6 +23,8 @@ import math
 import cv2
 import numpy as np
 
+from flightsim.render.kernels import coverage
+
 _F32 = np.float32
 #: Box corners joined by the 12 edges (corner index bits: a, b, down).
 _BOX_EDGES = [(i, i ^ b) for i in range(8) for b in (1, 2, 4) if i < i ^ b]
@@ -209,15 +211,7 @@ class Solids:
         ex, ey = e[:, 0:1] * inv_len[:, None], e[:, 1:2] * inv_len[:, None]
         rows = (ey * (hull[:, 0:1] - self._uf[x0:x1]) - ex * hull[:, 1:2]).astype(_F32)  # (n, w)
         cols = (ex * self._vf[y0:y1]).astype(_F32)  # (n, h)
-        if (x1 - x0) * (y1 - y0) * len(e) <= 60000:
-            m = np.min(rows[:, None, :] + cols[:, :, None], axis=0)
-        else:
-            m = rows[0][None, :] + cols[0][:, None]
-            for i in range(1, len(e)):
-                np.minimum(m, rows[i][None, :] + cols[i][:, None], out=m)
-        m += _F32(0.5)
-        np.minimum(m, _F32(1.0), out=m)
-        return np.maximum(m, _F32(0.0), out=m)
+        return coverage(rows, cols)  # clamp(0.5 + minᵢ (rows[i][x] + cols[i][y]), 0, 1)
 
     def _draw_polyhedron(self, s: _Solid, R, p, cam8, img, invz, uv8, faces) -> None:
         hull = self._hull(cam8, uv8)
