@@ -1,6 +1,7 @@
 """Software renderer: what the companion's camera sees in a :class:`~flightsim.world.World`.
 
-Pipeline for one frame (all per-pixel work in numpy / OpenCV, no per-pixel Python loops):
+Pipeline for one frame (all per-pixel work in numpy / OpenCV and the compiled loops of
+:mod:`flightsim.render.kernels`, bit for bit the numpy they replace; no per-pixel Python loops):
 
 1. **Pinhole canvas.**  Everything is drawn into an ideal pinhole image with intrinsics ``K_c``.
    Without lens distortion the canvas *is* the output image (``K_c = K``).  With distortion the
