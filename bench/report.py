@@ -51,7 +51,9 @@ def seed004_markdown(res: dict, runs: int) -> str:
         f"{runs} Monte Carlo runs per case. Mean absolute range error (eq. 15) over the six points, metres, "
         "from the camera of that frame (points that have left the view keep their last estimate). "
         "Before convergence an estimate can sit anywhere its wide prior allows (capped at max_range_m); "
-        "the converged share and the filter's σ say so, which is why early means are large.",
+        "the converged share and the filter's σ say so, which is why early means are large."
+        + ("" if res.get("ekf_iterations", 2) == 2 else
+           f" Anchored EKF with {res['ekf_iterations']} iteration(s) of its update (`--ekf-iterations`; the benchmark's default: 2)."),
         "",
     ]
     for group, title in (("sigma_px", "Camera poses exact, pixel noise only"),
