@@ -38,7 +38,7 @@ import math
 
 import numpy as np
 
-from companion.config import require, require_finite
+from companion.config import require, require_finite, require_int
 from companion.core.frames import (R_to_euler_zyx_scalar, R_to_quat, R_to_quat_scalar, euler_zyx_to_R_scalar,
                                    quat_slerp_scalar, quat_to_R, quat_to_R_scalar, so3_exp)
 
@@ -61,8 +61,7 @@ class TelemetryConfig:
     reset_threshold_s: float = 1.0  # time_boot_ms going back by more than this = autopilot reboot: buffer cleared
 
     def __post_init__(self) -> None:
-        require(isinstance(self.capacity, int) and not isinstance(self.capacity, bool) and self.capacity >= 2,
-                f"capacity must be an integer >= 2, got {self.capacity!r}")
+        require_int("capacity", self.capacity, minimum=2)
         require_finite("max_gap_s", self.max_gap_s, positive=True)
         require_finite("max_age_s", self.max_age_s, positive=True)
         require_finite("max_extrapolation_s", self.max_extrapolation_s, nonnegative=True)

@@ -116,12 +116,12 @@ class TrackConfig:
     refill_backoff_priority: bool = True  # the priority region's top-up (priority_min_tracks) still runs during a pause
 
     def __post_init__(self) -> None:
-        require(isinstance(self.max_tracks, int) and self.max_tracks >= 1, f"max_tracks must be an integer >= 1, got {self.max_tracks!r}")
+        require_int("max_tracks", self.max_tracks, minimum=1)
         require_finite("redetect_fraction", self.redetect_fraction, nonnegative=True)
         require(self.redetect_fraction <= 1.0, f"redetect_fraction must be <= 1, got {self.redetect_fraction}")
-        require(isinstance(self.max_history, int) and self.max_history >= 2, f"max_history must be an integer >= 2, got {self.max_history!r}")
+        require_int("max_history", self.max_history, minimum=2)
         require_finite("min_new_distance_px", self.min_new_distance_px, nonnegative=True)
-        require(isinstance(self.max_failures, int) and self.max_failures >= 1, f"max_failures must be an integer >= 1, got {self.max_failures!r}")
+        require_int("max_failures", self.max_failures, minimum=1)
         require_finite("duplicate_distance_px", self.duplicate_distance_px, nonnegative=True)
         require_finite("template_rescale_threshold", self.template_rescale_threshold, nonnegative=True)
         require_finite("priority_share", self.priority_share, nonnegative=True)
