@@ -10,7 +10,7 @@ What each setting of ``configs/companion.toml`` buys and costs, on the flights w
   which the wider neighbourhood would otherwise let through in clusters, stay out;
 * ``[sectors] remembered_spread_k`` (shipped 1) — a remembered point is spread over ± k·σ_t of
   bearing: 2 covers more of its bearing uncertainty and claims more clear sectors beside thin
-  obstacles and building edges;
+  obstacles and building edges; 0 places each point at its estimated bearing only;
 * ``[sectors] remembered_drop_spread_deg`` (shipped 90 = off) — withhold remembered points whose
   bearing became too uncertain instead of spreading them;
 * ``[sectors] infer_narrow_gap_m`` (shipped 4) — an unknown gap between two obstacle sectors whose
@@ -40,6 +40,7 @@ VARIANTS: dict[str, tuple[str, str, str] | None] = {
     "as shipped": None,
     "support_radius_rel = 0": ("map", "support_radius_rel", "0.0"),
     "max_entry_nis_ratio = 0": ("map", "max_entry_nis_ratio", "0.0"),
+    "remembered_spread_k = 0": ("sectors", "remembered_spread_k", "0.0"),
     "remembered_spread_k = 2": ("sectors", "remembered_spread_k", "2.0"),
     "remembered_drop_spread_deg = 5": ("sectors", "remembered_drop_spread_deg", "5.0"),
     "infer_narrow_gap_m = 0": ("sectors", "infer_narrow_gap_m", "0.0"),
