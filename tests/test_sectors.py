@@ -379,6 +379,32 @@ def test_points_just_above_the_band_cap_what_the_sector_claims():
         SectorConfig(cap_above_m=-1.0)
 
 
+def test_shipped_cap_covers_a_remembered_mast_whose_band_points_fell_in_the_next_sector():
+    """quad_approach, the mast beside the path out of view (docs/BENCHMARKS.md, "The cap from above the band at
+    4 m"): its remembered in-band points all lie in the 30° sector, the 35° sector holds only a remembered point
+    on the building behind and the mast's point 2.8 m above the band's edge.  The shipped cap (4 m) reports the
+    mast there; at 2.5 m that sector claimed the building, 23 m too far."""
+    def at(d, bearing_deg, z):
+        b = math.radians(bearing_deg)
+        return [d * math.cos(b), d * math.sin(b), z]
+
+    mast_band = [at(5.8, 31.0, 0.4), at(5.8, 31.9, -0.3), at(5.8, 32.3, 1.0)]
+    mast_top = at(5.8, 35.2, -4.3)  # FRD: 4.3 m above the vehicle, 2.8 m above the band's upper edge
+    building = at(28.7, 35.0, 0.0)
+    mem = np.array(mast_band + [mast_top, building])
+    kw = dict(remembered_p_body=mem, remembered_sigma=np.full(len(mem), 0.1), remembered_tangential_sigma=np.full(len(mem), 0.01),
+              roll_pitch_rad=(0.0, 0.0), ground_height_m=-10.0)  # 10 m up
+    none = np.zeros((0, 3))
+    assert CFG.cap_above_m == 4.0
+    shipped = run(none, config=CFG, **kw)
+    old = run(none, config=dataclasses.replace(CFG, cap_above_m=2.5), **kw)
+    assert not shipped.in_view[7] and shipped.remembered_points[6] >= 3
+    assert old.range_m[7] == pytest.approx(28.7 - 2 * 0.1, abs=0.1)  # the building behind the mast
+    assert shipped.state[7] == SectorState.OBSTACLE and shipped.inferred[7]
+    assert shipped.range_m[7] == pytest.approx(5.8 - 2 * 0.1, abs=0.1)  # the mast
+    assert shipped.range_m[6] == pytest.approx(old.range_m[6])  # its own sector as before
+
+
 def test_cap_above_only_ever_lowers_a_claim_seeded():
     """Seeded Monte Carlo: with ``cap_above_m`` on, an unknown sector stays unknown, nothing becomes clear,
     an obstacle's range never grows, and every changed sector is an inferred obstacle."""
