@@ -379,11 +379,11 @@ def test_points_just_above_the_band_cap_what_the_sector_claims():
         SectorConfig(cap_above_m=-1.0)
 
 
-def test_shipped_cap_covers_a_remembered_mast_whose_band_points_fell_in_the_next_sector():
+def test_a_4m_cap_covers_a_remembered_mast_whose_band_points_fell_in_the_next_sector():
     """quad_approach, the mast beside the path out of view (docs/BENCHMARKS.md, "The cap from above the band at
     4 m"): its remembered in-band points all lie in the 30° sector, the 35° sector holds only a remembered point
-    on the building behind and the mast's point 2.8 m above the band's edge.  The shipped cap (4 m) reports the
-    mast there; at 2.5 m that sector claimed the building, 23 m too far."""
+    on the building behind and the mast's point 2.8 m above the band's edge.  A 4 m cap reports the mast there;
+    the shipped 2.5 m claims the building, 23 m too far (4 m was measured and not shipped)."""
     def at(d, bearing_deg, z):
         b = math.radians(bearing_deg)
         return [d * math.cos(b), d * math.sin(b), z]
@@ -395,14 +395,14 @@ def test_shipped_cap_covers_a_remembered_mast_whose_band_points_fell_in_the_next
     kw = dict(remembered_p_body=mem, remembered_sigma=np.full(len(mem), 0.1), remembered_tangential_sigma=np.full(len(mem), 0.01),
               roll_pitch_rad=(0.0, 0.0), ground_height_m=-10.0)  # 10 m up
     none = np.zeros((0, 3))
-    assert CFG.cap_above_m == 4.0
-    shipped = run(none, config=CFG, **kw)
-    old = run(none, config=dataclasses.replace(CFG, cap_above_m=2.5), **kw)
-    assert not shipped.in_view[7] and shipped.remembered_points[6] >= 3
-    assert old.range_m[7] == pytest.approx(28.7 - 2 * 0.1, abs=0.1)  # the building behind the mast
-    assert shipped.state[7] == SectorState.OBSTACLE and shipped.inferred[7]
-    assert shipped.range_m[7] == pytest.approx(5.8 - 2 * 0.1, abs=0.1)  # the mast
-    assert shipped.range_m[6] == pytest.approx(old.range_m[6])  # its own sector as before
+    assert CFG.cap_above_m == 2.5
+    cap4 = run(none, config=dataclasses.replace(CFG, cap_above_m=4.0), **kw)
+    cap25 = run(none, config=CFG, **kw)
+    assert not cap4.in_view[7] and cap4.remembered_points[6] >= 3
+    assert cap25.range_m[7] == pytest.approx(28.7 - 2 * 0.1, abs=0.1)  # the building behind the mast
+    assert cap4.state[7] == SectorState.OBSTACLE and cap4.inferred[7]
+    assert cap4.range_m[7] == pytest.approx(5.8 - 2 * 0.1, abs=0.1)  # the mast
+    assert cap4.range_m[6] == pytest.approx(cap25.range_m[6])  # its own sector as before
 
 
 def test_cap_above_only_ever_lowers_a_claim_seeded():

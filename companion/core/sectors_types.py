@@ -68,7 +68,7 @@ class SectorConfig:
     infer_vertical_one_side: bool = True  # with infer_vertical: points above the band alone suffice when they show a vertical structure reaching down towards it (two at consistent ranges whose heights differ by infer_vertical_min_extent_m, the lower within infer_vertical_reach_m of the band's edge): a pole standing on the ground, whose foot is no evidence
     infer_vertical_min_extent_m: float = 0.5  # ... the two points' heights differ by at least this, m
     infer_vertical_reach_m: float = 2.5  # ... and the lower one lies within this above the band's edge, m
-    cap_above_m: float = 4.0  # a converged point up to this far above the band caps the range its sector claims (an obstacle sector reports no farther than it, a clear one becomes an obstacle at it; unknown stays unknown), m; 0 = off
+    cap_above_m: float = 2.5  # a converged point up to this far above the band caps the range its sector claims (an obstacle sector reports no farther than it, a clear one becomes an obstacle at it; unknown stays unknown), m; 0 = off
     ground_margin_m: float = 0.5  # with the ground's height known, points less than this above it are the ground: never an obstacle nor evidence of clear (taking off, landing, flying low); 0 = off
     fuse_gate_k: float = 2.0  # a sector's live obstacle points whose horizontal ranges agree with its nearest one within this many combined σ are one surface: their fused range replaces the nearest of them (the nearest of many noisy points is biased near); 0 = off (the n-th nearest point)
     fuse_correlation: float = 0.3  # correlation of those points' range errors through the shared pose: the fused σ never falls below √ρ of theirs
