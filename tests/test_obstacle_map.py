@@ -444,6 +444,30 @@ def test_support_radius_grows_with_distance_when_asked():
         MapConfig(support_radius_rel=-0.1)
 
 
+def test_a_thin_masts_stacked_points_support_each_other_in_a_column():
+    """A 0.15 m mast leaves corners one above another, ~1 m apart at 3 m range: lone under a 0.6 m
+    sphere, supported by a column 0.3 m wide and 1.2 m up and down; the same spacing across a
+    surface stays lone, and so does a point 1.5 m below another."""
+    mast = [[18.0, -2.9, -4.5], [18.05, -2.95, -5.5], [17.95, -3.0, -6.5]]  # 1 m apart vertically
+    across = [[30.0, 0.0, -5.0], [30.0, 1.0, -5.0]]  # 1 m apart horizontally
+    far_below = [[40.0, 5.0, -5.0], [40.1, 5.0, -3.5]]  # 1.5 m apart vertically
+    vehicle = np.array([15.0, -1.0, -5.0])
+    rows = np.arange(7)
+    sphere = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6, support_radius_rel=0.0))
+    column = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6, support_radius_rel=0.0, support_column_radius_m=0.3,
+                                   support_column_half_height_m=1.2))
+    for m in (sphere, column):
+        m.observe(0.0, [1, 2, 3, 4, 5, 6, 7], mast + across + far_below, cov(7), live_keys=[])
+    assert len(sphere.remembered(0.5, vehicle)) == 0
+    assert sorted(column.remembered(0.5, vehicle).keys.tolist()) == [1, 2, 3]
+    assert sphere.support(rows).tolist() == [1] * 7
+    assert column.support(rows).tolist() == [2, 3, 2, 1, 1, 1, 1]  # 1 and 3 are 2 m apart: beyond the column
+    for bad in (dict(support_column_radius_m=-0.1), dict(support_column_half_height_m=0.0),
+                dict(support_column_radius_m=float("nan"))):
+        with pytest.raises(ConfigError, match="support_column"):
+            MapConfig(**bad)
+
+
 def test_remembered_point_with_too_uncertain_a_bearing_is_dropped_not_spread():
     p = np.array([[10.0, 0.0, 0.0], [-10.0, 0.0, 0.0]])
     kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=p, remembered_sigma=[0.2, 0.2],

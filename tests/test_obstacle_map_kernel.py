@@ -21,6 +21,7 @@ fewer, smaller flights.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import types
 
@@ -207,6 +208,33 @@ def test_kernels_equal_reference_on_seeded_flights(monkeypatch, variant):
         seen["absorbed"] += m.absorbed
     # the flights exercise what is compared (a vacuous comparison would pass anything)
     assert all(v > 0 for v in seen.values()), seen
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_column_support_kernel_matches_the_numpy_reference(monkeypatch, seed):
+    """support_column_radius_m: the kernel's column counts (the larger of sphere and column decides)
+    equal the numpy reference's, on clustered points with pairs right at the column's edges."""
+    rng = np.random.default_rng(seed)
+    cfg = MapConfig(min_support=2, support_radius_m=0.6, support_radius_rel=0.15, support_column_radius_m=0.3,
+                    support_column_half_height_m=1.2)
+    m = ObstacleMap(cfg)
+    base = np.array([200.0, -150.0, -5.0]) * rng.uniform(0, 10)
+    q = base + rng.uniform(-4, 4, (300, 3)) * np.array([1.0, 1.0, 0.5])
+    ang = rng.uniform(0, 2 * np.pi, (300, 1))
+    edge = np.concatenate([np.cos(ang), np.sin(ang), np.zeros_like(ang)], 1) * 0.3 + np.array([0, 0, 1.0]) * rng.choice([-1.2, 1.2, 0.5], (300, 1))
+    p = np.concatenate([q, q + edge])
+    m.observe(0.0, np.arange(len(p)), p, np.broadcast_to(np.eye(3) * 0.01, (len(p), 3, 3)))
+    rows = np.arange(len(p))
+    pv = base + np.array([10.0, 0.0, 0.0])
+    monkeypatch.setattr(jit, "ENABLED", False)
+    ref = m.support(rows, p_world_vehicle=pv)
+    ref_rem = m.remembered(1.0, pv).keys
+    monkeypatch.setattr(jit, "ENABLED", True)
+    np.testing.assert_array_equal(m.support(rows, p_world_vehicle=pv), ref)
+    np.testing.assert_array_equal(m.remembered(1.0, pv).keys, ref_rem)
+    sphere_only = ObstacleMap(dataclasses.replace(cfg, support_column_radius_m=0.0))
+    sphere_only.observe(0.0, np.arange(len(p)), p, np.broadcast_to(np.eye(3) * 0.01, (len(p), 3, 3)))
+    assert np.any(m.support(rows, p_world_vehicle=pv) > sphere_only.support(rows, p_world_vehicle=pv))  # the column counts
 
 
 def test_support_matches_the_float32_reference_far_from_the_origin(monkeypatch):

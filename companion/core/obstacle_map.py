@@ -30,7 +30,9 @@ of its filter: σ_range² along the line of sight and (r · σ_bearing)² across
 (:func:`landmark_covariance`).  Only landmarks their filter explains as static points enter
 (:func:`consistent_for_entry`: mean NIS within ``max_entry_nis_ratio`` × the frame's median); a
 remembered point is published only with ``min_support`` map points within max(``support_radius_m``,
-``support_radius_rel`` × its distance).
+``support_radius_rel`` × its distance) — or, counted apart (the larger count decides), within
+``support_column_radius_m`` horizontally and ``support_column_half_height_m`` vertically: a thin mast
+leaves its corners stacked one above another, farther apart than across a surface.
 
 Retention (seed 003 §3.6, docs/derivations/obstacle_map.md)
 -----------------------------------------------------------
@@ -76,7 +78,8 @@ from companion.core.obstacle_map_landmarks import (  # noqa: F401
     points_on_current_rays,
     points_on_current_rays_reference,
 )
-from companion.core.obstacle_map_kernels import _check_view_k, _observe_k, _prune_k, _remembered_k, _rows_of_k, _support_k
+from companion.core.obstacle_map_kernels import (_check_view_k, _column_support_k, _observe_k, _prune_k, _remembered_k, _rows_of_k,
+                                                 _support_k)
 from companion.errors import InputError
 
 #: Reasons an input landmark is refused by :meth:`ObstacleMap.observe` (counted, never raised).
@@ -104,6 +107,8 @@ class MapConfig:
     min_support: int = 2  # a remembered point is published only with at least this many map points (itself included) within support_radius_m
     support_radius_m: float = 0.6  # neighbourhood of that support test, m (at least)
     support_radius_rel: float = 0.15  # ... or this fraction of the point's distance from the vehicle, if larger (corners are spaced in pixels, so neighbours lie farther apart far away)
+    support_column_radius_m: float = 0.0  # ... or, counted apart, the map points within this horizontally and support_column_half_height_m vertically (a thin mast or pole leaves its corners stacked one above another, farther apart than on a surface), m; 0 = off
+    support_column_half_height_m: float = 1.2  # vertical reach of that column, m
 
     def __post_init__(self) -> None:
         require(isinstance(self.enabled, bool), "enabled must be true or false")
@@ -111,9 +116,11 @@ class MapConfig:
                 f"max_landmarks must be an integer >= 1, got {self.max_landmarks!r}")
         require(isinstance(self.min_support, int) and not isinstance(self.min_support, bool) and self.min_support >= 1,
                 f"min_support must be an integer >= 1, got {self.min_support!r}")
-        for name in ("radius_m", "max_age_s", "max_rel_sigma", "reobserve_radius_px", "gate_k", "support_radius_m"):
+        for name in ("radius_m", "max_age_s", "max_rel_sigma", "reobserve_radius_px", "gate_k", "support_radius_m",
+                     "support_column_half_height_m"):
             require_finite(name, getattr(self, name), positive=True)
         for name in ("position_drift_mps", "position_drift_max_m", "heading_drift_deg_s", "image_margin_px", "support_radius_rel",
+                     "support_column_radius_m",
                      "max_entry_nis_ratio"):
             require_finite(name, getattr(self, name), nonnegative=True)
         require_finite("min_score", self.min_score)
@@ -450,14 +457,33 @@ class ObstacleMap:
     def support(self, rows: np.ndarray, p_world_vehicle=None) -> np.ndarray:
         """(len(rows),) number of map points (the point itself included) within the support radius:
         ``support_radius_m``, or ``support_radius_rel`` × the point's distance from
-        ``p_world_vehicle`` when that is larger (given)."""
+        ``p_world_vehicle`` when that is larger (given); with ``support_column_radius_m`` > 0, the
+        larger of that count and the column's (points within the column radius horizontally and
+        ``support_column_half_height_m`` vertically)."""
         if rows.size == 0:
             return np.zeros(0, np.int64)
         c = self.config
         if _jit.ENABLED:
             pv = np.zeros(3) if p_world_vehicle is None else np.asarray(p_world_vehicle, float).reshape(3)
             rel = c.support_radius_rel if p_world_vehicle is not None else 0.0
-            return _support_k(self.p, np.asarray(rows, np.int64), pv, c.support_radius_m, rel)
+            rows = np.asarray(rows, np.int64)
+            sup = _support_k(self.p, rows, pv, c.support_radius_m, rel)
+            if c.support_column_radius_m > 0:
+                sup = np.maximum(sup, _column_support_k(self.p, rows, c.support_column_radius_m, c.support_column_half_height_m))
+            return sup
+        sup = self._sphere_support(rows, p_world_vehicle)
+        if c.support_column_radius_m > 0:
+            q = self.p[rows]
+            dx = self.p[None, :, 0] - q[:, None, 0]
+            dy = self.p[None, :, 1] - q[:, None, 1]
+            inside = (dx * dx + dy * dy <= c.support_column_radius_m * c.support_column_radius_m) & (
+                np.abs(self.p[None, :, 2] - q[:, None, 2]) <= c.support_column_half_height_m)
+            sup = np.maximum(sup, np.count_nonzero(inside, axis=1))  # the point itself is inside
+        return sup
+
+    def _sphere_support(self, rows: np.ndarray, p_world_vehicle=None) -> np.ndarray:
+        """The sphere's count of :meth:`support` (numpy reference, float32 as the kernel)."""
+        c = self.config
         radius = np.full(rows.size, c.support_radius_m)
         if p_world_vehicle is not None and c.support_radius_rel > 0:
             dist = np.linalg.norm(self.p[rows] - np.asarray(p_world_vehicle, float).reshape(3), axis=1)
@@ -479,7 +505,8 @@ class ObstacleMap:
             c = self.config
             rows, s_r, s_t, dt = _remembered_k(self.p, self.P, self.t_seen, self.live, pv, float(t), c.min_support, c.support_radius_m,
                                                c.support_radius_rel, c.position_drift_mps, c.position_drift_max_m,
-                                               math.radians(c.heading_drift_deg_s))
+                                               math.radians(c.heading_drift_deg_s), c.support_column_radius_m,
+                                               c.support_column_half_height_m)
             return Remembered(self.keys[rows], self.p[rows], s_r, s_t, dt)
         rows = np.flatnonzero(~self.live)
         if self.config.min_support > 1 and rows.size:

@@ -289,6 +289,38 @@ def _support_k(p, rows, pv, radius_m, rel, stop_at=0):
 
 
 @_jit.njit
+def _column_support_k(p, rows, radius_m, half_height_m, stop_at=0):
+    """:meth:`ObstacleMap.support`'s column count: 1 + the map points within ``radius_m``
+    horizontally (dx² + dy² ≤ r², float64) and ``half_height_m`` vertically of each row, the
+    same expressions as the numpy reference.  Only the points within ``radius_m`` in north are
+    visited (sorted once).  ``stop_at`` > 0: a count stops there."""
+    n = p.shape[0]
+    order = np.argsort(p[:, 0])
+    xs = p[order, 0].copy()
+    r2 = radius_m * radius_m
+    count = np.ones(rows.size, np.int64)
+    for k in range(rows.size):
+        i = rows[k]
+        if stop_at > 0 and count[k] >= stop_at:
+            continue
+        j0 = np.searchsorted(xs, p[i, 0] - radius_m)
+        j1 = np.searchsorted(xs, p[i, 0] + radius_m, side="right")
+        c = 1
+        for q in range(j0, j1):
+            j = order[q]
+            if j == i:
+                continue
+            dx = p[j, 0] - p[i, 0]
+            dy = p[j, 1] - p[i, 1]
+            if dx * dx + dy * dy <= r2 and abs(p[j, 2] - p[i, 2]) <= half_height_m:
+                c += 1
+                if c == stop_at:
+                    break
+        count[k] = c
+    return count
+
+
+@_jit.njit
 def _sorted_order(a):
     """Indices sorting ``a`` (the identity when it is already non-decreasing, as the pipeline's keys are)."""
     for i in range(1, a.size):
@@ -492,12 +524,16 @@ def _check_view_k(map_keys, p, P, t_seen, o, u, live, R, p_world_cam, fx, fy, cx
 
 
 @_jit.njit
-def _remembered_k(p, P, t_seen, live, pv, t, min_support, radius_m, rel, drift_mps, drift_max, heading_rad_s):
+def _remembered_k(p, P, t_seen, live, pv, t, min_support, radius_m, rel, drift_mps, drift_max, heading_rad_s,
+                  column_radius_m=0.0, column_half_height_m=0.0):
     """:meth:`ObstacleMap.remembered`: the rows not live with ``min_support`` map points around them,
     σ_r = √(uᵀPu + σ_drift²), σ_t = √((tr P − uᵀPu)/2 + σ_drift² + (r_h σ_ψ)²) and the time since seen."""
     rows = np.flatnonzero(~live)
     if min_support > 1 and rows.size:
-        rows = rows[_support_k(p, rows, pv, radius_m, rel, min_support) >= min_support]
+        sup = _support_k(p, rows, pv, radius_m, rel, min_support)
+        if column_radius_m > 0:
+            sup = np.maximum(sup, _column_support_k(p, rows, column_radius_m, column_half_height_m, min_support))
+        rows = rows[sup >= min_support]
     n = rows.size
     s_r = np.empty(n)
     s_t = np.empty(n)
@@ -601,6 +637,6 @@ def _warm_up() -> None:
     keys, p_m, P_m, t_seen, o, u, live = (a[keep] for a in m)
     keep, *_ = _prune_k(o, u, p_m, t_seen, p_wc, 0.1, -0.75, 60.0, 20.0)
     keys, p_m, P_m, t_seen, live = (a[keep] for a in (keys, p_m, P_m, t_seen, live))
-    _remembered_k(p_m, P_m, t_seen, live, p_wc, 0.2, 2, 0.6, 0.1, 0.02, 1.5, math.radians(0.05))
+    _remembered_k(p_m, P_m, t_seen, live, p_wc, 0.2, 2, 0.6, 0.1, 0.02, 1.5, math.radians(0.05), 0.3, 1.2)
     _rows_of_k(keys, np.array([5]))
     _points_on_current_rays_k(np.array([1, 4]), p[:2], np.array([10.0, 10.0]), np.array([4]), np.array([[0.0, 0.0, 1.0]]), R_wc, p_wc)
