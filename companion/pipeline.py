@@ -249,7 +249,7 @@ class Pipeline:
             v = last.pose.v_world
             self.counters["position_extrapolated"] += 1
         else:
-            return f"telemetry: {pos.reason.replace(':', '')}"
+            return f"telemetry: {pos.reason.replace(':', ' ')}"  # "position:stale" → "telemetry: position stale"
         return att.pose.R_world_body, np.asarray(p, float), np.asarray(v, float), att.pose.rates_body
 
     # -- depth of tracked points for the predictor -----------------------------------------------------

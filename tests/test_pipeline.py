@@ -459,6 +459,14 @@ def test_stale_telemetry_refuses_frames():
     assert not res.ok and "stale" in res.reason
 
 
+def test_stale_position_alone_is_named_in_the_reason():
+    flight, tel, p = make_pipeline()
+    feed_telemetry(tel, flight, 0.0, 1.0)
+    feed_telemetry(tel, flight, 1.0, 1.7, position_hz=1e-9)  # ATTITUDE goes on, LOCAL_POSITION_NED stops
+    res = p.process(Frame(0, 1.6, flight.render(1.6)), now=1.62)
+    assert not res.ok and res.reason == "telemetry: position stale", res.reason
+
+
 def test_clock_jump_and_reboot_restart_the_ranging():
     flight, tel, p = make_pipeline()
     feed_telemetry(tel, flight, 0.0, 2.0)
