@@ -5,6 +5,9 @@ What each setting of ``configs/companion.toml`` buys and costs, on the flights w
 
 * ``[map] support_radius_rel`` (shipped 0.15) — the lone-point test's neighbourhood grows with
   distance, so a wall ranged from far away (corners a metre or more apart) is published from memory;
+* ``[map] support_column_radius_m`` (shipped 0.3) — points within this horizontally and
+  ``support_column_half_height_m`` vertically support each other too: a thin mast's corners lie one
+  above another, farther apart than the sphere; 0 leaves only the sphere;
 * ``[map] max_entry_nis_ratio`` (shipped 10) — a landmark enters the map only when its filter's mean
   NIS is within this factor of the frame's median: occlusion-edge mismatches behind a thin mast,
   which the wider neighbourhood would otherwise let through in clusters, stay out;
@@ -39,6 +42,7 @@ SEEDS = (1, 2)
 VARIANTS: dict[str, tuple[str, str, str] | None] = {
     "as shipped": None,
     "support_radius_rel = 0": ("map", "support_radius_rel", "0.0"),
+    "support_column_radius_m = 0": ("map", "support_column_radius_m", "0.0"),
     "max_entry_nis_ratio = 0": ("map", "max_entry_nis_ratio", "0.0"),
     "remembered_spread_k = 0": ("sectors", "remembered_spread_k", "0.0"),
     "remembered_spread_k = 2": ("sectors", "remembered_spread_k", "2.0"),

@@ -173,6 +173,7 @@ def test_fixed_wing_config_differs_from_the_default_only_where_a_fixed_wing_need
                        "ekf_anchored.position_tau_s",
                        "triangulation.min_baseline_m", "triangulation.min_depth_m", "prediction.depth_min_m",
                        "map.radius_m", "map.position_drift_max_m", "ekf_anchored.max_mean_nis", "map.support_radius_rel",
+                       "map.support_column_radius_m",
                        "sectors.infer_vertical", "sectors.cap_above_m",
                        "sectors.infer_vertical_one_side"}
     assert fw.sectors.max_distance_m == 150.0 and round(fw.sectors.max_distance_m * 100) + 1 < 65535

@@ -453,7 +453,7 @@ def test_a_thin_masts_stacked_points_support_each_other_in_a_column():
     far_below = [[40.0, 5.0, -5.0], [40.1, 5.0, -3.5]]  # 1.5 m apart vertically
     vehicle = np.array([15.0, -1.0, -5.0])
     rows = np.arange(7)
-    sphere = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6, support_radius_rel=0.0))
+    sphere = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6, support_radius_rel=0.0, support_column_radius_m=0.0))
     column = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6, support_radius_rel=0.0, support_column_radius_m=0.3,
                                    support_column_half_height_m=1.2))
     for m in (sphere, column):

@@ -107,7 +107,7 @@ class MapConfig:
     min_support: int = 2  # a remembered point is published only with at least this many map points (itself included) within support_radius_m
     support_radius_m: float = 0.6  # neighbourhood of that support test, m (at least)
     support_radius_rel: float = 0.15  # ... or this fraction of the point's distance from the vehicle, if larger (corners are spaced in pixels, so neighbours lie farther apart far away)
-    support_column_radius_m: float = 0.0  # ... or, counted apart, the map points within this horizontally and support_column_half_height_m vertically (a thin mast or pole leaves its corners stacked one above another, farther apart than on a surface), m; 0 = off
+    support_column_radius_m: float = 0.3  # ... or, counted apart, the map points within this horizontally and support_column_half_height_m vertically (a thin mast or pole leaves its corners stacked one above another, farther apart than on a surface), m; 0 = off
     support_column_half_height_m: float = 1.2  # vertical reach of that column, m
 
     def __post_init__(self) -> None:
