@@ -294,15 +294,12 @@ def _column_support_k(p, rows, radius_m, half_height_m, stop_at=0):
     horizontally (dx² + dy² ≤ r², float64) and ``half_height_m`` vertically of each row, the
     same expressions as the numpy reference.  Only the points within ``radius_m`` in north are
     visited (sorted once).  ``stop_at`` > 0: a count stops there."""
-    n = p.shape[0]
     order = np.argsort(p[:, 0])
     xs = p[order, 0].copy()
     r2 = radius_m * radius_m
     count = np.ones(rows.size, np.int64)
     for k in range(rows.size):
         i = rows[k]
-        if stop_at > 0 and count[k] >= stop_at:
-            continue
         j0 = np.searchsorted(xs, p[i, 0] - radius_m)
         j1 = np.searchsorted(xs, p[i, 0] + radius_m, side="right")
         c = 1
