@@ -528,8 +528,11 @@ def _remembered_k(p, P, t_seen, live, pv, t, min_support, radius_m, rel, drift_m
     rows = np.flatnonzero(~live)
     if min_support > 1 and rows.size:
         sup = _support_k(p, rows, pv, radius_m, rel, min_support)
-        if column_radius_m > 0:
-            sup = np.maximum(sup, _column_support_k(p, rows, column_radius_m, column_half_height_m, min_support))
+        if column_radius_m > 0:  # only the rows the sphere left short need the column's count
+            short = np.flatnonzero(sup < min_support)
+            if short.size:
+                col = _column_support_k(p, rows[short], column_radius_m, column_half_height_m, min_support)
+                sup[short] = np.maximum(sup[short], col)
         rows = rows[sup >= min_support]
     n = rows.size
     s_r = np.empty(n)
