@@ -129,6 +129,8 @@ class AnchoredInverseDepthEKF:
         self.nis_count = np.zeros(0, dtype=np.int64)  # measurements in nis_avg
         self.n_looming = np.zeros(0, dtype=np.int64)  # accepted looming (scale) updates
         self.t_last = np.zeros(0)  # time δ's covariance was last propagated to (§ Position error states)
+        self.rho_c = np.zeros(0)  # ρ̂ when the landmark was first converged, NaN before (§ Drift test)
+        self.P_rho_c = np.zeros(0)  # its variance then
         #: the pixel kernels' constants: (σ_px/f)² + σ_att² (2,), the white σ_p (0 with the δ states), χ²₂ gate,
         #: iterations, reject limit, NIS window, mean-NIS limit, the index of δ (−1: none), 2σ_p² and τ of its
         #: process (§ Measurement noise, § Update, § Bookkeeping, § Position error states)
@@ -201,11 +203,11 @@ class AnchoredInverseDepthEKF:
         zi = np.zeros(m, np.int64)
         self._insert(dict(ids=ids, x=x0, P=P0, R_world_camA=R, p_world_camA=p, t_anchor=t, n_updates=zi,
                           n_rejects=zi, diverged=np.zeros(m, bool), nis_avg=np.zeros(m), nis_count=zi, n_looming=zi,
-                          t_last=np.array(t, float)))
+                          t_last=np.array(t, float), rho_c=np.full(m, np.nan), P_rho_c=np.full(m, np.nan)))
 
     #: per-landmark arrays, all aligned with ``ids`` (kept sorted ascending)
     _FIELDS = ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged", "nis_avg",
-               "nis_count", "n_looming", "t_last")
+               "nis_count", "n_looming", "t_last", "rho_c", "P_rho_c")
 
     def _insert(self, rows: dict) -> None:
         """Merge new landmarks (every field of :data:`_FIELDS`, ids not yet present) keeping ids sorted."""
@@ -633,6 +635,30 @@ class AnchoredInverseDepthEKF:
         return np.where(good[:, None], xi, x0), np.where(good[:, None, None], P_new, P0), good, nis, reason
 
     # -- output ---------------------------------------------------------------------------------
+    #: the drift test's denominator never falls below this fraction of P_c (a filter that has learnt nothing
+    #: since convergence must not have moved; the floor keeps rounding from dividing by zero)
+    DRIFT_FLOOR = 0.01
+
+    def drift_test(self, converged) -> np.ndarray:
+        """(N,) χ²₁ of each landmark's inverse range against its value at first convergence
+        (docs/derivations/ekf_anchored.md § Drift test): ρ is a static state, so its estimate ρ̂ is a
+        martingale and ρ̂ − ρ̂_c has variance P_c − P.  ``converged`` (N,) bool: the landmarks converged
+        now; those without a reference take it now (statistic 0).  NaN where none is held.  With
+        ``max_drift_chi2`` > 0 a statistic above it flags the landmark diverged (retired with its track)."""
+        conv = np.asarray(converged, bool).reshape(-1)
+        if conv.shape != self.ids.shape:
+            raise InputError(f"drift_test: converged must have {len(self.ids)} entries, got {conv.shape}")
+        rho, P = self.x[:, 2], self.P[:, 2, 2]
+        new = conv & np.isnan(self.rho_c)
+        self.rho_c[new], self.P_rho_c[new] = rho[new], P[new]
+        den = np.maximum(self.P_rho_c - P, self.DRIFT_FLOOR * self.P_rho_c)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            stat = (rho - self.rho_c) ** 2 / den
+        limit = self.config.max_drift_chi2
+        if limit > 0:
+            self.diverged |= stat > limit  # NaN (no reference) compares False
+        return stat
+
     def estimates(self, p_world_cam) -> LandmarkEstimates:
         """Point, range and σ of every landmark as seen from camera centre ``p_world_cam`` (3,)."""
         C = np.asarray(p_world_cam, float).reshape(3)
