@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from companion.core.camera import CameraConfig, CameraModel
-from companion.core.ekf_anchored import AnchoredEKFConfig
+from companion.core.ekf_anchored import AnchoredEKFConfig, AnchoredInverseDepthEKF
 from companion.core.ekf_landmark import LandmarkEKFConfig
 from companion.core.estimator import EstimatorConfig, RangeEstimator
 from companion.core.frames import euler_zyx_to_R
@@ -110,13 +110,13 @@ def test_bad_input_is_named():
         EstimatorConfig(filter="ukf")
 
 
-def _with_t_junctions(frames, dx=10.0, n=8, seed=1):
+def _with_t_junctions(frames, dx=10.0, n=8, seed=1, near_x=(55.0, 65.0)):
     """Add tracks that are not static points: u of a near point, v of one ``dx`` farther that starts
     at about the same pixel (a T-junction of a near vertical edge and a farther horizontal edge,
     DESIGN §3.2: the corner slides with parallax).  Ids 1000 + k."""
     rng = np.random.default_rng(seed)
     cam = CameraModel(CAM)
-    near = np.stack([rng.uniform(55, 65, n), rng.uniform(-8, 8, n), rng.uniform(-26, -14, n)], 1)
+    near = np.stack([rng.uniform(*near_x, n), rng.uniform(-8, 8, n), rng.uniform(-26, -14, n)], 1)
     s = (near[:, 0] + dx) / near[:, 0]
     far = near.copy()
     far[:, 0] += dx
@@ -157,6 +157,79 @@ def test_tracks_inconsistent_with_a_static_point_are_retired(which):
     # with the test off, the same junctions run as filters (so the test above is what removed them)
     est0, out0, retired0 = results[0.0]
     assert len(set(out0.ids.tolist()) & junctions) >= 6
+
+
+def _run(frames, **ekf):
+    est = RangeEstimator(CAM, EstimatorConfig(), ekf_anchored=ekf_for_exact_telemetry(**ekf))
+    retired, out = set(), None
+    for f in frames:
+        out = est.process(*f)
+        retired |= set(out.retired_ids.tolist())
+    return est, out, retired
+
+
+def _with_starters(frames, v_world, k0=30, n=8, seed=3):
+    """Add tracks of points that stand still until frame ``k0`` and then move at ``v_world`` (m/s; 20 frames/s,
+    as :func:`flight`): a filter converges on the static point, then its track is no longer one.  Ids 1000 + k."""
+    rng = np.random.default_rng(seed)
+    cam = CameraModel(CAM)
+    p0 = np.stack([rng.uniform(70, 90, n), rng.uniform(-8, 8, n), rng.uniform(-26, -14, n)], 1)
+    out = []
+    for k, (t, R, p, ids, uv) in enumerate(frames):
+        q = p0 + np.asarray(v_world, float) * max(0, k - k0) / 20.0
+        u = cam.project(cam.world_to_camera(q, R, p)) + 0.1 * rng.standard_normal((n, 2))
+        ok = cam.in_image(u)
+        out.append((t, R, p, np.concatenate([ids, 1000 + np.flatnonzero(ok)]), np.concatenate([uv, u[ok]])))
+    return out
+
+
+def test_drift_test_retires_a_converged_track_whose_range_moves_more_than_its_sigma_allows():
+    """Points set in motion towards the camera after their filters converged: the pixel gate lets some through
+    (their image motion stays near radial), but their inverse range moves by more than P_c − P allows, and the
+    drift test (docs/derivations/ekf_anchored.md § Drift test) retires them; static points stay."""
+    pts, frames = flight(sigma_px=0.1, K=60)
+    frames = _with_starters(frames, [-8.0, 0.0, 0.0])
+    movers = set(range(1000, 1008))
+    est0, out0, retired0 = _run(frames, sigma_px=0.5, max_mean_nis=0.0, max_drift_chi2=0.0)
+    running0 = {int(i) for i, ok in zip(out0.ids, out0.converged & out0.valid) if ok} & movers
+    assert len(running0) >= 2  # off: converged, valid and wrong at the end
+    est, out, retired = _run(frames, sigma_px=0.5, max_mean_nis=0.0, max_drift_chi2=9.0)
+    assert not (set(out.ids.tolist()) & movers)  # on: every mover retired, none restarted
+    assert running0 <= retired
+    assert len({i for i in retired if i < 1000}) == 0
+    assert est.ekf.rho_c.shape == est.ekf.ids.shape
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_drift_statistic_of_static_points_is_chi2_one_dof(seed):
+    """With the filter's pixel σ equal to the true one, (ρ̂ − ρ̂_c)² / (P_c − P) of static points is a χ²₁
+    sample at any time after convergence: mean near 1, rarely above 9 (seeded Monte Carlo)."""
+    pts, frames = flight(n_points=120, K=60, seed=seed, sigma_px=0.5)
+    est, out, retired = _run(frames, sigma_px=0.5, max_mean_nis=0.0, max_drift_chi2=1e12)  # references kept, none retired
+    bank = est.ekf
+    stat = bank.drift_test(np.zeros(len(bank), bool))  # no new reference: the statistic against convergence
+    stat = stat[np.isfinite(stat) & (bank.n_updates > bank.config.min_updates + 10)]
+    assert len(stat) > 60
+    assert 0.4 < stat.mean() < 1.6
+    assert np.mean(stat > 9.0) < 0.03
+
+
+def test_drift_test_reference_is_taken_at_first_convergence_and_follows_the_rows():
+    bank = AnchoredInverseDepthEKF(ekf_for_exact_telemetry(max_drift_chi2=4.0), 500.0, 500.0)
+    bank.add([3, 5, 9], np.zeros((3, 2)), np.eye(3), np.zeros(3), 0.0, 0.1, 0.01)
+    s = bank.drift_test(np.array([True, False, True]))
+    assert s[0] == 0 and np.isnan(s[1]) and s[2] == 0  # reference taken now; none for the unconverged one
+    bank.x[0, 2] += 0.5 * 0.01  # half a prior σ with no information gained (floor 1 % of P_c): χ² = 25
+    bank.x[2, 2] += 1e-5
+    s = bank.drift_test(np.array([True, True, True]))
+    assert s[0] == pytest.approx(25.0) and s[1] == 0 and s[2] == pytest.approx(1e-4)
+    assert bank.diverged.tolist() == [True, False, False]
+    bank.remove([3])
+    assert bank.ids.tolist() == [5, 9] and bank.rho_c.tolist() == pytest.approx([0.1, 0.1])
+    with pytest.raises(InputError, match="converged must have 2 entries"):
+        bank.drift_test(np.ones(3, bool))
+    with pytest.raises(ConfigError, match="max_drift_chi2"):
+        AnchoredEKFConfig(max_drift_chi2=-1.0)
 
 
 @pytest.mark.parametrize("which", ["anchored", "landmark"])

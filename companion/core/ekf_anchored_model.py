@@ -105,7 +105,7 @@ class AnchoredEKFConfig:
     max_range_m: float = 10000.0  # ranges beyond this are reported as this value
     nis_window: float = 10.0  # updates averaged (exponentially) in each landmark's mean NIS
     max_mean_nis: float = 4.0  # mean NIS above this flags the landmark diverged (not a static point); 0 = off
-    max_drift_chi2: float = 0.0  # (ρ̂ − ρ̂_c)² / (P_c − P) above this since convergence flags it diverged (§ Drift test); 0 = off
+    max_drift_chi2: float = 9.0  # (ρ̂ − ρ̂_c)² / (P_c − P) above this since convergence flags it diverged (§ Drift test); 0 = off
     looming: bool = True  # fuse the matcher's patch scale change (looming, docs/derivations/looming.md) when given
     looming_sigma_floor: float = 0.003  # floor added (in quadrature) to the matcher's scale σ
     looming_gate_probability: float = 0.999  # χ² (1 dof) gate of the looming innovation
