@@ -172,7 +172,7 @@ def test_fixed_wing_config_differs_from_the_default_only_where_a_fixed_wing_need
     assert changed == {"sectors.max_distance_m", "sectors.band_half_height_m", "ekf_anchored.position_sigma_m",
                        "ekf_anchored.position_tau_s",
                        "triangulation.min_baseline_m", "triangulation.min_depth_m", "prediction.depth_min_m",
-                       "map.radius_m", "map.position_drift_max_m", "ekf_anchored.max_mean_nis", "map.support_radius_rel",
+                       "map.radius_m", "map.position_drift_max_m", "ekf_anchored.max_mean_nis", "ekf_anchored.max_drift_chi2", "map.support_radius_rel",
                        "map.support_column_radius_m",
                        "sectors.infer_vertical", "sectors.cap_above_m",
                        "sectors.infer_vertical_one_side"}
