@@ -448,8 +448,8 @@ class RangeEstimator:
             e = self.ekf.estimates(p)
             ids, p_world, rng, rsig, conv, valid = e.ids, e.p_world, e.range, e.range_sigma, e.converged, e.valid
             if self.ekf.config.max_drift_chi2 > 0:  # moved since convergence more than its σ allows: not a static point
-                drifted = self.ekf.drift_test(conv) > self.ekf.config.max_drift_chi2  # retired at the next frame
-                conv, valid = conv & ~drifted, valid & ~drifted
+                self.ekf.drift_test(conv)  # flags them diverged (the bank holds no other: _expire dropped those)
+                conv, valid = conv & ~self.ekf.diverged, valid & ~self.ekf.diverged  # retired at the next frame
         else:
             e = self.ekf.estimates()
             ids = e.ids
