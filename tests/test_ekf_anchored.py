@@ -236,3 +236,29 @@ def test_update_sequence_and_update_banks_match_update(kernels):
     with pytest.raises(InputError, match="count"):
         seq.update_sequence(ids, np.swapaxes(xy[1:], 0, 1), np.broadcast_to(R[1:], (6, 7, 3, 3)),
                             np.broadcast_to(C[1:], (6, 7, 3)), np.broadcast_to(t[1:], (6, 7)), count + 1)
+
+
+def test_far_convergence_limit(kernels):
+    """§ Outputs and convergence: with converged_far_rel_sigma a range also needs σ_r < max(floor, k_far·r).
+    Points straight ahead of the anchor (σ_r = σ_ρ/ρ² there): at 30 m a σ of 2.4 m (8 %) is converged by the
+    relative test alone and not with k_far = 0.06 (limit 1.8 m); at 5 m a σ of 0.45 m (9 %) stays converged
+    (the floor, 0.6 m, is the larger limit there); at 40 m a σ of 2.0 m (5 %) passes both."""
+    r = np.array([30.0, 5.0, 40.0])
+    s_r = np.array([2.4, 0.45, 2.0])
+    rho, s_rho = 1.0 / r, s_r / r**2
+
+    def converged(**kw):
+        ekf = AnchoredInverseDepthEKF(AnchoredEKFConfig(min_updates=0, **kw), 500.0, 500.0)
+        ekf.add([1, 2, 3], np.zeros((3, 2)), np.eye(3), np.zeros(3), 0.0, rho, s_rho)
+        est = ekf.estimates(np.zeros(3))
+        np.testing.assert_allclose(est.range, r, rtol=1e-9)
+        np.testing.assert_allclose(est.range_sigma, s_r, rtol=1e-6)
+        return est.converged.tolist()
+
+    assert converged() == [True, True, True]  # off by default
+    assert converged(converged_far_rel_sigma=0.06, converged_sigma_floor_m=0.6) == [False, True, True]
+    assert converged(converged_far_rel_sigma=0.06, converged_sigma_floor_m=0.4) == [False, False, True]
+    with pytest.raises(ConfigError, match="converged_far_rel_sigma"):
+        AnchoredEKFConfig(converged_far_rel_sigma=-0.1)
+    with pytest.raises(ConfigError, match="converged_sigma_floor_m"):
+        AnchoredEKFConfig(converged_sigma_floor_m=float("nan"))

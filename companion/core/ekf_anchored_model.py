@@ -99,7 +99,9 @@ class AnchoredEKFConfig:
     attitude_drift_deg_s: float = 0.03  # σ of the gyro bias per axis (°/s); > 0 adds 3 bias states
     position_sigma_m: float = 0.1  # σ of the telemetry's camera position error per axis (m), seen as ρ·σ at the landmark
     position_tau_s: float = 0.0  # correlation time of that error (s); > 0 adds 3 states δ = e(t) − e(t_anchor) per landmark
-    converged_rel_sigma: float = 0.1  # converged when range σ / range is below this
+    converged_rel_sigma: float = 0.1  # converged when range σ / range is below this ...
+    converged_sigma_floor_m: float = 0.6  # ... and σ below max(this, converged_far_rel_sigma · range), m
+    converged_far_rel_sigma: float = 0.0  # ... (far ranges need a tighter relative σ than near ones: § Outputs and convergence); 0 = off
     min_updates: int = 3  # ... and at least this many accepted updates
     max_consecutive_rejects: int = 5  # then the landmark is flagged diverged
     max_range_m: float = 10000.0  # ranges beyond this are reported as this value
@@ -119,6 +121,8 @@ class AnchoredEKFConfig:
         require_finite("attitude_sigma_deg", self.attitude_sigma_deg, nonnegative=True)
         require_finite("attitude_drift_deg_s", self.attitude_drift_deg_s, nonnegative=True)
         require_finite("converged_rel_sigma", self.converged_rel_sigma, positive=True)
+        require_finite("converged_sigma_floor_m", self.converged_sigma_floor_m, nonnegative=True)
+        require_finite("converged_far_rel_sigma", self.converged_far_rel_sigma, nonnegative=True)
         require(isinstance(self.min_updates, int) and self.min_updates >= 0, "min_updates must be an integer >= 0")
         require(isinstance(self.max_consecutive_rejects, int) and self.max_consecutive_rejects >= 1, "max_consecutive_rejects must be >= 1")
         require_finite("max_range_m", self.max_range_m, positive=True)
