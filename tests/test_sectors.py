@@ -119,6 +119,30 @@ def test_unconverged_near_point_vetoes_clear_but_claims_nothing():
     assert run(pts, sigma=[1, 1, 1, 5.0], converged=[True, True, True, False], config=cfg).distances_cm[0] == cfg.max_distance_cm + 1
 
 
+def test_point_near_a_sector_edge_forbids_clear_across_it():
+    """Rule 3, the edge margin: a tower's last corner 0.3° inside sector 2's edge (12.5°) and the background at
+    100 m in sector 3 (13–17°). Off, sector 3 is clear beside the tower; with a 1° margin it stays unknown, and
+    so it does for an unconverged point there too; a corner 2° inside the edge forbids nothing; sector 1, across
+    the far edge of sector 2, keeps its own evidence of clear."""
+    background = wall(100.0, [3.5, 5.0, 6.5, 13.0, 15.0, 17.0])
+    tower = wall(30.0, [12.2])
+    on = SectorConfig(clear_edge_margin_deg=1.0)
+    pts = np.vstack([background, tower])
+    off = run(pts, sigma=1.0)
+    assert off.state[3] == SectorState.CLEAR and off.state[2] == SectorState.OBSTACLE
+    s = run(pts, sigma=1.0, config=on)
+    assert s.state[3] == SectorState.UNKNOWN and s.distances_cm[3] == UNKNOWN_CM
+    assert s.state[2] == SectorState.OBSTACLE and s.state[1] == SectorState.CLEAR
+    assert run(pts, sigma=[1.0] * 6 + [8.0], converged=[True] * 6 + [False], config=on).state[3] == SectorState.UNKNOWN
+    inside = np.vstack([background, wall(30.0, [10.5])])
+    assert run(inside, sigma=1.0, config=on).state[3] == SectorState.CLEAR
+    left = np.vstack([wall(100.0, [-6.5, -5.0, -3.5, 3.5, 5.0, 6.5]), wall(30.0, [-2.2])])  # edge −2.5°: sector 71
+    s = run(left, sigma=1.0, config=on)
+    assert s.state[71] == SectorState.UNKNOWN and s.state[1] == SectorState.CLEAR
+    with pytest.raises(ConfigError, match="clear_edge_margin_deg"):
+        SectorConfig(clear_edge_margin_deg=2.5)
+
+
 def test_points_outside_the_band_are_ignored():
     above = [[10.0, 0.0, -3.0], [10.0, 0.0, 2.0]]  # 3 m above, 2 m below: outside ±1.5 m
     band_alone = sectors_optional_rules_off()

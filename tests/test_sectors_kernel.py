@@ -166,6 +166,7 @@ def configs():
     yield "exact ranges", dataclasses.replace(base, sigma_k=0.0)  # d_cons = d_h: points sharing (x, y) tie
     yield "cap only", dataclasses.replace(base, sigma_k=0.0, infer_vertical=False)
     yield "no surface fusion", dataclasses.replace(base, fuse_gate_k=0.0)
+    yield "edge margin", dataclasses.replace(base, clear_edge_margin_deg=1.0, min_points_clear=1)
     yield "fusion: wide gate, independent", dataclasses.replace(base, fuse_gate_k=5.0, fuse_correlation=0.0)
     yield "fusion: narrow gate, shared", dataclasses.replace(base, fuse_gate_k=0.5, fuse_correlation=1.0, min_points_obstacle=2)
 

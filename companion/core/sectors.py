@@ -347,6 +347,8 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
 
     n_clr = np.bincount(idx[clr_pts], minlength=SECTOR_COUNT)
     n_veto = np.bincount(idx[veto_pts], minlength=SECTOR_COUNT)
+    if config.clear_edge_margin_deg > 0:  # a surface goes on past its last corner: no "clear" just across an edge
+        n_veto += _edge_vetoes(bearing, idx, obs_pts | veto_pts, config.clear_edge_margin_deg)
 
     # n-th nearest conservative range per sector (vectorized: sort by (sector, range))
     k = config.min_points_obstacle
@@ -505,6 +507,16 @@ def _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, cand, config: SectorCon
     pts, ps = pts[upd], m_sec[upd]
     d_cons[pts], sig_pub[pts], est[pts] = value[ps], s_bar[ps], d_bar[ps]
     return d_cons, sig_pub, est
+
+
+def _edge_vetoes(bearing, idx, pts, margin_deg: float) -> np.ndarray:
+    """(72,) count of the points ``pts`` that lie within ``margin_deg`` of an edge of their sector, added to the
+    sector across that edge (docs/derivations/sectors.md, rule 3: the edge margin)."""
+    sel = np.flatnonzero(pts)
+    off = (np.degrees(bearing[sel]) - idx[sel] * SECTOR_DEG + 180.0) % 360.0 - 180.0  # from the sector's centre
+    half = SECTOR_DEG / 2 - margin_deg
+    return (np.bincount((idx[sel][off > half] + 1) % SECTOR_COUNT, minlength=SECTOR_COUNT)
+            + np.bincount((idx[sel][off < -half] - 1) % SECTOR_COUNT, minlength=SECTOR_COUNT))
 
 
 def _spread_remembered(p, p_level, sig, conv, usable, mem, r, mem_tan, n_live, config: SectorConfig, R_lb):

@@ -36,7 +36,7 @@ _VIEW_OFFSETS = np.radians(np.linspace(-SECTOR_DEG / 2, SECTOR_DEG / 2, _SAMPLES
 (_K_MIN_M, _K_MAX_M, _K_SIGMA_K, _K_BAND_METRES, _K_HALF_H, _K_HALF_ANGLE_RAD, _K_TAN_HALF_ANGLE, _K_N_OBS, _K_N_CLR,
  _K_VETO, _K_TOUCH, _K_SPREAD_K, _K_MAX_SPREAD_RAD, _K_DROP_SPREAD_RAD, _K_GAP, _K_REL_TOL, _K_NARROW_M, _K_NARROW_N,
  _K_VERT, _K_VERT_WIN, _K_VERT_GROUND, _K_ONE_SIDE, _K_MIN_EXTENT, _K_REACH, _K_CAP, _K_GROUND_MARGIN, _K_MIN_CM,
- _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_SIZE) = range(33)
+ _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_SIZE) = range(34)
 
 
 def _kernel_config(config: SectorConfig) -> np.ndarray:
@@ -63,6 +63,7 @@ def _kernel_config(config: SectorConfig) -> np.ndarray:
     v[_K_GAP], v[_K_NARROW_N] = c.infer_max_gap_sectors, c.infer_narrow_max_sectors
     v[_K_MIN_CM], v[_K_MAX_CM] = c.min_distance_cm, c.max_distance_cm
     v[_K_FUSE_G], v[_K_FUSE_RHO] = c.fuse_gate_k, c.fuse_correlation
+    v[_K_EDGE] = c.clear_edge_margin_deg
     v.flags.writeable = False
     _KERNEL_CONFIGS[id(config)] = (config, v)  # the config is kept alive with its id: no reuse while cached
     if len(_KERNEL_CONFIGS) > 64:  # bounded: configs are few (one per process, a handful in tests)
@@ -288,6 +289,15 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                 n_clr[idx[i]] += 1
         elif in_band[i] and veto_on and near[i]:
             n_veto[idx[i]] += 1
+    if cfg[_K_EDGE] > 0:  # a surface goes on past its last corner: no "clear" just across an edge
+        half = SECTOR_DEG / 2 - cfg[_K_EDGE]
+        for i in range(n):
+            if in_band[i] and near[i] and (conv[i] or veto_on):
+                off = (bearing[i] * _RAD2DEG - idx[i] * SECTOR_DEG + 180.0) % 360.0 - 180.0
+                if off > half:
+                    n_veto[(idx[i] + 1) % SECTOR_COUNT] += 1
+                elif off < -half:
+                    n_veto[(idx[i] - 1) % SECTOR_COUNT] += 1
     sel = np.flatnonzero(obs_pts)
     starts, ranked = _rank_in_sectors(idx, d_cons, sel)
     pick = np.full(SECTOR_COUNT, -1, np.int64)
