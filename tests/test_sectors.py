@@ -121,14 +121,15 @@ def test_unconverged_near_point_vetoes_clear_but_claims_nothing():
 
 def test_point_near_a_sector_edge_forbids_clear_across_it():
     """Rule 3, the edge margin: a tower's last corner 0.3° inside sector 2's edge (12.5°) and the background at
-    100 m in sector 3 (13–17°). Off, sector 3 is clear beside the tower; with a 1° margin it stays unknown, and
+    100 m in sector 3 (13–17°). Off, sector 3 is clear beside the tower; with the shipped 1° it stays unknown, and
     so it does for an unconverged point there too; a corner 2° inside the edge forbids nothing; sector 1, across
     the far edge of sector 2, keeps its own evidence of clear."""
     background = wall(100.0, [3.5, 5.0, 6.5, 13.0, 15.0, 17.0])
     tower = wall(30.0, [12.2])
     on = SectorConfig(clear_edge_margin_deg=1.0)
+    assert CFG.clear_edge_margin_deg == 1.0  # as shipped
     pts = np.vstack([background, tower])
-    off = run(pts, sigma=1.0)
+    off = run(pts, sigma=1.0, config=SectorConfig(clear_edge_margin_deg=0.0))
     assert off.state[3] == SectorState.CLEAR and off.state[2] == SectorState.OBSTACLE
     s = run(pts, sigma=1.0, config=on)
     assert s.state[3] == SectorState.UNKNOWN and s.distances_cm[3] == UNKNOWN_CM

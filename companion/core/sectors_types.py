@@ -50,7 +50,7 @@ class SectorConfig:
     min_points_obstacle: int = 1  # converged in-band points a sector needs to report an obstacle (the n-th nearest is reported)
     min_points_clear: int = 3  # converged in-band points beyond max_distance a sector needs to be "clear"
     unconverged_veto_clear: bool = True  # a valid but unconverged point that may lie within max_distance forbids "clear"
-    clear_edge_margin_deg: float = 0.0  # a point that claims or vetoes its sector within this of the sector's edge also forbids "clear" across that edge (a surface goes on past its last corner), degrees; 0 = off
+    clear_edge_margin_deg: float = 1.0  # a point that claims or vetoes its sector within this of the sector's edge also forbids "clear" across that edge (a surface goes on past its last corner), degrees; 0 = off
     touching_distance_m: float = 0.0  # estimate at or below this is sent as 0 (touching); 0 = never (ArduPilot discards 0)
     forward_half_width_deg: float = 2.5  # DISTANCE_SENSOR forward window: sectors centred within ± this (2.5 = sector 0 only)
     nearest_count: int = 5  # nearest obstacles (one per sector) kept for OBSTACLE_DISTANCE_3D
