@@ -659,12 +659,12 @@ class AnchoredInverseDepthEKF:
             self.diverged |= stat > limit  # NaN (no reference) compares False
         return stat
 
-    def _within_far_limit(self, rng: np.ndarray, rsig: np.ndarray) -> np.ndarray:
-        """§ Outputs and convergence: σ_r < max(σ_floor, k_far · r), all True when k_far = 0 (off)."""
+    def _apply_far_limit(self, converged: np.ndarray, rng: np.ndarray, rsig: np.ndarray) -> None:
+        """§ Outputs and convergence: ``converged`` also needs σ_r < max(σ_floor, k_far · r), in place; nothing
+        to do when k_far = 0 (off)."""
         cfg = self.config
-        if cfg.converged_far_rel_sigma <= 0:
-            return np.ones(len(rng), bool)
-        return rsig < np.maximum(cfg.converged_sigma_floor_m, cfg.converged_far_rel_sigma * rng)
+        if cfg.converged_far_rel_sigma > 0:
+            converged &= rsig < np.maximum(cfg.converged_sigma_floor_m, cfg.converged_far_rel_sigma * rng)
 
     def estimates(self, p_world_cam) -> LandmarkEstimates:
         """Point, range and σ of every landmark as seen from camera centre ``p_world_cam`` (3,)."""
@@ -680,7 +680,7 @@ class AnchoredInverseDepthEKF:
             _kernels.estimates(x, self.P, self.R_world_camA, self.p_world_camA, self.diverged, self.n_updates, C,
                                float(cfg.max_range_m), float(cfg.converged_rel_sigma), cfg.min_updates, self.i_pos,
                                p_world, rng, rsig, srho, valid, converged)
-            converged &= self._within_far_limit(rng, rsig)
+            self._apply_far_limit(converged, rng, rsig)
             return LandmarkEstimates(self.ids.copy(), p_world, rng, rsig, x[:, 2].copy(), srho, converged, valid)
         rho = x[:, 2]
         srho = np.sqrt(np.maximum(self.P[:, 2, 2], 0.0))
@@ -709,5 +709,5 @@ class AnchoredInverseDepthEKF:
             p_world = p_world + x[:, self.i_pos : self.i_pos + 3]
         valid = ~self.diverged & (rho > -3.0 * srho)
         converged = valid & (rho > rho_floor) & (rsig < cfg.converged_rel_sigma * rng) & (self.n_updates >= cfg.min_updates)
-        converged &= self._within_far_limit(rng, rsig)
+        self._apply_far_limit(converged, rng, rsig)
         return LandmarkEstimates(self.ids.copy(), p_world, rng, rsig, rho.copy(), srho, converged, valid)

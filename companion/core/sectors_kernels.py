@@ -133,6 +133,18 @@ def _sector_of(bearing):
 
 
 @_jit.njit
+def _across_edge(bearing, sector, half_deg):
+    """The sector across the nearer edge of ``sector`` when ``bearing`` (rad) lies more than ``half_deg`` from its
+    centre, else −1 (``sectors._edge_vetoes`` for one point)."""
+    off = (bearing * _RAD2DEG - sector * SECTOR_DEG + 180.0) % 360.0 - 180.0
+    if off > half_deg:
+        return (sector + 1) % SECTOR_COUNT
+    if off < -half_deg:
+        return (sector - 1) % SECTOR_COUNT
+    return -1
+
+
+@_jit.njit
 def _line_distance_k(a0, a1, b0, b1, bearing):
     """:func:`_line_distance` for one bearing."""
     u0, u1 = b0 - a0, b1 - a1
@@ -277,27 +289,26 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     n_mem = np.zeros(SECTOR_COUNT, np.int64)
     obs_pts = np.zeros(n, np.bool_)
     used = 0
+    edge_half = SECTOR_DEG / 2 - cfg[_K_EDGE]  # a point beyond this from its sector's centre vetoes "clear" next door
     for i in range(n):
+        claims = False  # claims or vetoes its own sector
         if in_band[i] and conv[i]:
             used += 1
             if near[i]:
                 obs_pts[i] = True
                 n_obs[idx[i]] += 1
+                claims = True
                 if mem[i]:
                     n_mem[idx[i]] += 1
             elif not mem[i]:
                 n_clr[idx[i]] += 1
         elif in_band[i] and veto_on and near[i]:
             n_veto[idx[i]] += 1
-    if cfg[_K_EDGE] > 0:  # a surface goes on past its last corner: no "clear" just across an edge
-        half = SECTOR_DEG / 2 - cfg[_K_EDGE]
-        for i in range(n):
-            if in_band[i] and near[i] and (conv[i] or veto_on):
-                off = (bearing[i] * _RAD2DEG - idx[i] * SECTOR_DEG + 180.0) % 360.0 - 180.0
-                if off > half:
-                    n_veto[(idx[i] + 1) % SECTOR_COUNT] += 1
-                elif off < -half:
-                    n_veto[(idx[i] - 1) % SECTOR_COUNT] += 1
+            claims = True
+        if claims and cfg[_K_EDGE] > 0:  # a surface goes on past its last corner: no "clear" just across an edge
+            j = _across_edge(bearing[i], idx[i], edge_half)
+            if j >= 0:
+                n_veto[j] += 1
     sel = np.flatnonzero(obs_pts)
     starts, ranked = _rank_in_sectors(idx, d_cons, sel)
     pick = np.full(SECTOR_COUNT, -1, np.int64)
