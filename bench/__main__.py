@@ -10,6 +10,8 @@ Subcommands:
   hostile   soak and fuzz: a long lockstep SITL hover under hostile MAVLink traffic and telemetry blackouts
             (bench/hostile.py; not part of `all`: the real run is 30 simulated minutes)
   too_near  the too-near cells of finished SITL campaigns split by cause (bench/too_near.py; reads campaigns, flies nothing)
+  looming_truth  the tracker's scale changes on rendered flights against the true depth ratio: is the looming σ honest,
+            are a track's errors independent (bench/looming_truth.py)
   all       all of these plus the simulator's speed; with --write FILE, rewrite docs/BENCHMARKS.md
 """
 
@@ -114,7 +116,7 @@ def cmd_timing(args) -> dict:
 
 
 #: subcommands that are modules with their own argparse (``python -m bench NAME …`` = ``python -m bench.NAME …``)
-OWN_COMMAND_LINE = ("hostile", "compute", "position_states", "telemetry_ablation", "too_near")
+OWN_COMMAND_LINE = ("hostile", "compute", "position_states", "telemetry_ablation", "too_near", "looming_truth")
 
 
 def main(argv=None) -> int:
@@ -189,6 +191,8 @@ def main(argv=None) -> int:
     sub.add_parser("too_near", help="the too-near cells of finished SITL campaigns split by cause (beside an obstacle, "
                                     "the k·σ offset, short) and the forward sector republished with other k (options: "
                                     "python -m bench too_near --help)", add_help=False)
+    sub.add_parser("looming_truth", help="the tracker's scale changes on rendered flights against the truth: the looming "
+                                         "noise model checked (options: python -m bench looming_truth --help)", add_help=False)
     sub.add_parser("position_states", help="the anchored EKF under a Gauss–Markov position error, white model vs the "
                                            "position-error states: range NEES and coverage (options: python -m bench "
                                            "position_states --help)", add_help=False)
