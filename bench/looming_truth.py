@@ -42,6 +42,7 @@ DEFAULT_SCENARIOS = ("quad_approach", "quad_wall_hover", "fixedwing_tower")
 LAGS = (1, 2, 3, 5, 8, 12, 20, 30)
 DEPTH_BINS = ((0.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 80.0), (80.0, 150.0), (150.0, math.inf))
 MIN_TRACK_SCALES = 10  # a track's mean error is compared only with this many scales or more
+MIN_ROW_SCALES = 20  # the markdown table leaves out a depth band with fewer scales
 
 
 def fly_and_track(scenario: str | Path, seed: int, progress=None, max_frames: int | None = None) -> dict[str, np.ndarray]:
@@ -162,7 +163,7 @@ def markdown(res: dict, command: str = COMMAND) -> str:
         "sees (module doc of bench/looming_truth.py). σ used = √(σ_matcher² + floor²), what the filter assumes; z σ = the σ "
         "of error/σ used (1 = honest); corr = correlation of one track's errors 1, 3, 8 and 20 frames apart (the filter "
         "assumes 0); track means = σ of each track's mean error (tracks with ≥ 10 scales) against what it would be with "
-        "independent errors.",
+        "independent errors. Depth bands with fewer than 20 scales are left out.",
         "",
         "| scenario | points | scales (tracks) | true s − 1 | mean error | σ error | σ used | z σ | corr 1 / 3 / 8 / 20 | σ of track means (if independent) |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -171,7 +172,7 @@ def markdown(res: dict, command: str = COMMAND) -> str:
         rows = [("obstacles", sc["obstacles"]), ("ground", sc["ground"])] + [
             (f"obstacles at {b['depth_m'][0]:g}–{b['depth_m'][1]:g} m", b) for b in sc["by_depth"]]
         for label, b in rows:
-            if not b.get("n"):
+            if b.get("n", 0) < MIN_ROW_SCALES:  # a handful of scales says nothing (kept in --json)
                 continue
             c = b["corr"]
             lines.append(
