@@ -65,7 +65,7 @@ def fly_and_track(scenario: str | Path, seed: int, progress=None, max_frames: in
     out: dict[str, list] = {k: [] for k in ("t", "track", "k", "s", "sigma", "s_true", "depth", "ground")}
     pose_prev = None
     k = 0
-    while (state := flight.step()) is not None and (max_frames is None or k < max_frames):
+    while flight.step() is not None and (max_frames is None or k < max_frames):
         if not flight.frame_due():
             continue
         frame = flight.capture()
@@ -98,9 +98,10 @@ def fly_and_track(scenario: str | Path, seed: int, progress=None, max_frames: in
     return {name: (np.concatenate(v) if v else np.zeros(0)) for name, v in out.items()} | {"floor": float(cfg.ekf_anchored.looming_sigma_floor)}
 
 
-def _track_stats(track: np.ndarray, k: np.ndarray, e: np.ndarray) -> tuple[dict[int, float], float, float]:
-    """Correlation of a track's errors at each lag; σ of the tracks' mean errors and the σ those means
-    would have with independent errors (root mean of σ_e²/n over the same tracks)."""
+def _track_stats(track: np.ndarray, k: np.ndarray, e: np.ndarray) -> tuple[dict[str, float], float, float]:
+    """Correlation of a track's errors at each lag (keyed by the lag as text, as in the JSON); σ of the
+    tracks' mean errors and the σ those means would have with independent errors (root mean of
+    σ_e²/n over the same tracks)."""
     var = float(np.var(e)) if e.size else float("nan")
     order = np.lexsort((k, track))
     track, k, e = track[order], k[order], e[order]
@@ -111,7 +112,7 @@ def _track_stats(track: np.ndarray, k: np.ndarray, e: np.ndarray) -> tuple[dict[
         j = np.minimum(j, len(k) - 1)
         ok = (track[j] == track) & (k[j] == k + lag)
         corr[str(lag)] = float(np.mean((e[ok] - e.mean()) * (e[j[ok]] - e.mean())) / var) if np.any(ok) and var > 0 else float("nan")
-    ids, start, count = np.unique(track, return_index=True, return_counts=True)
+    _, start, count = np.unique(track, return_index=True, return_counts=True)
     keep = count >= MIN_TRACK_SCALES
     if not np.any(keep):
         return corr, float("nan"), float("nan")
