@@ -113,6 +113,9 @@ def test_looming_config_is_validated():
         AnchoredEKFConfig(looming=1)
     with pytest.raises(ConfigError, match="looming_iterations"):
         AnchoredEKFConfig(looming_iterations=0)
+    for bad in (0.0, -5.0, 181.0, float("nan")):
+        with pytest.raises(ConfigError, match="looming_max_angle_deg"):
+            AnchoredEKFConfig(looming_max_angle_deg=bad)
     assert abs(AnchoredEKFConfig(looming_gate_probability=0.95).looming_gate_threshold - 3.841) < 1e-3
 
 
@@ -173,6 +176,36 @@ def test_looming_off_or_absent_leaves_outputs_unchanged():
         np.testing.assert_array_equal(a.ids, o.ids)
         np.testing.assert_array_equal(a.range, o.range)
         np.testing.assert_array_equal(a.range_sigma, o.range_sigma)
+
+
+def _run_angle(frames, looming, max_angle_deg=180.0):
+    est = RangeEstimator(CAM, EstimatorConfig(), ekf_anchored=AnchoredEKFConfig(
+        sigma_px=0.3, looming=looming, looming_max_angle_deg=max_angle_deg))
+    off_axis = 0
+    for t, R, p, ids, uv, s, ss in frames:
+        out = est.process(t, R, p, ids, uv, scale=s, scale_sigma=ss)
+        off_axis += out.looming_reasons.get("off_axis", 0)
+    return out, off_axis
+
+
+def test_looming_only_near_the_axis_of_travel():
+    """With ``looming_max_angle_deg`` the points within that angle of the camera's translation get
+    looming and the others are filtered exactly as with looming off (each landmark's filter is its
+    own); the skipped scales are counted as "off_axis".  A camera that does not move excludes nothing."""
+    pts, frames = head_on(K=60, offsets_deg=(0.0, 3.0, 12.0, 20.0))
+    near, far = np.array([0, 1]), np.array([2, 3])
+    on, _ = _run_angle(frames, True)
+    off, _ = _run_angle(frames, False)
+    gated, n_off = _run_angle(frames, True, 8.0)
+    np.testing.assert_array_equal(gated.ids, on.ids)
+    np.testing.assert_array_equal(gated.range[near], on.range[near])
+    np.testing.assert_array_equal(gated.range_sigma[near], on.range_sigma[near])
+    np.testing.assert_array_equal(gated.range[far], off.range[far])
+    np.testing.assert_array_equal(gated.range_sigma[far], off.range_sigma[far])
+    assert not np.array_equal(on.range_sigma[far], off.range_sigma[far])  # looming did reach the far ones when allowed
+    assert n_off == 2 * (len(frames) - 1)  # both far points, every frame after the first
+    hover = [(t, R, np.zeros(3), ids, uv, s, ss) for t, R, _p, ids, uv, s, ss in frames[:20]]
+    assert _run_angle(hover, True, 8.0)[1] == 0
 
 
 def test_estimator_counts_nan_scales_and_does_not_raise():

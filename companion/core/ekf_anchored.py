@@ -46,6 +46,7 @@ from companion.core.ekf_anchored_model import (  # noqa: F401
     GATED,
     LOOM_NAN,
     LOOM_NONPOSITIVE,
+    LOOM_OFF_AXIS,
     UPDATE_REASON_NAMES,
     UPDATED,
     AnchoredEKFConfig,

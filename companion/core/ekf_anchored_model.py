@@ -112,6 +112,7 @@ class AnchoredEKFConfig:
     looming_sigma_floor: float = 0.003  # floor added (in quadrature) to the matcher's scale σ
     looming_gate_probability: float = 0.999  # χ² (1 dof) gate of the looming innovation
     looming_iterations: int = 1  # iterated-EKF relinearizations of the looming update (1 = plain EKF)
+    looming_max_angle_deg: float = 180.0  # looming only for points within this angle of the direction of travel: off the axis a tilted patch biases the scale at first order while parallax ranges the point (docs/derivations/looming.md, § Off the axis of travel); 180 = everywhere
 
     def __post_init__(self) -> None:
         require_finite("sigma_px", self.sigma_px, positive=True)
@@ -135,6 +136,8 @@ class AnchoredEKFConfig:
         require(isinstance(self.looming, bool), f"looming must be true or false, got {self.looming!r}")
         require_finite("looming_sigma_floor", self.looming_sigma_floor, positive=True)
         require_finite("looming_gate_probability", self.looming_gate_probability)
+        require_finite("looming_max_angle_deg", self.looming_max_angle_deg, positive=True)
+        require(self.looming_max_angle_deg <= 180.0, f"looming_max_angle_deg must be in (0, 180], got {self.looming_max_angle_deg}")
         require(isinstance(self.looming_iterations, int) and 1 <= self.looming_iterations <= 20,
                 "looming_iterations must be an integer in 1..20")
         require(
@@ -185,8 +188,9 @@ BEHIND = 2  # the predicted point is behind the current camera
 
 LOOM_NAN = 3  # looming: the scale is NaN (not measured): skipped
 LOOM_NONPOSITIVE = 4  # looming: scale ≤ 0, ±inf, or its σ not finite and > 0: refused
+LOOM_OFF_AXIS = 5  # looming: the point lies farther than looming_max_angle_deg from the direction of travel: skipped
 
-UPDATE_REASON_NAMES = {UPDATED: "updated", GATED: "gated", BEHIND: "behind", LOOM_NAN: "nan_scale", LOOM_NONPOSITIVE: "nonpositive_scale"}
+UPDATE_REASON_NAMES = {UPDATED: "updated", GATED: "gated", BEHIND: "behind", LOOM_NAN: "nan_scale", LOOM_NONPOSITIVE: "nonpositive_scale", LOOM_OFF_AXIS: "off_axis"}
 
 
 @dataclasses.dataclass

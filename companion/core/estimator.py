@@ -34,13 +34,14 @@ previous frame given to ``process``; a triangulated start replays its buffered p
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
 from companion.config import require, require_finite
 from companion.core import ekf_anchored_kernels, jit
 from companion.core.camera import CameraConfig, CameraModel
-from companion.core.ekf_anchored import UPDATE_REASON_NAMES, AnchoredEKFConfig, AnchoredInverseDepthEKF
+from companion.core.ekf_anchored import LOOM_NAN, LOOM_OFF_AXIS, UPDATE_REASON_NAMES, AnchoredEKFConfig, AnchoredInverseDepthEKF
 from companion.core.ekf_landmark import LandmarkEKFBank, LandmarkEKFConfig
 from companion.core.frames import is_orthonormal, se3_twist
 from companion.core.idbank import lookup
@@ -273,9 +274,15 @@ class RangeEstimator:
         self.t_seen[rows_e] = t
         n_loom, loom_reasons = 0, {}
         if scale is not None and self.prior_bank is not None and self.ekf.config.looming and self.t_prev is not None:
+            off = self._off_axis(xy, R, p)
+            if off is not None:
+                scale = np.where(off, np.nan, scale)
             parts = [(self.ekf, ids[sel_e], rows_e, scale[sel_e], scale_sigma[sel_e]),
                      (self.prior_bank, ids[sel_p], rows_p, scale[sel_p], scale_sigma[sel_p])]
             res = AnchoredInverseDepthEKF._looming_banks_rows(parts, *self.pose_prev, self.t_prev, R, p, t)
+            if off is not None:
+                for r, sel in zip(res, (sel_e, sel_p)):
+                    r.reason[off[sel] & (r.reason == LOOM_NAN)] = LOOM_OFF_AXIS
             n_loom = int(sum(np.count_nonzero(r.accepted) for r in res))
             counts = sum(np.bincount(r.reason[~r.accepted], minlength=len(UPDATE_REASON_NAMES)) for r in res)
             loom_reasons = {UPDATE_REASON_NAMES[c]: int(counts[c]) for c in np.flatnonzero(counts)}
@@ -296,6 +303,19 @@ class RangeEstimator:
         out = self._output(t, R, p, n_tri, n_prior, n_rej, reasons)
         out.n_looming, out.looming_reasons = n_loom, loom_reasons
         return out
+
+    def _off_axis(self, xy: np.ndarray, R: np.ndarray, p: np.ndarray) -> np.ndarray | None:
+        """(M,) True where a track's ray lies farther than ``looming_max_angle_deg`` from the camera's
+        translation since the previous frame (docs/derivations/looming.md, § Off the axis of travel);
+        None when the limit is off or the camera did not move (then nothing is excluded)."""
+        max_deg = self.ekf.config.looming_max_angle_deg
+        d = p - self.pose_prev[1]
+        n = float(np.linalg.norm(d))
+        if max_deg >= 180.0 or not n > 1e-9 or len(xy) == 0:
+            return None
+        ray_world = np.column_stack([xy, np.ones(len(xy))]) @ R.T  # R (x̄, ȳ, 1) per track
+        cos = ray_world @ d / (np.linalg.norm(ray_world, axis=1) * n)
+        return cos < math.cos(math.radians(max_deg))
 
     @staticmethod
     def _validate_scale(scale, scale_sigma, m):
