@@ -41,7 +41,7 @@ import numpy as np
 from companion.config import require, require_finite
 from companion.core import ekf_anchored_kernels, jit
 from companion.core.camera import CameraConfig, CameraModel
-from companion.core.ekf_anchored import LOOM_NAN, LOOM_OFF_AXIS, UPDATE_REASON_NAMES, AnchoredEKFConfig, AnchoredInverseDepthEKF
+from companion.core.ekf_anchored import LOOM_OFF_AXIS, UPDATE_REASON_NAMES, AnchoredEKFConfig, AnchoredInverseDepthEKF
 from companion.core.ekf_landmark import LandmarkEKFBank, LandmarkEKFConfig
 from companion.core.frames import is_orthonormal, se3_twist
 from companion.core.idbank import lookup
@@ -276,13 +276,14 @@ class RangeEstimator:
         if scale is not None and self.prior_bank is not None and self.ekf.config.looming and self.t_prev is not None:
             off = self._off_axis(xy, R, p)
             if off is not None:
+                off &= ~np.isnan(scale)  # a measured scale skipped for its bearing (an unmeasured one stays nan_scale)
                 scale = np.where(off, np.nan, scale)
             parts = [(self.ekf, ids[sel_e], rows_e, scale[sel_e], scale_sigma[sel_e]),
                      (self.prior_bank, ids[sel_p], rows_p, scale[sel_p], scale_sigma[sel_p])]
             res = AnchoredInverseDepthEKF._looming_banks_rows(parts, *self.pose_prev, self.t_prev, R, p, t)
             if off is not None:
                 for r, sel in zip(res, (sel_e, sel_p)):
-                    r.reason[off[sel] & (r.reason == LOOM_NAN)] = LOOM_OFF_AXIS
+                    r.reason[off[sel]] = LOOM_OFF_AXIS
             n_loom = int(sum(np.count_nonzero(r.accepted) for r in res))
             counts = sum(np.bincount(r.reason[~r.accepted], minlength=len(UPDATE_REASON_NAMES)) for r in res)
             loom_reasons = {UPDATE_REASON_NAMES[c]: int(counts[c]) for c in np.flatnonzero(counts)}
