@@ -12,7 +12,8 @@ Subcommands:
   too_near  the too-near cells of finished SITL campaigns split by cause (bench/too_near.py; reads campaigns, flies nothing)
   looming_truth  the tracker's scale changes on rendered flights against the true depth ratio: is the looming σ honest,
             are a track's errors independent (bench/looming_truth.py)
-  all       all of these plus the simulator's speed; with --write FILE, rewrite docs/BENCHMARKS.md
+  all       all of these plus the simulator's speed; with --write FILE, rewrite the sections of docs/BENCHMARKS.md
+            it produces and keep the sections other commands produced (report.merge_document)
 """
 
 from __future__ import annotations
@@ -138,7 +139,7 @@ def main(argv=None) -> int:
     workers_default = min(2, os.cpu_count() or 1)
     for name, helptext in (("seed004", "seed-004 scenario: triangulation vs EKFs vs the Cramér–Rao bound"),
                            ("seed000", "seed-000 scenario: relative range error vs L"),
-                           ("all", "every benchmark; --write rewrites the benchmarks document")):
+                           ("all", "every benchmark; --write rewrites its sections of the benchmarks document")):
         p = sub.add_parser(name, help=helptext, description=helptext)
         p.add_argument("--runs", type=int, default=100, help="Monte Carlo runs per case (default 100)")
         p.add_argument("--workers", type=int, default=workers_default, help=f"worker processes (default {workers_default})")
@@ -148,7 +149,9 @@ def main(argv=None) -> int:
                            help="relinearizations of the anchored EKF's update (default 2, as the published tables; "
                                 "1 = plain EKF; the shipped filter uses 3)")
         if name == "all":
-            p.add_argument("--write", metavar="FILE", help="write the markdown report to FILE")
+            p.add_argument("--write", metavar="FILE",
+                          help="write the markdown report to FILE: the sections this command produces are replaced, "
+                               "the sections other commands produced (hand-run campaigns) are kept where they were")
             p.add_argument("--repeats", type=int, default=50, help="timing repeats (default 50)")
     p = sub.add_parser("pipeline004", help="seed004_straight flown in flightsim and replayed through the whole pipeline",
                        description="seed004_straight flown in flightsim and replayed through the whole pipeline")
@@ -263,9 +266,13 @@ def main(argv=None) -> int:
                     + "\n\n## Local obstacle map: publishing trade-offs (issue 11)\n\n" + map_tradeoff.markdown(res["map_tradeoff"])
                     + "\n\n## Closed-loop avoidance (issue 12)\n\n" + avoidance.markdown(res["avoidance"]) + "\n")
             if args.write:
+                existing = ""
+                if os.path.isfile(args.write):
+                    with open(args.write, encoding="utf-8") as fh:
+                        existing = fh.read()
                 with open(args.write, "w", encoding="utf-8") as fh:
-                    fh.write(text)
-                print(f"wrote {args.write}", file=sys.stderr)
+                    fh.write(report.merge_document(existing, text))
+                print(f"wrote {args.write} (its sections from other commands kept)", file=sys.stderr)
             print(text)
     return 0
 
