@@ -38,6 +38,8 @@ def seed004_json(res: dict) -> dict:
                 "tri_consecutive_median_abs_m": r["tri_consecutive_median_abs_m"],
                 "ekf_anchored_per_point_mean_abs_m": r["ekf_anchored_per_point_mean_abs_m"],
                 "convergence_frame_10pct": r["convergence_frame_10pct"],
+                **{k: r[k] for k in ("nees_per_point", "nees_median", "nees_trimmed_mean", "nees_trim_share", "nees_samples",
+                                     "chi2_median", "chi2_trimmed_mean") if k in r},
             }
     return out
 
@@ -84,10 +86,20 @@ def seed004_markdown(res: dict, runs: int) -> str:
                 f"Better EKF at frame 150: {ratio}. Consecutive-frame triangulation median |error|: {_f(r['tri_consecutive_median_abs_m'])} m. "
                 f"Anchored EKF per point at frame 150 (x = {', '.join(f'{x:g}' for x in r['lateral_m'])}): "
                 f"{', '.join(_f(v) for v in r['ekf_anchored_per_point_mean_abs_m'])} m. "
-                f"Frame from which the mean error stays within 10 % of the range, per point: {conv}.",
+                f"Frame from which the mean error stays within 10 % of the range, per point: {conv}."
+                + _nees_breakdown_text(r),
                 "",
             ]
     return "\n".join(lines)
+
+
+def _nees_breakdown_text(r: dict) -> str:
+    """The NEES per point, its median and its trimmed mean (bench.seed004.nees_breakdown), when the run has them."""
+    if "nees_per_point" not in r or not r.get("nees_samples"):
+        return ""
+    return (f" NEES per point: {', '.join(_f(v) for v in r['nees_per_point'])}; median {r['nees_median']:.2f} "
+            f"(χ²₃: {r['chi2_median']:.2f}); mean without the largest {r['nees_trim_share']:.0%} of the {r['nees_samples']} "
+            f"samples {r['nees_trimmed_mean']:.2f} (χ²₃: {r['chi2_trimmed_mean']:.2f}).")
 
 
 def seed000_markdown(res: dict) -> str:

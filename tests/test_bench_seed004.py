@@ -28,3 +28,34 @@ def test_ekf_iterations_option_is_checked():
     r = subprocess.run([sys.executable, "-m", "bench", "seed004", "--runs", "1", "--ekf-iterations", "0"],
                        capture_output=True, text=True)
     assert r.returncode == 2 and "--ekf-iterations" in r.stderr
+
+
+def test_nees_breakdown_tells_a_heavy_tail_from_a_small_sigma():
+    rng = np.random.default_rng(3)
+    n = 60000
+    ids = np.arange(n) % 6
+    honest = rng.chisquare(3, n)
+    r = seed004.nees_breakdown(honest, ids, 6)
+    assert abs(r["chi2_median"] - 2.366) < 1e-3 and abs(r["chi2_trimmed_mean"] - 2.894) < 1e-3
+    assert abs(r["nees_median"] - r["chi2_median"]) < 0.05 and abs(r["nees_trimmed_mean"] - r["chi2_trimmed_mean"]) < 0.05
+    assert np.allclose(r["nees_per_point"], 3.0, atol=0.1) and r["nees_samples"] == n
+    # a heavy tail: point 2 lands far outside its σ in 3 % of its samples; the mean leaves its band,
+    # point 2's mean shows it, the median does not move
+    tail = honest.copy()
+    hit = (ids == 2) & (rng.random(n) < 0.03)
+    tail[hit] += 60.0
+    t = seed004.nees_breakdown(tail, ids, 6)
+    assert np.mean(tail) > seed004.chi2_band(3 * n, n)[1]
+    assert t["nees_per_point"][2] > 4.0 and max(np.delete(t["nees_per_point"], 2)) < 3.2
+    assert abs(t["nees_median"] - r["nees_median"]) < 0.05
+    # a σ 20 % too small everywhere: every statistic moves by the same factor 1/0.8² = 1.56
+    small = seed004.nees_breakdown(honest / 0.64, ids, 6)
+    assert small["nees_median"] / r["nees_median"] > 1.5 and small["nees_trimmed_mean"] / r["nees_trimmed_mean"] > 1.5
+    # a point no run kept
+    assert np.isnan(seed004.nees_breakdown(honest[ids != 5], ids[ids != 5], 6)["nees_per_point"][5])
+
+
+def test_run_once_names_the_points_behind_its_nees():
+    sc = Seed004Scenario()
+    r = seed004.run_once(7, seed004.CaseSpec(2.0, False), sc)
+    assert len(r["nees_ids"]) == len(r["nees"]) and set(r["nees_ids"]) <= set(range(len(sc.lateral_m)))
