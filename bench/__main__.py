@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -48,7 +49,8 @@ def cmd_seed004(args) -> dict:
     total = args.runs * sum(len(c) for c in seed004.CASES.values())
     t0 = time.perf_counter()
     with _progress(total, "seed-004 Monte Carlo", args.json) as tick:
-        res = seed004.run_all(args.runs, workers=args.workers, progress=tick, ekf_iterations=getattr(args, "ekf_iterations", 2))
+        res = seed004.run_all(args.runs, workers=args.workers, progress=tick, ekf_iterations=getattr(args, "ekf_iterations", 2),
+                              tri_max_rel_sigma=getattr(args, "tri_max_rel_sigma", 0.3))
     res["wall_time_s"] = time.perf_counter() - t0
     return res
 
@@ -148,6 +150,10 @@ def main(argv=None) -> int:
             p.add_argument("--ekf-iterations", type=int, default=2, choices=range(1, 21), metavar="N",
                            help="relinearizations of the anchored EKF's update (default 2, as the published tables; "
                                 "1 = plain EKF; the shipped filter uses 3)")
+            p.add_argument("--tri-max-rel-sigma", type=float, default=0.3, metavar="R",
+                           help="the triangulation gate: a first range whose predicted σ/range exceeds R does not seed a "
+                                "filter (default 0.3, the shipped [triangulation] max_rel_sigma; also gates the "
+                                "longest-baseline row)")
         if name == "all":
             p.add_argument("--write", metavar="FILE",
                           help="write the markdown report to FILE: the sections this command produces are replaced, "
@@ -207,6 +213,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if getattr(args, "runs", 1) < 1:
         ap.error("--runs must be >= 1")
+    if not math.isfinite(getattr(args, "tri_max_rel_sigma", 0.3)) or getattr(args, "tri_max_rel_sigma", 0.3) <= 0:
+        ap.error("--tri-max-rel-sigma must be a positive number")
 
     if args.cmd == "seed004":
         res = cmd_seed004(args)

@@ -55,7 +55,9 @@ def seed004_markdown(res: dict, runs: int) -> str:
         "Before convergence an estimate can sit anywhere its wide prior allows (capped at max_range_m); "
         "the converged share and the filter's σ say so, which is why early means are large."
         + ("" if res.get("ekf_iterations", 2) == 2 else
-           f" Anchored EKF with {res['ekf_iterations']} iteration(s) of its update (`--ekf-iterations`; the benchmark's default: 2)."),
+           f" Anchored EKF with {res['ekf_iterations']} iteration(s) of its update (`--ekf-iterations`; the benchmark's default: 2).")
+        + ("" if res.get("tri_max_rel_sigma", 0.3) == 0.3 else
+           f" Triangulation gate max_rel_sigma = {res['tri_max_rel_sigma']:g} (`--tri-max-rel-sigma`; shipped and default: 0.3)."),
         "",
     ]
     for group, title in (("sigma_px", "Camera poses exact, pixel noise only"),
