@@ -156,8 +156,8 @@ def main(argv=None) -> int:
                                 "longest-baseline row)")
         if name == "all":
             p.add_argument("--write", metavar="FILE",
-                          help="write the markdown report to FILE: the sections this command produces are replaced, "
-                               "the sections other commands produced (hand-run campaigns) are kept where they were")
+                           help="write the markdown report to FILE: the sections this command produces are replaced, "
+                                "the sections other commands produced (hand-run campaigns) are kept where they were")
             p.add_argument("--repeats", type=int, default=50, help="timing repeats (default 50)")
     p = sub.add_parser("pipeline004", help="seed004_straight flown in flightsim and replayed through the whole pipeline",
                        description="seed004_straight flown in flightsim and replayed through the whole pipeline")
@@ -213,7 +213,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if getattr(args, "runs", 1) < 1:
         ap.error("--runs must be >= 1")
-    if not math.isfinite(getattr(args, "tri_max_rel_sigma", 0.3)) or getattr(args, "tri_max_rel_sigma", 0.3) <= 0:
+    tri_max_rel_sigma = getattr(args, "tri_max_rel_sigma", 0.3)  # only `seed004` has the option
+    if not (math.isfinite(tri_max_rel_sigma) and tri_max_rel_sigma > 0):
         ap.error("--tri-max-rel-sigma must be a positive number")
 
     if args.cmd == "seed004":
