@@ -39,7 +39,7 @@ def seed004_json(res: dict) -> dict:
                 "ekf_anchored_per_point_mean_abs_m": r["ekf_anchored_per_point_mean_abs_m"],
                 "convergence_frame_10pct": r["convergence_frame_10pct"],
                 **{k: r[k] for k in ("nees_per_point", "nees_median", "nees_trimmed_mean", "nees_trim_share", "nees_samples",
-                                     "chi2_median", "chi2_trimmed_mean") if k in r},
+                                     "chi2_median", "chi2_trimmed_mean")},
             }
     return out
 
@@ -97,7 +97,7 @@ def seed004_markdown(res: dict, runs: int) -> str:
 
 def _nees_breakdown_text(r: dict) -> str:
     """The NEES per point, its median and its trimmed mean (bench.seed004.nees_breakdown), when the run has them."""
-    if "nees_per_point" not in r or not r.get("nees_samples"):
+    if not r["nees_samples"]:
         return ""
     return (f" NEES per point: {', '.join(_f(v) for v in r['nees_per_point'])}; median {r['nees_median']:.2f} "
             f"(χ²₃: {r['chi2_median']:.2f}); mean without the largest {r['nees_trim_share']:.0%} of the {r['nees_samples']} "
@@ -240,19 +240,16 @@ def flightsim_markdown(res: dict) -> str:
 
 def write_section(doc, heading: str, text: str) -> None:
     """Replace (or append) the section that starts with the line ``heading`` (``## …``) in ``doc``
-    with ``heading`` and ``text``; the section ends at the next ``## `` heading."""
+    with ``heading`` and ``text``; the section ends at the next ``## `` heading outside a code block
+    (the same split as :func:`merge_document`; blank lines between sections come out as one)."""
     from pathlib import Path
 
     doc = Path(doc)
-    old = doc.read_text(encoding="utf-8") if doc.is_file() else ""
-    block = f"{heading}\n\n{text.rstrip()}\n"
-    i = old.find(heading + "\n")
-    if i < 0:
-        new = old.rstrip("\n") + "\n\n\n" + block if old else block
-    else:
-        j = old.find("\n## ", i + len(heading))
-        new = old[:i] + block + ("\n" + old[j + 1:] if j >= 0 else "")
-    doc.write_text(new, encoding="utf-8")
+    head, blocks = _split_sections(doc.read_text(encoding="utf-8") if doc.is_file() else "", 2)
+    headings = [h for h, _ in blocks]
+    at = headings.index(heading) if heading in headings else len(blocks)
+    blocks[at:at + 1] = [(heading, text)]
+    doc.write_text(_join_sections(head, blocks), encoding="utf-8")
 
 
 def _split_sections(text: str, level: int) -> tuple[str, list[tuple[str, str]]]:

@@ -310,9 +310,11 @@ class RangeEstimator:
         translation since the previous frame (docs/derivations/looming.md, § Off the axis of travel);
         None when the limit is off or the camera did not move (then nothing is excluded)."""
         max_deg = self.ekf.config.looming_max_angle_deg
+        if max_deg >= 180.0 or len(xy) == 0:  # off (as shipped): no work per frame
+            return None
         d = p - self.pose_prev[1]
         n = float(np.linalg.norm(d))
-        if max_deg >= 180.0 or not n > 1e-9 or len(xy) == 0:
+        if not n > 1e-9:
             return None
         ray_world = np.column_stack([xy, np.ones(len(xy))]) @ R.T  # R (x̄, ȳ, 1) per track
         cos = ray_world @ d / (np.linalg.norm(ray_world, axis=1) * n)
