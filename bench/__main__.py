@@ -50,7 +50,8 @@ def cmd_seed004(args) -> dict:
     t0 = time.perf_counter()
     with _progress(total, "seed-004 Monte Carlo", args.json) as tick:
         res = seed004.run_all(args.runs, workers=args.workers, progress=tick, ekf_iterations=getattr(args, "ekf_iterations", 2),
-                              tri_max_rel_sigma=getattr(args, "tri_max_rel_sigma", 0.3))
+                              tri_max_rel_sigma=getattr(args, "tri_max_rel_sigma", 0.3),
+                              refine=not getattr(args, "no_refine", False))
     res["wall_time_s"] = time.perf_counter() - t0
     return res
 
@@ -154,6 +155,9 @@ def main(argv=None) -> int:
                            help="the triangulation gate: a first range whose predicted σ/range exceeds R does not seed a "
                                 "filter (default 0.3, the shipped [triangulation] max_rel_sigma; also gates the "
                                 "longest-baseline row)")
+            p.add_argument("--no-refine", action="store_true",
+                           help="the anchored EKF without its batch refinement ([ekf_anchored] refine_max_obs = 0; "
+                                "shipped and default: refined at 8, 16, 32, 64 and 128 observations)")
         if name == "all":
             p.add_argument("--write", metavar="FILE",
                            help="write the markdown report to FILE: the sections this command produces are replaced, "

@@ -57,7 +57,8 @@ def seed004_markdown(res: dict, runs: int) -> str:
         + ("" if res.get("ekf_iterations", 2) == 2 else
            f" Anchored EKF with {res['ekf_iterations']} iteration(s) of its update (`--ekf-iterations`; the benchmark's default: 2).")
         + ("" if res.get("tri_max_rel_sigma", 0.3) == 0.3 else
-           f" Triangulation gate max_rel_sigma = {res['tri_max_rel_sigma']:g} (`--tri-max-rel-sigma`; shipped and default: 0.3)."),
+           f" Triangulation gate max_rel_sigma = {res['tri_max_rel_sigma']:g} (`--tri-max-rel-sigma`; shipped and default: 0.3).")
+        + ("" if res.get("refine", True) else " Anchored EKF without its batch refinement (`--no-refine`; shipped and default: on)."),
         "",
     ]
     for group, title in (("sigma_px", "Camera poses exact, pixel noise only"),

@@ -132,6 +132,8 @@ class AnchoredInverseDepthEKF:
         self.t_last = np.zeros(0)  # time δ's covariance was last propagated to (§ Position error states)
         self.rho_c = np.zeros(0)  # ρ̂ when the landmark was first converged, NaN before (§ Drift test)
         self.P_rho_c = np.zeros(0)  # its variance then
+        self.prior_angles = np.zeros((0, 2))  # (θ, φ) of the anchor pixel, and its covariance: the batch refinement's prior
+        self.prior_P_angles = np.zeros((0, 2, 2))
         #: the pixel kernels' constants: (σ_px/f)² + σ_att² (2,), the white σ_p (0 with the δ states), χ²₂ gate,
         #: iterations, reject limit, NIS window, mean-NIS limit, the index of δ (−1: none), 2σ_p² and τ of its
         #: process (§ Measurement noise, § Update, § Bookkeeping, § Position error states)
@@ -204,11 +206,12 @@ class AnchoredInverseDepthEKF:
         zi = np.zeros(m, np.int64)
         self._insert(dict(ids=ids, x=x0, P=P0, R_world_camA=R, p_world_camA=p, t_anchor=t, n_updates=zi,
                           n_rejects=zi, diverged=np.zeros(m, bool), nis_avg=np.zeros(m), nis_count=zi, n_looming=zi,
-                          t_last=np.array(t, float), rho_c=np.full(m, np.nan), P_rho_c=np.full(m, np.nan)))
+                          t_last=np.array(t, float), rho_c=np.full(m, np.nan), P_rho_c=np.full(m, np.nan),
+                          prior_angles=x0[:, :2].copy(), prior_P_angles=P0[:, :2, :2].copy()))
 
     #: per-landmark arrays, all aligned with ``ids`` (kept sorted ascending)
     _FIELDS = ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged", "nis_avg",
-               "nis_count", "n_looming", "t_last", "rho_c", "P_rho_c")
+               "nis_count", "n_looming", "t_last", "rho_c", "P_rho_c", "prior_angles", "prior_P_angles")
 
     def _insert(self, rows: dict) -> None:
         """Merge new landmarks (every field of :data:`_FIELDS`, ids not yet present) keeping ids sorted."""
@@ -634,6 +637,37 @@ class AnchoredInverseDepthEKF:
         good = ok & np.isfinite(xi).all(1) & np.isfinite(P_new).all((1, 2))
         reason[ok & ~good] = GATED
         return np.where(good[:, None], xi, x0), np.where(good[:, None, None], P_new, P0), good, nis, reason
+
+    # -- batch refinement (docs/derivations/ekf_anchored.md § Batch refinement) --------------
+    def refine(self, ids, history: dict, rho_prior: float, rho_prior_sigma: float) -> np.ndarray:
+        """Replace the listed landmarks' x and P by the batch MAP over ``history`` (their
+        :meth:`ObservationHistory.gather`, same order) where it lowers the cost: the prior is the anchor
+        pixel's (θ, φ), ρ ~ N(``rho_prior``, ``rho_prior_sigma``²) (the wide prior, not a triangulated
+        seed) and the gyro-bias prior; returns the (M,) bool of landmarks replaced.  A bank with the
+        position-error states is not refined (InputError)."""
+        from companion.core.ekf_anchored_refine import refine as _refine
+
+        if self.i_pos >= 0:
+            raise InputError("refine: a bank with position-error states cannot be refined in batch")
+        rows = self.index_of(ids)
+        m = len(rows)
+        if m == 0:
+            return np.zeros(0, bool)
+        if not (np.isfinite(rho_prior) and np.isfinite(rho_prior_sigma) and rho_prior_sigma > 0):
+            raise InputError("refine: the inverse-depth prior must be finite with σ > 0")
+        xp = np.zeros((m, self.n))
+        xp[:, :2] = self.prior_angles[rows]
+        xp[:, 2] = rho_prior
+        Pp = np.zeros((m, self.n, self.n))
+        Pp[:, :2, :2] = self.prior_P_angles[rows]
+        Pp[:, 2, 2] = rho_prior_sigma**2
+        if self.drift:
+            Pp[:, 3:6, 3:6] = np.radians(self.config.attitude_drift_deg_s) ** 2 * np.eye(3)
+        res = _refine(self.x[rows], self.P[rows], xp, Pp, self.R_world_camA[rows], self.p_world_camA[rows],
+                      self.t_anchor[rows], history, self.measurement_variance, self.drift, self.i_pos,
+                      self.config.refine_iterations)
+        self.x[rows], self.P[rows] = res.x, res.P
+        return res.improved
 
     # -- output ---------------------------------------------------------------------------------
     #: the drift test's denominator never falls below this fraction of P_c (a filter that has learnt nothing

@@ -112,6 +112,9 @@ class AnchoredEKFConfig:
     looming_sigma_floor: float = 0.003  # floor added (in quadrature) to the matcher's scale σ
     looming_gate_probability: float = 0.999  # χ² (1 dof) gate of the looming innovation
     looming_iterations: int = 1  # iterated-EKF relinearizations of the looming update (1 = plain EKF)
+    refine_min_obs: int = 8  # batch refinement (§ Batch refinement): first at this many observations in a landmark's history ...
+    refine_max_obs: int = 128  # ... then each time the count doubles, the last at this many (the history's bound); 0 = off
+    refine_iterations: int = 3  # Gauss–Newton steps of each refinement
     looming_max_angle_deg: float = 180.0  # looming only for points within this angle of the direction of travel: off the axis a tilted patch biases the scale at first order while parallax ranges the point (docs/derivations/looming.md, § Off the axis of travel); 180 = everywhere
 
     def __post_init__(self) -> None:
@@ -138,6 +141,14 @@ class AnchoredEKFConfig:
         require_finite("looming_gate_probability", self.looming_gate_probability)
         require_finite("looming_max_angle_deg", self.looming_max_angle_deg, positive=True)
         require(self.looming_max_angle_deg <= 180.0, f"looming_max_angle_deg must be in (0, 180], got {self.looming_max_angle_deg}")
+        require(isinstance(self.refine_max_obs, int) and not isinstance(self.refine_max_obs, bool) and 0 <= self.refine_max_obs <= 4096,
+                f"refine_max_obs must be an integer in 0..4096 (0 = off), got {self.refine_max_obs!r}")
+        require(isinstance(self.refine_min_obs, int) and not isinstance(self.refine_min_obs, bool) and 2 <= self.refine_min_obs,
+                f"refine_min_obs must be an integer >= 2, got {self.refine_min_obs!r}")
+        require(self.refine_max_obs == 0 or self.refine_min_obs <= self.refine_max_obs,
+                f"refine_min_obs ({self.refine_min_obs}) must not exceed refine_max_obs ({self.refine_max_obs})")
+        require(isinstance(self.refine_iterations, int) and not isinstance(self.refine_iterations, bool)
+                and 1 <= self.refine_iterations <= 20, f"refine_iterations must be an integer in 1..20, got {self.refine_iterations!r}")
         require(isinstance(self.looming_iterations, int) and 1 <= self.looming_iterations <= 20,
                 "looming_iterations must be an integer in 1..20")
         require(
@@ -149,6 +160,11 @@ class AnchoredEKFConfig:
     def position_states(self) -> bool:
         """True when each filter carries the position-error difference δ (§ Position error states)."""
         return self.position_tau_s > 0 and self.position_sigma_m > 0
+
+    @property
+    def refine(self) -> bool:
+        """True when landmarks are refined in batch (§ Batch refinement): on, and no position-error states."""
+        return self.refine_max_obs > 0 and not self.position_states
 
     @property
     def position_variance_limit(self) -> float:

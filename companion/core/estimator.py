@@ -45,6 +45,7 @@ from companion.core.ekf_anchored import LOOM_OFF_AXIS, UPDATE_REASON_NAMES, Anch
 from companion.core.ekf_landmark import LandmarkEKFBank, LandmarkEKFConfig
 from companion.core.frames import is_orthonormal, se3_twist
 from companion.core.idbank import lookup
+from companion.core.obs_history import ObservationHistory
 from companion.core.triangulation import Reject, TriangulationConfig, triangulate_multiview
 from companion.core.triangulation import warm_up as warm_up_triangulation
 from companion.errors import InputError
@@ -95,6 +96,7 @@ class RangeOutput:
     n_looming: int = 0  # looming (scale) updates accepted in this frame (running + pending filters)
     looming_reasons: dict = dataclasses.field(default_factory=dict)  # reason name -> count of looming measurements not applied
     mean_nis: np.ndarray | None = None  # (N,) each filter's running mean NIS (consistency with a static point), None = not computed
+    n_refined: int = 0  # landmarks replaced by their batch refinement in this frame
 
 
 def _det3(R: np.ndarray) -> float:
@@ -195,6 +197,9 @@ class RangeEstimator:
         self.prior_bank = (
             AnchoredInverseDepthEKF(self.ekf.config, fx, fy) if isinstance(self.ekf, AnchoredInverseDepthEKF) else None
         )
+        #: each landmark's accepted observations, for the batch refinement (anchored filter, ``refine_max_obs`` > 0)
+        acfg = self.ekf.config if isinstance(self.ekf, AnchoredInverseDepthEKF) else None
+        self.history = ObservationHistory(acfg.refine_max_obs, acfg.refine_min_obs) if acfg is not None and acfg.refine else None
         self.t_seen = np.zeros(0)  # last observation time of each filtered landmark, aligned with ekf.ids
         self._seen_ids = np.zeros(0, np.int64)
         self.t_prev: float | None = None
@@ -269,8 +274,11 @@ class RangeEstimator:
         in_pend, prow = self.pending.rows_of(ids[sel_rest])
         sel_p = sel_rest[in_pend]
         self.pending.append(prow[in_pend], t, xy[sel_p], R, p)
-        accepted, rows_p = self._update(ids, xy, sel_e, rows_e, sel_p, R, p, t)
+        accepted, rows_p, accepted_p = self._update(ids, xy, sel_e, rows_e, sel_p, R, p, t)
         n_rej = len(accepted) - int(np.count_nonzero(accepted))
+        if self.history is not None:  # what each filter accepted, for its batch refinement
+            use = np.concatenate([sel_e[accepted], sel_p[accepted_p]])
+            self.history.record_pixels(ids[use], t, R, p, xy[use])
         self.t_seen[rows_e] = t
         n_loom, loom_reasons = 0, {}
         if scale is not None and self.prior_bank is not None and self.ekf.config.looming and self.t_prev is not None:
@@ -285,6 +293,10 @@ class RangeEstimator:
                 for r, sel in zip(res, (sel_e, sel_p)):
                     r.reason[off[sel]] = LOOM_OFF_AXIS
             n_loom = int(sum(np.count_nonzero(r.accepted) for r in res))
+            if self.history is not None and n_loom:
+                use = np.concatenate([sel[r.accepted] for r, sel in zip(res, (sel_e, sel_p))])
+                var = scale_sigma[use] ** 2 + self.ekf.config.looming_sigma_floor**2  # the filter's R_s
+                self.history.record_looming(ids[use], t, R, p, self.t_prev, scale[use], var)
             counts = sum(np.bincount(r.reason[~r.accepted], minlength=len(UPDATE_REASON_NAMES)) for r in res)
             loom_reasons = {UPDATE_REASON_NAMES[c]: int(counts[c]) for c in np.flatnonzero(counts)}
 
@@ -295,14 +307,17 @@ class RangeEstimator:
         self.pending.add(new_ids, t, new_xy, R, p)
         if self.prior_bank is not None:
             self.prior_bank.add(new_ids, new_xy, R, p, t, self.config.prior_inv_depth, self.config.prior_inv_depth_sigma)
+            if self.history is not None:
+                self.history.record_anchor(new_ids, t, R, p)
         n_tri, n_prior, reasons = self._initialize(t, R, p)
+        n_refined = self._refine()
 
         # 3. forget what is no longer seen
         self._expire(t)
         self.t_prev = t
         self.pose_prev = (R, p)
         out = self._output(t, R, p, n_tri, n_prior, n_rej, reasons)
-        out.n_looming, out.looming_reasons = n_loom, loom_reasons
+        out.n_looming, out.looming_reasons, out.n_refined = n_loom, loom_reasons, n_refined
         return out
 
     def _off_axis(self, xy: np.ndarray, R: np.ndarray, p: np.ndarray) -> np.ndarray | None:
@@ -356,6 +371,8 @@ class RangeEstimator:
             keep = np.ones(len(self.pending), bool)
             keep[rows[present]] = False
             self._keep_pending(keep)
+        if self.history is not None:
+            self.history.drop(ids)
 
     def _keep_pending(self, keep: np.ndarray) -> None:
         """Keep the pending landmarks of mask ``keep``; the others also leave the prior bank (if still there)."""
@@ -369,15 +386,18 @@ class RangeEstimator:
     def _update(self, ids, xy, sel_e, rows_e, sel_p, R, p, t) -> tuple[np.ndarray, np.ndarray | None]:
         """Fuse this frame's observations ``sel_e`` (bank rows ``rows_e``) into the running filters
         and, with the anchored filter, the pending ones ``sel_p`` into their wide-prior filters, in
-        one batch: (accepted flags of the running filters, prior-bank rows of ``sel_p`` or None)."""
+        one batch: (accepted flags of the running filters, prior-bank rows of ``sel_p`` or None,
+        accepted flags of the wide-prior filters)."""
         if isinstance(self.ekf, AnchoredInverseDepthEKF):
             pend_ids = ids[sel_p]
             rows_p = self.prior_bank.index_of(pend_ids)  # the prior bank holds exactly the pending landmarks
             parts = [(self.ekf, ids[sel_e], rows_e, xy[sel_e]), (self.prior_bank, pend_ids, rows_p, xy[sel_p])]
-            return AnchoredInverseDepthEKF._update_banks_rows(parts, R, p, t)[0].accepted, rows_p
+            res_e, res_p = AnchoredInverseDepthEKF._update_banks_rows(parts, R, p, t)
+            return res_e.accepted, rows_p, res_p.accepted
+        none = np.zeros(0, bool)
         if len(sel_e) == 0:
-            return np.zeros(0, bool), None
-        return self.ekf.update(ids[sel_e], xy[sel_e]).accepted, None
+            return none, None, none
+        return self.ekf.update(ids[sel_e], xy[sel_e]).accepted, None, none
 
     def _initialize(self, t, R, p):
         pend = self.pending
@@ -442,6 +462,20 @@ class RangeEstimator:
             self.ekf.add(ids, xy_now, xi, srho_xi)
         self._set_seen(ids, pend.t_last[rows])
 
+    def _refine(self) -> int:
+        """§ Batch refinement (docs/derivations/ekf_anchored.md): the running landmarks whose history
+        reached its next due size are re-solved from it (``AnchoredInverseDepthEKF.refine``, with the
+        wide inverse-depth prior); returns how many were replaced."""
+        if self.history is None or len(self.ekf) == 0:
+            return 0
+        due = self.history.due(self.ekf.ids) & ~self.ekf.diverged
+        if not due.any():
+            return 0
+        ids = self.ekf.ids[due]
+        improved = self.ekf.refine(ids, self.history.gather(ids), self.config.prior_inv_depth, self.config.prior_inv_depth_sigma)
+        self.history.advance(ids)
+        return int(np.count_nonzero(improved))
+
     def _set_seen(self, new_ids, new_t) -> None:
         """Keep ``t_seen`` aligned with the bank's (sorted) ids after landmarks were added."""
         old_ids, old_t = self._seen_ids, self.t_seen
@@ -464,7 +498,10 @@ class RangeEstimator:
             if gone.any():
                 self.drop(self.ekf.ids[gone])
         if len(self.pending):
-            self._keep_pending((t - self.pending.t_last) <= cfg.max_unseen_s)
+            stale = (t - self.pending.t_last) > cfg.max_unseen_s
+            if self.history is not None and stale.any():
+                self.history.drop(self.pending.ids[stale])
+            self._keep_pending(~stale)
 
     def _output(self, t, R, p, n_tri, n_prior, n_rej, reasons) -> RangeOutput:
         if isinstance(self.ekf, AnchoredInverseDepthEKF):

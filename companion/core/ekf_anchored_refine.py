@@ -1,0 +1,147 @@
+"""Batch refinement of anchored inverse-depth landmarks (docs/derivations/ekf_anchored.md, § Batch refinement).
+
+The iterated EKF linearizes each measurement once, at the estimate of its moment, and folds it into
+x and P for good.  Early on that estimate can be far off (a range three times too near, a ρ seeded by a
+noisy triangulation), and those linearizations stay in the landmark's P and mean (the seed-004 4 px
+NEES excess, docs/BENCHMARKS.md "Where the excess at 4 px sits").  :func:`refine` recomputes a
+landmark from its whole accepted history (:class:`companion.core.obs_history.ObservationHistory`) as the
+maximum a posteriori estimate of the static state x = (θ, φ, ρ, [b]):
+
+    J(x) = (x − x_p)ᵀ P_p⁻¹ (x − x_p) + Σ_k r_kᵀ W_k r_k
+
+with the prior (x_p, P_p) = the anchor pixel's (θ, φ), the wide inverse-depth prior that includes
+ρ = 0 (not the triangulated seed: its pixels are in the history, and counting them twice is what the
+EKF's ×3 inflation only approximates) and the gyro bias prior; r_k the pixel residuals z_k − h(x)
+(W_k = R⁻¹ of the EKF's measurement model, evaluated once at the filter's estimate: R depends on ρ
+through the white position term) and the looming residuals s_k − h_s(x) (W = 1/σ_s²).
+Gauss–Newton from the filter's own estimate, every step scored by J, the best kept; the result replaces
+x and P = (P_p⁻¹ + Σ H_kᵀ W_k H_k)⁻¹ at the optimum only where it lowered J and every residual's point
+lies in front of its camera.  All landmarks of a call are solved together: arrays over the flattened
+slots (landmark, frame), sums per landmark, no loop per landmark.
+
+Static states only: the position-error states δ have a process (they are a different random variable at
+each frame), so a bank that carries them is not refined (:func:`refinable`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from companion.core.ekf_anchored_model import _looming_args, _looming_predict, _predict, _ray_map
+
+
+@dataclasses.dataclass
+class RefineResult:
+    """Per landmark (M,): refined state x (M,n) and P (M,n,n) (the input's where not ``improved``),
+    ``improved`` (the refinement replaced them), the cost J at the filter's estimate and at the result."""
+
+    x: np.ndarray
+    P: np.ndarray
+    improved: np.ndarray
+    cost_before: np.ndarray
+    cost_after: np.ndarray
+
+
+def refinable(position_states: bool) -> bool:
+    """The batch model holds for static states only (module docstring)."""
+    return not position_states
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _sum_by(owner: np.ndarray, values: np.ndarray, m: int) -> np.ndarray:
+    """Sum of ``values`` (L, ...) per owner index (L,) into (m, ...)."""
+    out = np.zeros((m,) + values.shape[1:])
+    np.add.at(out, owner, values)
+    return out
+
+
+def _evaluate(x, xp, Ip, RA, pA, tA, h, W_pixel, drift: bool, i_pos: int):
+    """At states x (M,n): cost J (M,), information I (M,n,n), gradient g = −½∇J (M,n) and whether every
+    used slot's point is in front of its camera (M,).  ``W_pixel`` (L,2): the weights of the slots with a
+    pixel, held fixed over the iterations (R depends on ρ through the white position term: weights that
+    moved with x would make J a different function at every step)."""
+    m, n = x.shape
+    dx = x - xp
+    dx[:, 0] = _wrap(dx[:, 0])
+    Ipdx = np.einsum("mij,mj->mi", Ip, dx)
+    cost = np.einsum("mi,mi->m", dx, Ipdx)
+    info = Ip.copy()
+    grad = -Ipdx
+    front = np.ones(m, bool)
+    owner = h["owner"]
+    pix = np.flatnonzero(np.isfinite(h["z"][:, 0]))
+    if len(pix):
+        o = owner[pix]
+        X = x[o]
+        D = (0.5 * (h["t"][pix] - tA[o]))[:, None, None] * (RA[o] + h["R"][pix]) if drift else None
+        hc, zhat, H = _predict(X, _ray_map(RA[o]), pA[o] - h["C"][pix], np.swapaxes(h["R"][pix], 1, 2), D, i_pos)
+        W = W_pixel  # (L,2): R is diagonal
+        r = h["z"][pix] - zhat
+        info += _sum_by(o, np.einsum("lki,lk,lkj->lij", H, W, H), m)
+        grad += _sum_by(o, np.einsum("lki,lk,lk->li", H, W, r), m)
+        cost += _sum_by(o, np.einsum("lk,lk,lk->l", r, W, r), m)
+        front &= _sum_by(o, (hc[:, 2] <= 1e-9).astype(float), m) == 0
+    loom = np.flatnonzero(np.isfinite(h["s"]) & (h["prev"] >= 0))
+    if len(loom):
+        o = owner[loom]
+        q = h["prev"][loom]
+        args = _looming_args(RA[o], pA[o], tA[o], h["R"][q], h["C"][q], h["t"][q], h["R"][loom], h["C"][loom], h["t"][loom],
+                             drift)
+        hzp, hzn, hs, Hs = _looming_predict(x[o], *args, i_pos)
+        w = 1.0 / h["s_var"][loom]
+        r = h["s"][loom] - hs
+        info += _sum_by(o, w[:, None, None] * Hs[:, :, None] * Hs[:, None, :], m)
+        grad += _sum_by(o, (w * r)[:, None] * Hs, m)
+        cost += _sum_by(o, w * r * r, m)
+        front &= _sum_by(o, ((hzp <= 1e-9) | (hzn <= 1e-9)).astype(float), m) == 0
+    return cost, info, grad, front
+
+
+def refine(x0, P0, xp, Pp, RA, pA, tA, history: dict, pixel_variance, drift: bool, i_pos: int,
+           iterations: int) -> RefineResult:
+    """Batch MAP of M landmarks (module docstring).
+
+    ``x0`` (M,n), ``P0`` (M,n,n): the filters' estimates (the Gauss–Newton start, and the answer where
+    the refinement does not improve); ``xp``, ``Pp``: the priors; ``RA`` (M,3,3), ``pA`` (M,3), ``tA`` (M,):
+    the anchors; ``history``: :meth:`ObservationHistory.gather` of the same landmarks in the same order;
+    ``pixel_variance``: states (L,n) → the pixel measurement variance (L,2) of the filter
+    (:meth:`AnchoredInverseDepthEKF.measurement_variance`); ``iterations`` Gauss–Newton steps."""
+    x0 = np.asarray(x0, float)
+    m = len(x0)
+    Ip = np.linalg.inv(Pp)
+    x = x0.copy()
+    best_x, best_cost = x0.copy(), np.full(m, np.inf)
+    best_info = np.zeros_like(P0)
+    cost_before = None
+    pix = np.isfinite(history["z"][:, 0])
+    W_pixel = 1.0 / pixel_variance(x0[history["owner"][pix]])  # R at the filter's estimate, as the EKF weighs
+    for it in range(iterations + 1):
+        cost, info, grad, front = _evaluate(x, xp, Ip, RA, pA, tA, history, W_pixel, drift, i_pos)
+        if cost_before is None:
+            cost_before = np.where(front, cost, np.inf)
+        better = front & np.isfinite(cost) & (cost < best_cost)
+        best_x[better], best_cost[better], best_info[better] = x[better], cost[better], info[better]
+        if it == iterations:
+            break
+        with np.errstate(all="ignore"):
+            step = np.linalg.solve(info, grad[:, :, None])[:, :, 0]
+        x = np.where(np.isfinite(step).all(1)[:, None], x + step, x)
+    # improved: a step lowered J (the filter's own estimate, if best, keeps its x and P)
+    improved = np.isfinite(best_cost) & (best_cost < cost_before) & np.isfinite(best_x).all(1)
+    P = P0.copy()
+    x_out = x0.copy()
+    if improved.any():
+        with np.errstate(all="ignore"):
+            Pi = np.linalg.inv(best_info[improved])
+        Pi = 0.5 * (Pi + np.swapaxes(Pi, 1, 2))
+        ok = np.isfinite(Pi).all((1, 2)) & (np.linalg.eigvalsh(Pi)[:, 0] > 0)
+        sel = np.flatnonzero(improved)
+        improved[sel[~ok]] = False
+        sel = sel[ok]
+        x_out[sel], P[sel] = best_x[sel], Pi[ok]
+    return RefineResult(x_out, P, improved, cost_before, np.where(improved, best_cost, cost_before))
