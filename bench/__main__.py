@@ -156,8 +156,8 @@ def main(argv=None) -> int:
                                 "filter (default 0.3, the shipped [triangulation] max_rel_sigma; also gates the "
                                 "longest-baseline row)")
             p.add_argument("--no-refine", action="store_true",
-                           help="the anchored EKF without its batch refinement ([ekf_anchored] refine_max_obs = 0; "
-                                "shipped and default: refined at 8, 16, 32, 64 and 128 observations)")
+                           help="the anchored EKF without its batch refinement (refine_max_obs = 0, as the flight "
+                                "configurations ship; the benchmark's default refines at 8, 16, 32, 64 and 128 frames)")
         if name == "all":
             p.add_argument("--write", metavar="FILE",
                            help="write the markdown report to FILE: the sections this command produces are replaced, "

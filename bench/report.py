@@ -58,7 +58,9 @@ def seed004_markdown(res: dict, runs: int) -> str:
            f" Anchored EKF with {res['ekf_iterations']} iteration(s) of its update (`--ekf-iterations`; the benchmark's default: 2).")
         + ("" if res.get("tri_max_rel_sigma", 0.3) == 0.3 else
            f" Triangulation gate max_rel_sigma = {res['tri_max_rel_sigma']:g} (`--tri-max-rel-sigma`; shipped and default: 0.3).")
-        + ("" if res.get("refine", True) else " Anchored EKF without its batch refinement (`--no-refine`; shipped and default: on)."),
+        + (" Anchored EKF with its batch refinement (`[ekf_anchored] refine_max_obs = 128`, an option the flight configurations"
+           " leave off; `--no-refine` measures the EKF alone)." if res.get("refine", True)
+           else " Anchored EKF without its batch refinement (`--no-refine`), as the flight configurations ship it."),
         "",
     ]
     for group, title in (("sigma_px", "Camera poses exact, pixel noise only"),

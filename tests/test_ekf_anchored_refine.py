@@ -169,15 +169,52 @@ def test_refinement_keeps_the_filter_where_it_cannot_improve_and_refuses_positio
         bank.refine([7], g, RHO_PRIOR, 0.0)
     with pytest.raises(InputError, match="unknown"):
         bank.refine([8], g, RHO_PRIOR, RHO_SIGMA)
-    pos = AnchoredInverseDepthEKF(AnchoredEKFConfig(position_tau_s=30.0, position_sigma_m=0.1), F, F)
+    pos = AnchoredInverseDepthEKF(AnchoredEKFConfig(position_tau_s=30.0, position_sigma_m=0.1, refine_max_obs=128), F, F)
     assert not pos.config.refine
     with pytest.raises(InputError, match="position-error"):
         pos.refine([1], g, RHO_PRIOR, RHO_SIGMA)
 
 
 def test_config_validates_the_refinement_keys():
-    assert AnchoredEKFConfig().refine and not AnchoredEKFConfig(refine_max_obs=0).refine
+    assert not AnchoredEKFConfig().refine and AnchoredEKFConfig(refine_max_obs=128).refine  # off by default
     for bad in ({"refine_max_obs": -1}, {"refine_max_obs": 4}, {"refine_min_obs": 1}, {"refine_iterations": 0},
-                {"refine_max_obs": True}, {"refine_min_obs": 2.0}):
+                {"refine_max_obs": True}, {"refine_min_obs": 2.0}, {"refine_max_slots": 0}):
         with pytest.raises(Exception, match="refine_"):
             AnchoredEKFConfig(**bad)
+
+
+def test_compiled_and_reference_cost_information_and_gradient_agree():
+    """The batch cost's kernel (ekf_anchored_kernels.refine_evaluate) against the numpy reference, three landmarks
+    with the gyro-bias states, pixels and looming, a refused pixel (its slot holds only a scale)."""
+    from companion.core import ekf_anchored_refine as ER
+    from companion.core import jit
+
+    if not jit.ENABLED:
+        pytest.skip("compiled kernels are off (COMPANION_KERNELS=numpy or no numba)")
+    rng = np.random.default_rng(11)
+    k = 30
+    R, C, t = _poses(k, forward=3.0, lateral=0.5)
+    bank = _bank(drift=0.05)
+    pts = np.array([[1.0, 0.5, 20.0], [-2.0, -1.0, 30.0], [0.2, 0.1, 15.0]])
+    xy = np.stack([_project(pts, R[i], C[i]) for i in range(k)], 1) + 1e-3 * rng.standard_normal((3, k, 2))
+    bank.add([1, 2, 3], xy[:, 0], R[0], C[0], t[0], 0.04, RHO_SIGMA)
+    hist = ObservationHistory(64)
+    hist.record_anchor([1, 2, 3], t[0], R[0], C[0])
+    depth = pts[:, 2][:, None] - C[:, 2][None]
+    for i in range(1, k):
+        keep = [0, 1] if i == 12 else [0, 1, 2]  # landmark 3's pixel refused at frame 12
+        hist.record_pixels(np.array([1, 2, 3])[keep], t[i], R[i], C[i], xy[keep, i])
+        hist.record_looming([1, 2, 3], t[i], R[i], C[i], t[i - 1], depth[:, i - 1] / depth[:, i] + 1e-4 * rng.standard_normal(3),
+                            np.full(3, 1e-6))
+    h = hist.gather([1, 2, 3])
+    assert np.isnan(h["z"][h["starts"][2] + 12, 0]) and np.isfinite(h["s"][h["starts"][2] + 12])
+    x = bank.x + 1e-3 * rng.standard_normal(bank.x.shape)
+    xp = x + 1e-3
+    Ip = np.repeat(np.diag([1e6, 1e6, 2500.0, 1e7, 1e7, 1e7])[None], 3, 0)
+    W = np.where(np.isfinite(h["z"]), 1.0 / bank.sigma_xy**2, np.nan)
+    args = (x, xp, Ip, bank.R_world_camA, bank.p_world_camA, bank.t_anchor, h, W, True, -1)
+    ref = ER._evaluate(*args)
+    ker = ER._evaluate_kernel(*args)
+    for a, b in zip(ref[:3], ker[:3]):
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
+    assert ref[3].all() and ker[3].all()

@@ -16,6 +16,11 @@ inverse depth ρ; treated as white, an approximation for GPS-like correlated err
 grows between updates (:meth:`AnchoredInverseDepthEKF._propagate`, before every pixel or looming
 update of a landmark, accepted or not).
 
+Batch refinement (docs/derivations/ekf_anchored.md § Batch refinement): :meth:`~AnchoredInverseDepthEKF.refine`
+replaces a landmark's x and P by the Gauss–Newton MAP over its whole accepted history
+(:mod:`companion.core.ekf_anchored_refine`; the estimator keeps the histories and calls it on a doubling
+schedule), which undoes the early linearizations the EKF folded in for good.
+
 The numpy code here is the *reference*: every operation is batched over landmarks, arrays of shape
 (N, 3), (N, 3, 3), no loop per landmark.  When compiled kernels are on (:mod:`companion.core.jit`)
 the pixel and looming updates (with their bookkeeping) and :meth:`~AnchoredInverseDepthEKF.estimates`

@@ -574,6 +574,78 @@ def estimates(x, P, RA, pA, diverged, n_updates, C, max_range, converged_rel_sig
         converged[l] = valid[l] and rho > rho_floor and sr < converged_rel_sigma * r and n_updates[l] >= min_updates
 
 
+@njit(error_model="numpy")
+def refine_evaluate(x, xp, Ip, RA, pA, tA, starts, counts, t, R, C, z, W, s, s_var, prev, drift, i_pos,
+                    cost, info, grad, front):
+    """The batch refinement's cost, information and gradient at states x (M,n) (ekf_anchored.md § Batch
+    refinement; :func:`companion.core.ekf_anchored_refine._evaluate` is the numpy reference): per landmark m,
+    its slots ``starts[m]`` … + ``counts[m]`` of the flattened history (t, R, C, z, s, s_var, prev), fixed pixel
+    weights ``W`` (L,2; NaN where no pixel); writes cost (M,), info (M,n,n), grad (M,n) = −½∇J, front (M,)."""
+    M, n = x.shape
+    zhat = np.empty(2)
+    H = np.empty((2, n))
+    V = np.zeros((3, 1 + n))
+    Hs = np.empty(n)
+    Vp = np.zeros((3, 1 + n))
+    Vn = np.zeros((3, 1 + n))
+    dx = np.empty(n)
+    D = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    for m in range(M):
+        xm = x[m]
+        for i in range(n):
+            dx[i] = xm[i] - xp[m, i]
+        dx[0] = (dx[0] + math.pi) % (2.0 * math.pi) - math.pi
+        c = 0.0
+        for i in range(n):
+            g = 0.0
+            for j in range(n):
+                g += Ip[m, i, j] * dx[j]
+                info[m, i, j] = Ip[m, i, j]
+            c += dx[i] * g
+            grad[m, i] = -g
+        ok = True
+        RAm = mat3(RA[m])
+        for l in range(starts[m], starts[m] + counts[m]):
+            Rc = mat3(R[l])
+            Rcw = mat3_transposed(R[l])
+            a = (pA[m, 0] - C[l, 0], pA[m, 1] - C[l, 1], pA[m, 2] - C[l, 2])
+            if drift:
+                D = drift_integral(RAm, Rc, t[l] - tA[m])
+            if z[l, 0] == z[l, 0]:  # a pixel in this slot
+                hz = predict_pixel(xm, RAm, a, Rcw, D, zhat, H, V, drift, i_pos)
+                if not hz > _HZ_MIN:
+                    ok = False
+                for k in range(2):
+                    r = z[l, k] - zhat[k]
+                    w = W[l, k]
+                    c += w * r * r
+                    for i in range(n):
+                        wh = w * H[k, i]
+                        grad[m, i] += wh * r
+                        for j in range(n):
+                            info[m, i, j] += wh * H[k, j]
+            q = prev[l]
+            if s[l] == s[l] and q >= 0:  # a looming measurement against the previous slot's pose
+                a_p = (pA[m, 0] - C[q, 0], pA[m, 1] - C[q, 1], pA[m, 2] - C[q, 2])
+                Rcw_p = mat3_transposed(R[q])
+                D_p = D
+                if drift:
+                    D_p = drift_integral(RAm, mat3(R[q]), t[q] - tA[m])
+                hzp, hzn, hs = predict_looming(xm, RAm, a_p, Rcw_p, D_p, a, Rcw, D, Hs, Vp, Vn, drift, i_pos)
+                if not (hzp > _HZ_MIN and hzn > _HZ_MIN):
+                    ok = False
+                w = 1.0 / s_var[l]
+                r = s[l] - hs
+                c += w * r * r
+                for i in range(n):
+                    wh = w * Hs[i]
+                    grad[m, i] += wh * r
+                    for j in range(n):
+                        info[m, i, j] += wh * Hs[j]
+        cost[m] = c
+        front[m] = ok
+
+
 @jit.register_warmup
 def warm_up() -> None:
     """Compile (or load) every kernel on one landmark with 3, 6 and 9 states (with and without δ), in the array
@@ -597,3 +669,9 @@ def warm_up() -> None:
                             Rc, C, 1.0, 0.003, 10.8, 1, i_pos, 0.02, 30.0, np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
         estimates(x, P, RA, pA, b, i64, np.zeros(3), 1e4, 0.1, 3, i_pos, np.zeros((1, 3)), np.zeros(1), np.zeros(1),
                   np.zeros(1), np.zeros(1, bool), np.zeros(1, bool))
+        if i_pos < 0:  # the batch refinement (static states only)
+            refine_evaluate(x, x.copy(), P.copy(), RA, pA, tA, np.zeros(1, np.int64), np.full(1, 2, np.int64), np.array([0.0, 1.0]),
+                            np.stack([np.eye(3), np.eye(3)]), np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]),
+                            np.array([[np.nan, np.nan], [0.0, 0.0]]), np.ones((2, 2)), np.array([np.nan, 1.0]), np.ones(2),
+                            np.array([-1, 0], np.int64), n == 6, i_pos, np.zeros(1), np.zeros((1, n, n)), np.zeros((1, n)),
+                            np.zeros(1, bool))

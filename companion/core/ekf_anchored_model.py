@@ -112,9 +112,10 @@ class AnchoredEKFConfig:
     looming_sigma_floor: float = 0.003  # floor added (in quadrature) to the matcher's scale σ
     looming_gate_probability: float = 0.999  # χ² (1 dof) gate of the looming innovation
     looming_iterations: int = 1  # iterated-EKF relinearizations of the looming update (1 = plain EKF)
-    refine_min_obs: int = 8  # batch refinement (§ Batch refinement): first at this many observations in a landmark's history ...
-    refine_max_obs: int = 128  # ... then each time the count doubles, the last at this many (the history's bound); 0 = off
+    refine_min_obs: int = 8  # batch refinement (§ Batch refinement): first at this many frames in a landmark's history ...
+    refine_max_obs: int = 0  # ... then each time the count doubles, the last at this many (the history's bound); 0 = off (the seed-004 benchmark: 128)
     refine_iterations: int = 3  # Gauss–Newton steps of each refinement
+    refine_max_slots: int = 2048  # history slots refined per frame at most (the smallest histories first; the rest wait a frame): bounds a frame's cost when many landmarks fall due together
     looming_max_angle_deg: float = 180.0  # looming only for points within this angle of the direction of travel: off the axis a tilted patch biases the scale at first order while parallax ranges the point (docs/derivations/looming.md, § Off the axis of travel); 180 = everywhere
 
     def __post_init__(self) -> None:
@@ -149,6 +150,8 @@ class AnchoredEKFConfig:
                 f"refine_min_obs ({self.refine_min_obs}) must not exceed refine_max_obs ({self.refine_max_obs})")
         require(isinstance(self.refine_iterations, int) and not isinstance(self.refine_iterations, bool)
                 and 1 <= self.refine_iterations <= 20, f"refine_iterations must be an integer in 1..20, got {self.refine_iterations!r}")
+        require(isinstance(self.refine_max_slots, int) and not isinstance(self.refine_max_slots, bool) and self.refine_max_slots >= 1,
+                f"refine_max_slots must be an integer >= 1, got {self.refine_max_slots!r}")
         require(isinstance(self.looming_iterations, int) and 1 <= self.looming_iterations <= 20,
                 "looming_iterations must be an integer in 1..20")
         require(

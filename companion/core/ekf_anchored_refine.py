@@ -29,6 +29,8 @@ import dataclasses
 
 import numpy as np
 
+from companion.core import ekf_anchored_kernels as _kernels
+from companion.core import jit
 from companion.core.ekf_anchored_model import _looming_args, _looming_predict, _predict, _ray_map
 
 
@@ -60,10 +62,24 @@ def _sum_by(owner: np.ndarray, values: np.ndarray, m: int) -> np.ndarray:
     return out
 
 
-def _evaluate(x, xp, Ip, RA, pA, tA, h, W_pixel, drift: bool, i_pos: int):
+def _evaluate_kernel(x, xp, Ip, RA, pA, tA, h, W, drift: bool, i_pos: int):
+    """:func:`_evaluate` by the compiled kernel (:func:`ekf_anchored_kernels.refine_evaluate`), one loop over
+    landmarks and their slots."""
+    m, n = x.shape
+    cost, info, grad, front = np.zeros(m), np.zeros((m, n, n)), np.zeros((m, n)), np.zeros(m, bool)
+    c = np.ascontiguousarray
+    counts = np.bincount(h["owner"], minlength=m).astype(np.int64)
+    _kernels.refine_evaluate(c(x, float), c(xp, float), c(Ip, float), c(RA, float), c(pA, float), c(tA, float),
+                             c(h["starts"], np.int64), counts, c(h["t"], float), c(h["R"], float), c(h["C"], float),
+                             c(h["z"], float), c(W, float), c(h["s"], float), c(h["s_var"], float), c(h["prev"], np.int64),
+                             bool(drift), int(i_pos), cost, info, grad, front)
+    return cost, info, grad, front
+
+
+def _evaluate(x, xp, Ip, RA, pA, tA, h, W, drift: bool, i_pos: int):
     """At states x (M,n): cost J (M,), information I (M,n,n), gradient g = −½∇J (M,n) and whether every
-    used slot's point is in front of its camera (M,).  ``W_pixel`` (L,2): the weights of the slots with a
-    pixel, held fixed over the iterations (R depends on ρ through the white position term: weights that
+    used slot's point is in front of its camera (M,).  ``W`` (L,2): the pixel weights (NaN in slots without a
+    pixel), held fixed over the iterations (R depends on ρ through the white position term: weights that
     moved with x would make J a different function at every step)."""
     m, n = x.shape
     dx = x - xp
@@ -80,11 +96,11 @@ def _evaluate(x, xp, Ip, RA, pA, tA, h, W_pixel, drift: bool, i_pos: int):
         X = x[o]
         D = (0.5 * (h["t"][pix] - tA[o]))[:, None, None] * (RA[o] + h["R"][pix]) if drift else None
         hc, zhat, H = _predict(X, _ray_map(RA[o]), pA[o] - h["C"][pix], np.swapaxes(h["R"][pix], 1, 2), D, i_pos)
-        W = W_pixel  # (L,2): R is diagonal
+        W_pix = W[pix]  # (L,2): R is diagonal
         r = h["z"][pix] - zhat
-        info += _sum_by(o, np.einsum("lki,lk,lkj->lij", H, W, H), m)
-        grad += _sum_by(o, np.einsum("lki,lk,lk->li", H, W, r), m)
-        cost += _sum_by(o, np.einsum("lk,lk,lk->l", r, W, r), m)
+        info += _sum_by(o, np.einsum("lki,lk,lkj->lij", H, W_pix, H), m)
+        grad += _sum_by(o, np.einsum("lki,lk,lk->li", H, W_pix, r), m)
+        cost += _sum_by(o, np.einsum("lk,lk,lk->l", r, W_pix, r), m)
         front &= _sum_by(o, (hc[:, 2] <= 1e-9).astype(float), m) == 0
     loom = np.flatnonzero(np.isfinite(h["s"]) & (h["prev"] >= 0))
     if len(loom):
@@ -119,9 +135,11 @@ def refine(x0, P0, xp, Pp, RA, pA, tA, history: dict, pixel_variance, drift: boo
     best_info = np.zeros_like(P0)
     cost_before = None
     pix = np.isfinite(history["z"][:, 0])
-    W_pixel = 1.0 / pixel_variance(x0[history["owner"][pix]])  # R at the filter's estimate, as the EKF weighs
+    W = np.full(history["z"].shape, np.nan)
+    W[pix] = 1.0 / pixel_variance(x0[history["owner"][pix]])  # R at the filter's estimate, as the EKF weighs
+    evaluate = _evaluate_kernel if jit.ENABLED else _evaluate
     for it in range(iterations + 1):
-        cost, info, grad, front = _evaluate(x, xp, Ip, RA, pA, tA, history, W_pixel, drift, i_pos)
+        cost, info, grad, front = evaluate(x, xp, Ip, RA, pA, tA, history, W, drift, i_pos)
         if cost_before is None:
             cost_before = np.where(front, cost, np.inf)
         better = front & np.isfinite(cost) & (cost < best_cost)

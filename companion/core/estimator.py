@@ -472,6 +472,12 @@ class RangeEstimator:
         if not due.any():
             return 0
         ids = self.ekf.ids[due]
+        size = self.history.counts(ids)[0]
+        if size.sum() > self.ekf.config.refine_max_slots:  # a frame's budget: the smallest histories first, the rest wait
+            order = np.argsort(size, kind="stable")
+            take = np.cumsum(size[order]) <= self.ekf.config.refine_max_slots
+            take[0] = True  # at least one landmark a frame
+            ids = np.sort(ids[order[take]])
         improved = self.ekf.refine(ids, self.history.gather(ids), self.config.prior_inv_depth, self.config.prior_inv_depth_sigma)
         self.history.advance(ids)
         return int(np.count_nonzero(improved))
