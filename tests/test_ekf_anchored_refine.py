@@ -218,3 +218,14 @@ def test_compiled_and_reference_cost_information_and_gradient_agree():
     for a, b in zip(ref[:3], ker[:3]):
         np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
     assert ref[3].all() and ker[3].all()
+
+
+def test_a_singular_system_leaves_that_landmark_alone_and_raises_nothing():
+    from companion.core.ekf_anchored_refine import _solve_or_nan
+
+    A = np.stack([np.eye(3), np.zeros((3, 3)), 2.0 * np.eye(3)])
+    b = np.ones((3, 3))
+    x = _solve_or_nan(A, b)
+    assert np.allclose(x[0], 1.0) and np.isnan(x[1]).all() and np.allclose(x[2], 0.5)
+    inv = _solve_or_nan(A, None)
+    assert np.allclose(inv[2], 0.5 * np.eye(3)) and np.isnan(inv[1]).all()

@@ -118,6 +118,22 @@ def _evaluate(x, xp, Ip, RA, pA, tA, h, W, drift: bool, i_pos: int):
     return cost, info, grad, front
 
 
+def _solve_or_nan(A: np.ndarray, b: np.ndarray | None) -> np.ndarray:
+    """A⁻¹ b (M,n) for stacked A (M,n,n), or A⁻¹ when ``b`` is None; NaN for a landmark whose A is singular
+    (A = P_p⁻¹ + Σ HᵀWH is positive definite by construction, but input NaN must not raise in flight)."""
+    with np.errstate(all="ignore"):
+        try:
+            return np.linalg.inv(A) if b is None else np.linalg.solve(A, b[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            out = np.full(A.shape if b is None else b.shape, np.nan)
+            for i in range(len(A)):  # rare: find the singular ones one by one
+                try:
+                    out[i] = np.linalg.inv(A[i]) if b is None else np.linalg.solve(A[i], b[i])
+                except np.linalg.LinAlgError:
+                    pass
+            return out
+
+
 def refine(x0, P0, xp, Pp, RA, pA, tA, history: dict, pixel_variance, drift: bool, i_pos: int,
            iterations: int) -> RefineResult:
     """Batch MAP of M landmarks (module docstring).
@@ -146,16 +162,14 @@ def refine(x0, P0, xp, Pp, RA, pA, tA, history: dict, pixel_variance, drift: boo
         best_x[better], best_cost[better], best_info[better] = x[better], cost[better], info[better]
         if it == iterations:
             break
-        with np.errstate(all="ignore"):
-            step = np.linalg.solve(info, grad[:, :, None])[:, :, 0]
+        step = _solve_or_nan(info, grad)
         x = np.where(np.isfinite(step).all(1)[:, None], x + step, x)
     # improved: a step lowered J (the filter's own estimate, if best, keeps its x and P)
     improved = np.isfinite(best_cost) & (best_cost < cost_before) & np.isfinite(best_x).all(1)
     P = P0.copy()
     x_out = x0.copy()
     if improved.any():
-        with np.errstate(all="ignore"):
-            Pi = np.linalg.inv(best_info[improved])
+        Pi = _solve_or_nan(best_info[improved], None)
         Pi = 0.5 * (Pi + np.swapaxes(Pi, 1, 2))
         ok = np.isfinite(Pi).all((1, 2)) & (np.linalg.eigvalsh(Pi)[:, 0] > 0)
         sel = np.flatnonzero(improved)

@@ -383,7 +383,7 @@ class RangeEstimator:
             self.prior_bank.remove(gone[self.prior_bank.contains(gone)])
         self.pending.keep(keep)
 
-    def _update(self, ids, xy, sel_e, rows_e, sel_p, R, p, t) -> tuple[np.ndarray, np.ndarray | None]:
+    def _update(self, ids, xy, sel_e, rows_e, sel_p, R, p, t) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """Fuse this frame's observations ``sel_e`` (bank rows ``rows_e``) into the running filters
         and, with the anchored filter, the pending ones ``sel_p`` into their wide-prior filters, in
         one batch: (accepted flags of the running filters, prior-bank rows of ``sel_p`` or None,

@@ -39,7 +39,7 @@ class ObservationHistory:
         self.count = np.zeros(0, np.int64)
         self.complete = np.zeros(0, bool)
         self.next_due = np.zeros(0, np.int64)  # history size at which the landmark is next due (:meth:`due`)
-        self._free: list[int] = []
+        self._free = np.zeros(0, np.int64)  # pool rows not held by any landmark (a stack: the last is reused first)
         self._alloc(8)
 
     def _alloc(self, rows: int) -> None:
@@ -59,7 +59,7 @@ class ObservationHistory:
             if n_old:
                 a[:n_old] = getattr(self, name)
             setattr(self, name, a)
-        self._free.extend(range(rows - 1, n_old - 1, -1))
+        self._free = np.concatenate([self._free, np.arange(rows - 1, n_old - 1, -1, dtype=np.int64)])
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -80,7 +80,8 @@ class ObservationHistory:
         if len(new):
             while len(self._free) < len(new):
                 self._alloc(2 * self.pool_rows)
-            rows = np.array([self._free.pop() for _ in range(len(new))], np.int64)
+            rows = self._free[::-1][: len(new)].copy()
+            self._free = self._free[: len(self._free) - len(new)]
             self._clear_rows(rows)
             ids_all = np.concatenate([self.ids, new])
             order = np.argsort(ids_all, kind="stable")
@@ -103,7 +104,7 @@ class ObservationHistory:
         if len(idx) == 0:
             return
         held = self.row[idx]
-        self._free.extend(held[held >= 0].tolist())
+        self._free = np.concatenate([self._free, held[held >= 0]])
         keep = np.ones(len(self.ids), bool)
         keep[idx] = False
         for name in ("ids", "row", "count", "complete", "next_due"):
@@ -115,7 +116,7 @@ class ObservationHistory:
         found, idx = lookup(self.ids, np.asarray(ids, np.int64).reshape(-1))
         idx = np.unique(idx[found])
         held = self.row[idx]
-        self._free.extend(held[held >= 0].tolist())
+        self._free = np.concatenate([self._free, held[held >= 0]])
         self.row[idx] = -1
         self.complete[idx] = False
         self.count[idx] = 0
