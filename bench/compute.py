@@ -67,15 +67,16 @@ def fly_recording(out: Path) -> Path:
     return flight
 
 
-def _worker_synthetic(frames: int) -> dict:
+def _worker_synthetic(frames: int, config: str | None = None) -> dict:
     from bench.latency import measure_latency
+    from companion.io.config_files import load_companion_config
 
-    r = measure_latency(640, 480, 300, frames)
+    r = measure_latency(640, 480, 300, frames, config=load_companion_config(config))
     return {"frames": r["frames"], "cpu_mean_ms": r["cpu_mean_ms"], "cpu_p50_ms": r["cpu_p50_ms"], "cpu_p99_ms": r["cpu_p99_ms"],
             "stage_cpu_ms": r["stage_cpu_ms"], "mean_tracks": r["mean_tracks"], "mean_converged": r["mean_converged"]}
 
 
-def _worker_replay(flight: Path) -> dict:
+def _worker_replay(flight: Path, config: str | None = None) -> dict:
     import logging
 
     import numpy as np
@@ -86,7 +87,7 @@ def _worker_replay(flight: Path) -> dict:
     from flightsim.scenario import load_scenario
 
     logging.disable(logging.WARNING)
-    cfg = load_companion_config(None)
+    cfg = load_companion_config(config)
     cam = load_scenario(flight.parent / "quad_approach_640.toml").camera
     cpu, tracks, conv = [], [], []
     stage: dict[str, float] = {}
@@ -108,7 +109,7 @@ def _worker_replay(flight: Path) -> dict:
             "mean_tracks": float(np.mean(tracks)), "mean_converged": float(np.mean(conv))}
 
 
-def _run_worker(case: str, kernels: str, flight: Path | None, frames: int) -> dict:
+def _run_worker(case: str, kernels: str, flight: Path | None, frames: int, config: str | None = None) -> dict:
     env = dict(os.environ, **_ONE_THREAD)
     if kernels == "numpy":
         env["COMPANION_KERNELS"] = "numpy"
@@ -117,24 +118,27 @@ def _run_worker(case: str, kernels: str, flight: Path | None, frames: int) -> di
     cmd = [sys.executable, "-m", "bench.compute", "--worker", case, "--frames", str(frames)]
     if flight is not None:
         cmd += ["--flight", str(flight)]
+    if config is not None:
+        cmd += ["--config", str(Path(config).resolve())]
     out = subprocess.run(cmd, check=True, env=env, cwd=ROOT, capture_output=True, text=True)
     res = json.loads(out.stdout.strip().splitlines()[-1])
     res["kernels"] = kernels
     return res
 
 
-def run(frames: int = 240, out: Path = OUT, progress=None) -> dict:
-    """Both flights × (kernels, reference); each measurement in its own one-thread process."""
+def run(frames: int = 240, out: Path = OUT, progress=None, config: str | None = None) -> dict:
+    """Both flights × (kernels, reference); each measurement in its own one-thread process; ``config`` a
+    companion configuration file (default: the shipped one)."""
     import numba
 
     flight = fly_recording(Path(out))
     rows = []
     for case in ("synthetic", "replay"):
         for kernels in ("numba", "numpy"):
-            rows.append(dict(_run_worker(case, kernels, flight if case == "replay" else None, frames), case=case))
+            rows.append(dict(_run_worker(case, kernels, flight if case == "replay" else None, frames, config), case=case))
             if progress:
                 progress(1)
-    return {"rows": rows, "target_ms": TARGET_MS, "numba": numba.__version__, "machine": platform.processor() or platform.machine(),
+    return {"rows": rows, "target_ms": TARGET_MS, "config": config, "numba": numba.__version__, "machine": platform.processor() or platform.machine(),
             "python": platform.python_version()}
 
 
@@ -142,11 +146,13 @@ def markdown(res: dict) -> str:
     stages = ("track", "estimate", "map", "sectors")
     L = [
         "Whole pipeline (Harris, NCC and Lucas–Kanade tracking, scale, estimator, local map, sectors) on one core: CPU "
-        "time of the pipeline's thread per frame, in a fresh process with one OpenCV and one BLAS thread, shipped "
-        "configuration (300 tracks), 640×480. `synthetic`: the latency flight past a textured wall; `replay`: "
+        "time of the pipeline's thread per frame, in a fresh process with one OpenCV and one BLAS thread, "
+        + ("shipped configuration" if not res.get("config") else f"configuration `{res['config']}`")
+        + " (300 tracks), 640×480. `synthetic`: the latency flight past a textured wall; `replay`: "
         "quad_approach flown at 640×480 and replayed through `companion replay`'s loop. `numba`: the compiled kernels; "
         "`numpy`: the reference (`COMPANION_KERNELS=numpy`). Target ≤ 8 ms. "
-        f"numba {res['numba']}, Python {res['python']}. Command: `python -m bench compute --write docs/BENCHMARKS.md`.",
+        f"numba {res['numba']}, Python {res['python']}. Command: `python -m bench compute "
+        + (f"--config {res['config']}`." if res.get("config") else "--write docs/BENCHMARKS.md`."),
         "",
         "| flight | kernels | frames | tracks | converged | CPU mean ms | p50 | p99 | " + " | ".join(stages) + " | ≤ 8 ms |",
         "|---|---|---|---|---|---|---|---|" + "---|" * len(stages) + "---|",
@@ -169,19 +175,23 @@ def main(argv=None) -> int:
     ap.add_argument("--write", metavar="FILE", help="replace the section in FILE (docs/BENCHMARKS.md) with the table")
     ap.add_argument("--json", action="store_true", help="print JSON instead of the table")
     ap.add_argument("--worker", choices=("synthetic", "replay"), help=argparse.SUPPRESS)
+    ap.add_argument("--config", metavar="TOML", help="companion configuration to measure (default: the shipped "
+                                                      "configs/companion.toml), e.g. configs/companion_refine.toml")
     ap.add_argument("--flight", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a.config is not None and not Path(a.config).is_file():
+        ap.error(f"--config: no such file: {a.config}")
     if a.worker:
         import cv2
 
         cv2.setNumThreads(1)
-        res = _worker_synthetic(a.frames) if a.worker == "synthetic" else _worker_replay(Path(a.flight))
+        res = _worker_synthetic(a.frames, a.config) if a.worker == "synthetic" else _worker_replay(Path(a.flight), a.config)
         print(json.dumps(res))
         return 0
     from bench.__main__ import _progress
 
     with _progress(4, "compute budget", a.json) as tick:
-        res = run(a.frames, Path(a.out), progress=tick)
+        res = run(a.frames, Path(a.out), progress=tick, config=a.config)
     text = markdown(res)
     print(json.dumps(res) if a.json else text)
     if a.write:
