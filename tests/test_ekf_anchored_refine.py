@@ -83,10 +83,8 @@ def test_refinement_lands_on_the_true_point_from_a_wrong_start():
 def test_refinement_is_the_map_of_a_general_least_squares_solver_and_its_information():
     point = np.array([-3.0, 0.5, 35.0])
     bank, hist, x_true, (R, C, t, xy) = _setup(point, k=50, noise_px=2.0, seed=3)
-    xp = np.array([*bank.prior_angles[0], RHO_PRIOR])
-    Pp = np.zeros((3, 3))
-    Pp[:2, :2] = bank.prior_P_angles[0]
-    Pp[2, 2] = RHO_SIGMA**2
+    xp, Pp = (a[0] for a in bank._prior(bank.xy_anchor[:1], RHO_PRIOR, RHO_SIGMA))
+    assert np.allclose(xp[:2], bank.x[0, :2]) and Pp[2, 2] == RHO_SIGMA**2  # the anchor pixel's angles, as add set them
     U = np.linalg.cholesky(np.linalg.inv(Pp)).T  # prior information = Uᵀ U
     sig = bank.sigma_xy
 
@@ -108,12 +106,8 @@ def test_refinement_with_gyro_bias_states_matches_least_squares():
     point = np.array([1.0, -1.0, 25.0])
     bank, hist, x_true, (R, C, t, xy) = _setup(point, k=45, noise_px=1.0, seed=5, drift=0.05)
     assert bank.n == 6
-    sb = np.radians(0.05)
-    xp = np.array([*bank.prior_angles[0], RHO_PRIOR, 0.0, 0.0, 0.0])
-    Pp = np.zeros((6, 6))
-    Pp[:2, :2] = bank.prior_P_angles[0]
-    Pp[2, 2] = RHO_SIGMA**2
-    Pp[3:, 3:] = sb**2 * np.eye(3)
+    xp, Pp = (a[0] for a in bank._prior(bank.xy_anchor[:1], RHO_PRIOR, RHO_SIGMA))
+    assert np.allclose(Pp[3:, 3:], np.radians(0.05) ** 2 * np.eye(3)) and not xp[3:].any()
     U = np.linalg.cholesky(np.linalg.inv(Pp)).T
     sig = bank.sigma_xy
     k = len(R) - 1

@@ -23,7 +23,7 @@ def test_slots_hold_pose_pixel_and_looming_in_time_order():
     cnt, complete = h.counts([3, 5, 9])
     assert cnt.tolist() == [3, 2, 0] and complete.tolist() == [True, True, False]
     g = h.gather([5, 3])
-    assert g["owner"].tolist() == [0, 0, 1, 1, 1] and g["starts"].tolist() == [0, 2]
+    assert g["owner"].tolist() == [0, 0, 1, 1, 1] and g["starts"].tolist() == [0, 2] and g["counts"].tolist() == [2, 3]
     assert g["prev"].tolist() == [-1, 0, -1, 2, 3]
     assert np.allclose(g["t"], [0.0, 0.1, 0.0, 0.1, 0.2])
     assert np.isnan(g["z"][0]).all() and np.allclose(g["z"][1], [0.3, 0.4]) and np.isnan(g["z"][4]).all()

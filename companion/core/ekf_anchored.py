@@ -137,8 +137,7 @@ class AnchoredInverseDepthEKF:
         self.t_last = np.zeros(0)  # time δ's covariance was last propagated to (§ Position error states)
         self.rho_c = np.zeros(0)  # ρ̂ when the landmark was first converged, NaN before (§ Drift test)
         self.P_rho_c = np.zeros(0)  # its variance then
-        self.prior_angles = np.zeros((0, 2))  # (θ, φ) of the anchor pixel, and its covariance: the batch refinement's prior
-        self.prior_P_angles = np.zeros((0, 2, 2))
+        self.xy_anchor = np.zeros((0, 2))  # the anchor pixel (normalized): the batch refinement's prior (:meth:`_prior`)
         #: the pixel kernels' constants: (σ_px/f)² + σ_att² (2,), the white σ_p (0 with the δ states), χ²₂ gate,
         #: iterations, reject limit, NIS window, mean-NIS limit, the index of δ (−1: none), 2σ_p² and τ of its
         #: process (§ Measurement noise, § Update, § Bookkeeping, § Position error states)
@@ -190,6 +189,18 @@ class AnchoredInverseDepthEKF:
         srho = _as_batch("inv_depth_sigma", inv_depth_sigma, m, ())
         if np.any(srho <= 0):
             raise InputError("inv_depth_sigma must be > 0")
+        x0, P0 = self._prior(xy, rho, srho)
+        zi = np.zeros(m, np.int64)
+        self._insert(dict(ids=ids, x=x0, P=P0, R_world_camA=R, p_world_camA=p, t_anchor=t, n_updates=zi,
+                          n_rejects=zi, diverged=np.zeros(m, bool), nis_avg=np.zeros(m), nis_count=zi, n_looming=zi,
+                          t_last=np.array(t, float), rho_c=np.full(m, np.nan), P_rho_c=np.full(m, np.nan),
+                          xy_anchor=xy.copy()))
+
+    def _prior(self, xy: np.ndarray, rho, srho) -> tuple[np.ndarray, np.ndarray]:
+        """§ Initialization: x₀ (M,n) and P₀ (M,n,n) of landmarks first seen at normalized ``xy`` (M,2) with
+        ρ ~ N(``rho``, ``srho``²): (θ, φ) of the pixel with its σ mapped through their Jacobian, the gyro-bias
+        prior, δ = 0 exactly (the anchor is where δ is defined).  The batch refinement reuses it as its prior."""
+        m = len(xy)
         x_, y_ = xy[:, 0], xy[:, 1]
         theta, phi = angles_of(np.stack([x_, y_, np.ones(m)], 1))
         # Jacobian of (θ, φ) w.r.t. (x, y): θ = atan(x), φ = atan2(−y, √(1+x²))
@@ -202,21 +213,17 @@ class AnchoredInverseDepthEKF:
         P0 = np.zeros((m, self.n, self.n))
         P0[:, :2, :2] = J @ Rxy @ np.swapaxes(J, 1, 2)
         P0[:, 2, 2] = srho**2
-        x0 = np.stack([theta, phi, rho], 1)
+        x0 = np.zeros((m, self.n))
+        x0[:, 0], x0[:, 1], x0[:, 2] = theta, phi, rho
         if self.drift:
-            sb = np.radians(cfg.attitude_drift_deg_s)
+            sb = np.radians(self.config.attitude_drift_deg_s)
             P0[:, 3:6, 3:6] = sb**2 * np.eye(3)
         # δ = e(t) − e(t_anchor) is exactly 0 at the anchor: zero mean, zero variance (§ Position error states)
-        x0 = np.concatenate([x0, np.zeros((m, self.n - 3))], 1)
-        zi = np.zeros(m, np.int64)
-        self._insert(dict(ids=ids, x=x0, P=P0, R_world_camA=R, p_world_camA=p, t_anchor=t, n_updates=zi,
-                          n_rejects=zi, diverged=np.zeros(m, bool), nis_avg=np.zeros(m), nis_count=zi, n_looming=zi,
-                          t_last=np.array(t, float), rho_c=np.full(m, np.nan), P_rho_c=np.full(m, np.nan),
-                          prior_angles=x0[:, :2].copy(), prior_P_angles=P0[:, :2, :2].copy()))
+        return x0, P0
 
     #: per-landmark arrays, all aligned with ``ids`` (kept sorted ascending)
     _FIELDS = ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged", "nis_avg",
-               "nis_count", "n_looming", "t_last", "rho_c", "P_rho_c", "prior_angles", "prior_P_angles")
+               "nis_count", "n_looming", "t_last", "rho_c", "P_rho_c", "xy_anchor")
 
     def _insert(self, rows: dict) -> None:
         """Merge new landmarks (every field of :data:`_FIELDS`, ids not yet present) keeping ids sorted."""
@@ -577,7 +584,7 @@ class AnchoredInverseDepthEKF:
             bank_of = np.searchsorted(ends, use, side="right")
             gather = {name: np.concatenate([getattr(b, name)[r] for (b, *_), r in zip(parts, rows)])[use]
                       for name in ("x", "P", "R_world_camA", "p_world_camA", "t_anchor")}
-            var = sig[use] ** 2 + first.config.looming_sigma_floor**2
+            var = first.config.looming_variance(sig[use])
             x, P, g, nis_u, reason_u = first._solve_looming(
                 gather["x"], gather["P"], gather["R_world_camA"], gather["p_world_camA"], gather["t_anchor"],
                 z[use], var, Rp, Cp, t_prev, Rc, C, t)
@@ -660,14 +667,7 @@ class AnchoredInverseDepthEKF:
             return np.zeros(0, bool)
         if not (np.isfinite(rho_prior) and np.isfinite(rho_prior_sigma) and rho_prior_sigma > 0):
             raise InputError("refine: the inverse-depth prior must be finite with σ > 0")
-        xp = np.zeros((m, self.n))
-        xp[:, :2] = self.prior_angles[rows]
-        xp[:, 2] = rho_prior
-        Pp = np.zeros((m, self.n, self.n))
-        Pp[:, :2, :2] = self.prior_P_angles[rows]
-        Pp[:, 2, 2] = rho_prior_sigma**2
-        if self.drift:
-            Pp[:, 3:6, 3:6] = np.radians(self.config.attitude_drift_deg_s) ** 2 * np.eye(3)
+        xp, Pp = self._prior(self.xy_anchor[rows], rho_prior, rho_prior_sigma)
         res = _refine(self.x[rows], self.P[rows], xp, Pp, self.R_world_camA[rows], self.p_world_camA[rows],
                       self.t_anchor[rows], history, self.measurement_variance, self.drift, self.i_pos,
                       self.config.refine_iterations)

@@ -164,6 +164,10 @@ class AnchoredEKFConfig:
         """True when each filter carries the position-error difference δ (§ Position error states)."""
         return self.position_tau_s > 0 and self.position_sigma_m > 0
 
+    def looming_variance(self, scale_sigma):
+        """R_s of a looming measurement: the matcher's σ² plus the floor² (looming.md § Noise, gate and update)."""
+        return np.asarray(scale_sigma, float) ** 2 + self.looming_sigma_floor**2
+
     @property
     def refine(self) -> bool:
         """True when landmarks are refined in batch (§ Batch refinement): on, and no position-error states."""

@@ -20,7 +20,7 @@ lies in front of its camera.  All landmarks of a call are solved together: array
 slots (landmark, frame), sums per landmark, no loop per landmark.
 
 Static states only: the position-error states δ have a process (they are a different random variable at
-each frame), so a bank that carries them is not refined (:func:`refinable`).
+each frame), so a bank that carries them is not refined (:attr:`AnchoredEKFConfig.refine`).
 """
 
 from __future__ import annotations
@@ -46,11 +46,6 @@ class RefineResult:
     cost_after: np.ndarray
 
 
-def refinable(position_states: bool) -> bool:
-    """The batch model holds for static states only (module docstring)."""
-    return not position_states
-
-
 def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2.0 * np.pi) - np.pi
 
@@ -68,19 +63,36 @@ def _evaluate_kernel(x, xp, Ip, RA, pA, tA, h, W, drift: bool, i_pos: int):
     m, n = x.shape
     cost, info, grad, front = np.zeros(m), np.zeros((m, n, n)), np.zeros((m, n)), np.zeros(m, bool)
     c = np.ascontiguousarray
-    counts = np.bincount(h["owner"], minlength=m).astype(np.int64)
     _kernels.refine_evaluate(c(x, float), c(xp, float), c(Ip, float), c(RA, float), c(pA, float), c(tA, float),
-                             c(h["starts"], np.int64), counts, c(h["t"], float), c(h["R"], float), c(h["C"], float),
+                             c(h["starts"], np.int64), c(h["counts"], np.int64), c(h["t"], float), c(h["R"], float), c(h["C"], float),
                              c(h["z"], float), c(W, float), c(h["s"], float), c(h["s_var"], float), c(h["prev"], np.int64),
                              bool(drift), int(i_pos), cost, info, grad, front)
     return cost, info, grad, front
 
 
-def _evaluate(x, xp, Ip, RA, pA, tA, h, W, drift: bool, i_pos: int):
+def _fixed_parts(RA, pA, tA, h, drift: bool) -> dict:
+    """What :func:`_evaluate` needs that does not depend on x, computed once per refinement: the slots with a
+    pixel and their ray maps, C_A − C, R_cᵀ and drift integrals; the slots with a scale and the looming model's
+    fixed arguments (:func:`_looming_args`)."""
+    owner = h["owner"]
+    pix = np.flatnonzero(np.isfinite(h["z"][:, 0]))
+    o = owner[pix]
+    D = (0.5 * (h["t"][pix] - tA[o]))[:, None, None] * (RA[o] + h["R"][pix]) if drift else None
+    out = {"pix": pix, "pix_owner": o, "pix_args": (_ray_map(RA[o]), pA[o] - h["C"][pix], np.swapaxes(h["R"][pix], 1, 2), D)}
+    loom = np.flatnonzero(np.isfinite(h["s"]) & (h["prev"] >= 0))
+    o, q = owner[loom], h["prev"][loom]
+    out.update(loom=loom, loom_owner=o, loom_args=_looming_args(RA[o], pA[o], tA[o], h["R"][q], h["C"][q], h["t"][q],
+                                                                h["R"][loom], h["C"][loom], h["t"][loom], drift))
+    return out
+
+
+def _evaluate(x, xp, Ip, RA, pA, tA, h, W, drift: bool, i_pos: int, fixed: dict | None = None):
     """At states x (M,n): cost J (M,), information I (M,n,n), gradient g = −½∇J (M,n) and whether every
     used slot's point is in front of its camera (M,).  ``W`` (L,2): the pixel weights (NaN in slots without a
     pixel), held fixed over the iterations (R depends on ρ through the white position term: weights that
-    moved with x would make J a different function at every step)."""
+    moved with x would make J a different function at every step).  ``fixed``: :func:`_fixed_parts` of these
+    landmarks (computed here when None)."""
+    fixed = _fixed_parts(RA, pA, tA, h, drift) if fixed is None else fixed
     m, n = x.shape
     dx = x - xp
     dx[:, 0] = _wrap(dx[:, 0])
@@ -89,26 +101,18 @@ def _evaluate(x, xp, Ip, RA, pA, tA, h, W, drift: bool, i_pos: int):
     info = Ip.copy()
     grad = -Ipdx
     front = np.ones(m, bool)
-    owner = h["owner"]
-    pix = np.flatnonzero(np.isfinite(h["z"][:, 0]))
+    pix, o = fixed["pix"], fixed["pix_owner"]
     if len(pix):
-        o = owner[pix]
-        X = x[o]
-        D = (0.5 * (h["t"][pix] - tA[o]))[:, None, None] * (RA[o] + h["R"][pix]) if drift else None
-        hc, zhat, H = _predict(X, _ray_map(RA[o]), pA[o] - h["C"][pix], np.swapaxes(h["R"][pix], 1, 2), D, i_pos)
+        hc, zhat, H = _predict(x[o], *fixed["pix_args"], i_pos)
         W_pix = W[pix]  # (L,2): R is diagonal
         r = h["z"][pix] - zhat
         info += _sum_by(o, np.einsum("lki,lk,lkj->lij", H, W_pix, H), m)
         grad += _sum_by(o, np.einsum("lki,lk,lk->li", H, W_pix, r), m)
         cost += _sum_by(o, np.einsum("lk,lk,lk->l", r, W_pix, r), m)
         front &= _sum_by(o, (hc[:, 2] <= 1e-9).astype(float), m) == 0
-    loom = np.flatnonzero(np.isfinite(h["s"]) & (h["prev"] >= 0))
+    loom, o = fixed["loom"], fixed["loom_owner"]
     if len(loom):
-        o = owner[loom]
-        q = h["prev"][loom]
-        args = _looming_args(RA[o], pA[o], tA[o], h["R"][q], h["C"][q], h["t"][q], h["R"][loom], h["C"][loom], h["t"][loom],
-                             drift)
-        hzp, hzn, hs, Hs = _looming_predict(x[o], *args, i_pos)
+        hzp, hzn, hs, Hs = _looming_predict(x[o], *fixed["loom_args"], i_pos)
         w = 1.0 / h["s_var"][loom]
         r = h["s"][loom] - hs
         info += _sum_by(o, w[:, None, None] * Hs[:, :, None] * Hs[:, None, :], m)
@@ -153,7 +157,13 @@ def refine(x0, P0, xp, Pp, RA, pA, tA, history: dict, pixel_variance, drift: boo
     pix = np.isfinite(history["z"][:, 0])
     W = np.full(history["z"].shape, np.nan)
     W[pix] = 1.0 / pixel_variance(x0[history["owner"][pix]])  # R at the filter's estimate, as the EKF weighs
-    evaluate = _evaluate_kernel if jit.ENABLED else _evaluate
+    if jit.ENABLED:
+        evaluate = _evaluate_kernel
+    else:  # the numpy reference: its x-independent parts once, not at every step
+        fixed = _fixed_parts(RA, pA, tA, history, drift)
+
+        def evaluate(*args):
+            return _evaluate(*args, fixed=fixed)
     for it in range(iterations + 1):
         cost, info, grad, front = evaluate(x, xp, Ip, RA, pA, tA, history, W, drift, i_pos)
         if cost_before is None:

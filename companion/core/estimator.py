@@ -295,8 +295,8 @@ class RangeEstimator:
             n_loom = int(sum(np.count_nonzero(r.accepted) for r in res))
             if self.history is not None and n_loom:
                 use = np.concatenate([sel[r.accepted] for r, sel in zip(res, (sel_e, sel_p))])
-                var = scale_sigma[use] ** 2 + self.ekf.config.looming_sigma_floor**2  # the filter's R_s
-                self.history.record_looming(ids[use], t, R, p, self.t_prev, scale[use], var)
+                self.history.record_looming(ids[use], t, R, p, self.t_prev, scale[use],
+                                            self.ekf.config.looming_variance(scale_sigma[use]))  # the filter's R_s
             counts = sum(np.bincount(r.reason[~r.accepted], minlength=len(UPDATE_REASON_NAMES)) for r in res)
             loom_reasons = {UPDATE_REASON_NAMES[c]: int(counts[c]) for c in np.flatnonzero(counts)}
 

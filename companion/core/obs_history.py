@@ -212,7 +212,8 @@ class ObservationHistory:
 
     def gather(self, ids) -> dict:
         """The histories of ``ids`` (all known, non-empty), flattened in id order then time order:
-        ``owner`` (L,) index into ``ids`` of each slot, ``starts`` (M,) first slot of each, and the slot
+        ``owner`` (L,) index into ``ids`` of each slot, ``starts`` and ``counts`` (M,) the first slot and the
+        number of slots of each, and the slot
         fields ``t``, ``R``, ``C``, ``z``, ``s``, ``s_var``, plus ``prev`` (L,) the index of the slot before
         (−1 for a landmark's first)."""
         found, idx = lookup(self.ids, np.asarray(ids, np.int64).reshape(-1))
@@ -223,7 +224,7 @@ class ObservationHistory:
         starts = np.concatenate([[0], np.cumsum(cnt)[:-1]]).astype(np.int64)
         k = np.arange(len(owner)) - starts[owner]
         rows = self.row[idx][owner]
-        out = {"owner": owner, "starts": starts, "prev": np.where(k > 0, np.arange(len(owner)) - 1, -1)}
+        out = {"owner": owner, "starts": starts, "counts": cnt, "prev": np.where(k > 0, np.arange(len(owner)) - 1, -1)}
         for name in ("t", "R", "C", "z", "s", "s_var"):
             out[name] = getattr(self, name)[rows, k]
         return out
