@@ -399,13 +399,50 @@ def test_a_new_landmark_on_a_remembered_point_takes_it_over_fused():
     assert len(m) == 2 and sorted(m.keys.tolist()) == [7, 8] and m.merged == 1
     row = np.flatnonzero(m.keys == 7)[0]
     assert m.o[row] == 1 and m.t_seen[row] == 1.0 and m.live[row]
-    # fused: between the two, nearer the more certain new one; variance below both
-    w = 0.4**2 / (0.4**2 + 0.3**2)
+    # fused: between the two, nearer the more certain new one; variance below both (the remembered
+    # point's variance grown by 1 s of position drift, 0.02 m)
+    v_rem = 0.4**2 + (MapConfig().position_drift_mps * 1.0) ** 2
+    w = v_rem / (v_rem + 0.3**2)
     np.testing.assert_allclose(m.p[row], np.array([20.0, 0.0, -10.0]) + w * np.array([0.3, 0.1, 0.0]), atol=1e-9)
     assert m.P[row][0, 0] < 0.3**2
     # a live point is never taken over (its own estimate stands)
     m.observe(2.0, [9], [[20.3, 0.1, -10.0]], cov(1, 0.3), live_keys=[7, 8, 9])
     assert len(m) == 3
+
+
+def _long(axis, s_long, s_short=0.05):
+    """A covariance long along one world axis (a range σ along a line of sight), short across."""
+    d = np.full(3, s_short**2)
+    d[axis] = s_long**2
+    return np.diag(d)[None]
+
+
+def test_merging_gates_on_the_full_covariance_not_a_round_one():
+    """Two estimates long along crossing lines of sight that disagree across their narrow axes are
+    not one point: a round gate (tr P / 3) took them, and their fusion landed where the axes cross,
+    far from both (docs/derivations/obstacle_map.md, "Merging")."""
+    m = ObstacleMap(MapConfig(gate_k=3.0))
+    m.observe(0.0, [1], [[20.0, 0.0, -10.0]], _long(0, 2.0), live_keys=[])  # seen along x
+    d = np.array([1.0, 1.0, 0.5])  # |d|² = 2.25 ≤ 9 (tr/3 + tr/3) = 24: the round gate took it
+    m.observe(0.1, [2], [[20.0, 0.0, -10.0] + d], _long(1, 2.0), live_keys=[2])  # seen along y
+    assert m.merged == 0 and len(m) == 2
+    np.testing.assert_allclose(m.p[m.keys == 1][0], [20.0, 0.0, -10.0])  # the remembered point is untouched
+    # the same pair agreeing across the narrow axes (differing along the long ones) is one point
+    m2 = ObstacleMap(MapConfig(gate_k=3.0))
+    m2.observe(0.0, [1], [[20.0, 0.0, -10.0]], _long(0, 2.0), live_keys=[])
+    m2.observe(0.1, [2], [[21.5, 0.0, -10.0]], _long(0, 2.0), live_keys=[2])
+    assert m2.merged == 1 and len(m2) == 1 and m2.keys.tolist() == [2]
+    np.testing.assert_allclose(m2.p[0], [20.75, 0.0, -10.0], atol=0.01)
+
+
+def test_merging_allows_for_the_drift_since_the_point_was_last_seen():
+    """A point 0.6 m off is a different point a second later (σ 0.1 each) but the same one after
+    30 s of 0.02 m/s position drift."""
+    for t_new, merged in ((1.0, 0), (30.0, 1)):
+        m = ObstacleMap(MapConfig(gate_k=3.0, position_drift_mps=0.02, position_drift_max_m=1.5, max_age_s=60.0))
+        m.observe(0.0, [1], [[20.0, 0.0, -10.0]], cov(1, 0.1), live_keys=[])
+        m.observe(t_new, [2], [[20.0, 0.6, -10.0]], cov(1, 0.1), live_keys=[2])
+        assert m.merged == merged, t_new
 
 
 def test_a_point_found_again_by_a_live_map_landmark_is_absorbed_by_it():

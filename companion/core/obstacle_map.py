@@ -265,7 +265,7 @@ class ObstacleMap:
         live = np.zeros(0, np.int64) if live_keys is None else np.asarray(live_keys, np.int64).reshape(-1)
         (self.keys, self.p, self.P, self.t_seen, self.o, self.u, self.live, n_bad, n_not_pd, n_merged) = _observe_k(
             self.keys, self.p, self.P, self.t_seen, self.o, self.u, keys, np.ascontiguousarray(p), np.ascontiguousarray(P), live,
-            live_keys is None, float(t), self.config.gate_k**2)
+            live_keys is None, float(t), self.config.gate_k**2, self.config.position_drift_mps, self.config.position_drift_max_m)
         rej = {REJECT_NOT_FINITE: int(n_bad), REJECT_NOT_PD: int(n_not_pd)}
         for k, v in rej.items():
             self.rejected[k] += v
@@ -273,28 +273,33 @@ class ObstacleMap:
         return rej
 
     def _merge(self, t: float, keys, p, P, new, live) -> np.ndarray:
-        """A new landmark that lands on a remembered point (within ``gate_k`` combined σ) is that
-        point observed again: the row takes the new key, its count ``o`` grows, and its point is
-        fused with the new estimate (covariance-weighted).  Keeps one point per surface patch, so the
-        map's size follows the scene, not the time spent in it.  Returns the still-new mask."""
+        """A new landmark that lands on a remembered point is that point observed again: the row
+        takes the new key, its count ``o`` grows, and its point is fused with the new estimate
+        (information form).  "Lands on": the Mahalanobis distance dᵀ S⁻¹ d ≤ ``gate_k``², S = P_new +
+        P_rem + σ_drift² I (the remembered point's covariance grown by the position drift since it was
+        last observed, § Drift), the nearest such point by that distance.  Keeps one point per
+        surface patch, so the map's size follows the scene, not the time spent in it.  Returns the
+        still-new mask (docs/derivations/obstacle_map.md, "Merging")."""
         rem = np.flatnonzero(~self.live)
         cand = np.flatnonzero(new)
         if rem.size == 0 or cand.size == 0:
             return new
-        var_new = np.trace(P[cand], axis1=1, axis2=2) / 3.0
-        var_rem = np.trace(self.P[rem], axis1=1, axis2=2) / 3.0
-        d2 = np.sum((p[cand][:, None, :] - self.p[rem][None, :, :]) ** 2, axis=2)
-        gate2 = self.config.gate_k**2 * (var_new[:, None] + var_rem[None, :])
-        d2 = np.where(d2 <= gate2, d2, np.inf)
-        j = np.argmin(d2, axis=1)
-        hit = np.isfinite(d2[np.arange(cand.size), j])
+        s_pos, _ = self._drift(np.maximum(t - self.t_seen[rem], 0.0))
+        P_rem = self.P[rem] + (s_pos**2)[:, None, None] * np.eye(3)
+        d = p[cand][:, None, :] - self.p[rem][None, :, :]
+        S = P[cand][:, None, :, :] + P_rem[None, :, :, :]
+        m2 = np.einsum("cri,cri->cr", d, np.linalg.solve(S, d[..., None])[..., 0])
+        m2 = np.where(m2 <= self.config.gate_k**2, m2, np.inf)
+        j = np.argmin(m2, axis=1)
+        hit = np.isfinite(m2[np.arange(cand.size), j])
         if not np.any(hit):
             return new
         ci, rj = cand[hit], rem[j[hit]]
         _, first = np.unique(rj, return_index=True)  # one new landmark per remembered point
         ci, rj = ci[first], rj[first]
         # information-form fusion of the two Gaussian estimates of the same static point
-        I_old, I_new = np.linalg.inv(self.P[rj]), np.linalg.inv(P[ci])
+        rows_rem = np.searchsorted(rem, rj)  # rj ⊂ rem (sorted): the drift-grown covariances above
+        I_old, I_new = np.linalg.inv(P_rem[rows_rem]), np.linalg.inv(P[ci])
         P_f = np.linalg.inv(I_old + I_new)
         P_f = 0.5 * (P_f + np.swapaxes(P_f, 1, 2))
         p_f = np.einsum("nij,nj->ni", P_f, np.einsum("nij,nj->ni", I_old, self.p[rj]) + np.einsum("nij,nj->ni", I_new, p[ci]))
