@@ -417,22 +417,26 @@ def _long(axis, s_long, s_short=0.05):
     return np.diag(d)[None]
 
 
-def test_merging_gates_on_the_full_covariance_not_a_round_one():
-    """Two estimates long along crossing lines of sight that disagree across their narrow axes are
-    not one point: a round gate (tr P / 3) took them, and their fusion landed where the axes cross,
-    far from both (docs/derivations/obstacle_map.md, "Merging")."""
+def test_a_new_landmark_that_disagrees_with_a_remembered_point_supersedes_it_unfused():
+    """Two estimates long along crossing lines of sight that disagree across their narrow axes:
+    fused, they land where the axes cross, far from both (a phantom point in the flight band,
+    docs/derivations/obstacle_map.md, "Merging").  The new landmark takes the row over with its own
+    estimate instead."""
     m = ObstacleMap(MapConfig(gate_k=3.0))
     m.observe(0.0, [1], [[20.0, 0.0, -10.0]], _long(0, 2.0), live_keys=[])  # seen along x
-    d = np.array([1.0, 1.0, 0.5])  # |d|² = 2.25 ≤ 9 (tr/3 + tr/3) = 24: the round gate took it
-    m.observe(0.1, [2], [[20.0, 0.0, -10.0] + d], _long(1, 2.0), live_keys=[2])  # seen along y
-    assert m.merged == 0 and len(m) == 2
-    np.testing.assert_allclose(m.p[m.keys == 1][0], [20.0, 0.0, -10.0])  # the remembered point is untouched
-    # the same pair agreeing across the narrow axes (differing along the long ones) is one point
+    d = np.array([1.0, 1.0, 0.5])  # within the round gate, 25 σ apart across the narrow z axes
+    p_new = np.array([20.0, 0.0, -10.0]) + d
+    m.observe(0.1, [2], [p_new], _long(1, 2.0), live_keys=[2])  # seen along y
+    assert m.merged == 1 and m.superseded == 1 and len(m) == 1 and m.keys.tolist() == [2] and m.o[0] == 1
+    np.testing.assert_allclose(m.p[0], p_new)
+    np.testing.assert_allclose(m.P[0], _long(1, 2.0)[0])
+    # the same pair agreeing across the narrow axes (differing along the long ones) is fused
     m2 = ObstacleMap(MapConfig(gate_k=3.0))
     m2.observe(0.0, [1], [[20.0, 0.0, -10.0]], _long(0, 2.0), live_keys=[])
     m2.observe(0.1, [2], [[21.5, 0.0, -10.0]], _long(0, 2.0), live_keys=[2])
-    assert m2.merged == 1 and len(m2) == 1 and m2.keys.tolist() == [2]
+    assert m2.merged == 1 and m2.superseded == 0 and len(m2) == 1 and m2.keys.tolist() == [2]
     np.testing.assert_allclose(m2.p[0], [20.75, 0.0, -10.0], atol=0.01)
+    assert m2.P[0][0, 0] < 2.0**2 / 2 + 0.01
 
 
 def test_merging_allows_for_the_drift_since_the_point_was_last_seen():
@@ -442,7 +446,7 @@ def test_merging_allows_for_the_drift_since_the_point_was_last_seen():
         m = ObstacleMap(MapConfig(gate_k=3.0, position_drift_mps=0.02, position_drift_max_m=1.5, max_age_s=60.0))
         m.observe(0.0, [1], [[20.0, 0.0, -10.0]], cov(1, 0.1), live_keys=[])
         m.observe(t_new, [2], [[20.0, 0.6, -10.0]], cov(1, 0.1), live_keys=[2])
-        assert m.merged == merged, t_new
+        assert m.merged == merged and m.superseded == 0, t_new
 
 
 def test_a_point_found_again_by_a_live_map_landmark_is_absorbed_by_it():

@@ -71,7 +71,7 @@ def assert_same_map(a: ObstacleMap, b: ObstacleMap, what: str, merged_rows=()) -
             assert_close(x[~keep], y[~keep], f"{what} merged {f}", rtol=1e-9, atol=1e-9)
             x, y = x[keep], y[keep]
         assert_close(x, y, f"{what} {f}")
-    assert (a.rejected, a.evicted, a.merged, a.absorbed) == (b.rejected, b.evicted, b.merged, b.absorbed), what
+    assert (a.rejected, a.evicted, a.merged, a.superseded, a.absorbed) == (b.rejected, b.evicted, b.merged, b.superseded, b.absorbed), what
 
 
 def assert_same_remembered(a, b, what):

@@ -179,6 +179,7 @@ class ObstacleMap:
         self.rejected: dict[str, int] = {REJECT_NOT_FINITE: 0, REJECT_NOT_PD: 0}
         self.evicted: dict[str, int] = {"score": 0, "radius": 0, "age": 0, "cap": 0, "retired": 0}
         self.merged = 0  # new landmarks that landed on a remembered point (counted as its re-observation)
+        self.superseded = 0  # ... of which disagreed with it (Mahalanobis beyond gate_k): the new estimate replaced the old, not fused
         self.absorbed = 0  # remembered points found again by a live landmark of the map, which stands for them since
 
     def __len__(self) -> int:
@@ -263,22 +264,25 @@ class ObstacleMap:
     def _observe_kernel(self, t: float, keys: np.ndarray, p: np.ndarray, P: np.ndarray, live_keys) -> dict[str, int]:
         """:meth:`observe` through :func:`_observe_k` (same checks, rows, merges and entries as the reference)."""
         live = np.zeros(0, np.int64) if live_keys is None else np.asarray(live_keys, np.int64).reshape(-1)
-        (self.keys, self.p, self.P, self.t_seen, self.o, self.u, self.live, n_bad, n_not_pd, n_merged) = _observe_k(
+        (self.keys, self.p, self.P, self.t_seen, self.o, self.u, self.live, n_bad, n_not_pd, n_merged, n_sup) = _observe_k(
             self.keys, self.p, self.P, self.t_seen, self.o, self.u, keys, np.ascontiguousarray(p), np.ascontiguousarray(P), live,
             live_keys is None, float(t), self.config.gate_k**2, self.config.position_drift_mps, self.config.position_drift_max_m)
         rej = {REJECT_NOT_FINITE: int(n_bad), REJECT_NOT_PD: int(n_not_pd)}
         for k, v in rej.items():
             self.rejected[k] += v
         self.merged += int(n_merged)
+        self.superseded += int(n_sup)
         return rej
 
     def _merge(self, t: float, keys, p, P, new, live) -> np.ndarray:
         """A new landmark that lands on a remembered point is that point observed again: the row
-        takes the new key, its count ``o`` grows, and its point is fused with the new estimate
-        (information form).  "Lands on": the Mahalanobis distance dᵀ S⁻¹ d ≤ ``gate_k``², S = P_new +
-        P_rem + σ_drift² I (the remembered point's covariance grown by the position drift since it was
-        last observed, § Drift), the nearest such point by that distance.  Keeps one point per
-        surface patch, so the map's size follows the scene, not the time spent in it.  Returns the
+        takes the new key and its count ``o`` grows.  "Lands on": within ``gate_k`` combined σ,
+        ‖d‖² ≤ k² (tr P_new + tr P'_rem)/3, P'_rem = P_rem + σ_drift² I (the remembered point's
+        covariance grown by the position drift since it was last observed, § Drift), the nearest such
+        point.  The row's point: the two estimates fused (information form) when they agree,
+        dᵀ (P_new + P'_rem)⁻¹ d ≤ k²; otherwise the new estimate alone (two estimates that disagree
+        across their narrow axes fuse where their long axes cross, far from both).  Keeps one point
+        per surface patch, so the map's size follows the scene, not the time spent in it.  Returns the
         still-new mask (docs/derivations/obstacle_map.md, "Merging")."""
         rem = np.flatnonzero(~self.live)
         cand = np.flatnonzero(new)
@@ -286,29 +290,39 @@ class ObstacleMap:
             return new
         s_pos, _ = self._drift(np.maximum(t - self.t_seen[rem], 0.0))
         P_rem = self.P[rem] + (s_pos**2)[:, None, None] * np.eye(3)
-        d = p[cand][:, None, :] - self.p[rem][None, :, :]
-        S = P[cand][:, None, :, :] + P_rem[None, :, :, :]
-        m2 = np.einsum("cri,cri->cr", d, np.linalg.solve(S, d[..., None])[..., 0])
-        m2 = np.where(m2 <= self.config.gate_k**2, m2, np.inf)
-        j = np.argmin(m2, axis=1)
-        hit = np.isfinite(m2[np.arange(cand.size), j])
+        var_new = np.trace(P[cand], axis1=1, axis2=2) / 3.0
+        var_rem = np.trace(P_rem, axis1=1, axis2=2) / 3.0
+        d2 = np.sum((p[cand][:, None, :] - self.p[rem][None, :, :]) ** 2, axis=2)
+        gate2 = self.config.gate_k**2 * (var_new[:, None] + var_rem[None, :])
+        d2 = np.where(d2 <= gate2, d2, np.inf)
+        j = np.argmin(d2, axis=1)
+        hit = np.isfinite(d2[np.arange(cand.size), j])
         if not np.any(hit):
             return new
         ci, rj = cand[hit], rem[j[hit]]
         _, first = np.unique(rj, return_index=True)  # one new landmark per remembered point
         ci, rj = ci[first], rj[first]
-        # information-form fusion of the two Gaussian estimates of the same static point
-        rows_rem = np.searchsorted(rem, rj)  # rj ⊂ rem (sorted): the drift-grown covariances above
-        I_old, I_new = np.linalg.inv(P_rem[rows_rem]), np.linalg.inv(P[ci])
-        P_f = np.linalg.inv(I_old + I_new)
-        P_f = 0.5 * (P_f + np.swapaxes(P_f, 1, 2))
-        p_f = np.einsum("nij,nj->ni", P_f, np.einsum("nij,nj->ni", I_old, self.p[rj]) + np.einsum("nij,nj->ni", I_new, p[ci]))
+        P_old = P_rem[np.searchsorted(rem, rj)]  # rj ⊂ rem (sorted): their drift-grown covariances
+        d = p[ci] - self.p[rj]
+        m2 = np.einsum("ni,ni->n", d, np.linalg.solve(P_old + P[ci], d[..., None])[..., 0])
+        fused = m2 <= self.config.gate_k**2
+        # information-form fusion of the two Gaussian estimates of the same static point; where they
+        # disagree, the new estimate supersedes the old
+        p_f, P_f = p[ci].copy(), P[ci].copy()
+        if np.any(fused):
+            I_old, I_new = np.linalg.inv(P_old[fused]), np.linalg.inv(P[ci[fused]])
+            Pf = np.linalg.inv(I_old + I_new)
+            Pf = 0.5 * (Pf + np.swapaxes(Pf, 1, 2))
+            p_f[fused] = np.einsum("nij,nj->ni", Pf, np.einsum("nij,nj->ni", I_old, self.p[rj[fused]])
+                                   + np.einsum("nij,nj->ni", I_new, p[ci[fused]]))
+            P_f[fused] = Pf
         self.keys[rj], self.p[rj], self.P[rj], self.t_seen[rj] = keys[ci], p_f, P_f, t
         self.live[rj] = np.isin(keys[ci], live)
         self.o[rj] += 1
         new = new.copy()
         new[ci] = False
         self.merged += int(ci.size)
+        self.superseded += int(np.count_nonzero(~fused))
         return new
 
     def forget(self, keys) -> int:

@@ -149,39 +149,29 @@ def _inv3(A):
 
 @_jit.njit
 def _merge_pairs_k(p, P, cand, map_p, map_P, map_t, rem, t, gate_k2, drift_mps, drift_max):
-    """The pairs of :meth:`ObstacleMap._merge`: each new landmark ``cand`` nearest (Mahalanobis) a
-    remembered row ``rem`` within dᵀ S⁻¹ d ≤ gate_k², S = P_new + P_rem + σ_drift² I (σ_drift =
-    min(drift_mps · age, drift_max)); one new landmark per remembered point (the first), pairs in
-    ascending row; the information-form fusion of each pair with P_rem + σ_drift² I."""
+    """The pairs of :meth:`ObstacleMap._merge`: each new landmark ``cand`` nearest a remembered row
+    ``rem`` within gate_k² (var_new + var_rem) (var = tr P / 3, the remembered one grown by σ_drift² =
+    min(drift_mps · age, drift_max)²); one new landmark per remembered point (the first), pairs in
+    ascending row.  Each pair's new point: the information-form fusion with P_rem + σ_drift² I when the
+    two agree (dᵀ S⁻¹ d ≤ gate_k², S the sum of the two covariances), else the new estimate (``fused``
+    False: two estimates that disagree are not averaged)."""
     nc, nr = cand.size, rem.size
-    s2_rem = np.empty(nr)
-    tr_rem = np.empty(nr)
+    var_rem = np.empty(nr)
     for r in range(nr):
         q = rem[r]
         s = min(drift_mps * max(t - map_t[q], 0.0), drift_max)
-        s2_rem[r] = s * s
-        tr_rem[r] = map_P[q, 0, 0] + map_P[q, 1, 1] + map_P[q, 2, 2] + 3.0 * s2_rem[r]
+        var_rem[r] = (map_P[q, 0, 0] + map_P[q, 1, 1] + map_P[q, 2, 2]) / 3.0 + s * s
     taken = np.full(map_p.shape[0], -1, np.int64)  # remembered row -> first new landmark that landed on it
-    S = np.empty((3, 3))
     for c in range(nc):
         i = cand[c]
-        tr_new = P[i, 0, 0] + P[i, 1, 1] + P[i, 2, 2]
-        best, best_m2 = -1, np.inf
+        var_new = (P[i, 0, 0] + P[i, 1, 1] + P[i, 2, 2]) / 3.0
+        best, best_d2 = -1, np.inf
         for r in range(nr):
             q = rem[r]
             dx, dy, dz = p[i, 0] - map_p[q, 0], p[i, 1] - map_p[q, 1], p[i, 2] - map_p[q, 2]
             d2 = dx * dx + dy * dy + dz * dz
-            if d2 > gate_k2 * (tr_new + tr_rem[r]):  # |d|² / λmax(S) ≥ |d|² / tr S: beyond the gate for sure
-                continue
-            for a in range(3):
-                for b in range(3):
-                    S[a, b] = P[i, a, b] + map_P[q, a, b]
-                S[a, a] += s2_rem[r]
-            Si = _inv3(S)
-            m2 = (dx * (Si[0, 0] * dx + Si[0, 1] * dy + Si[0, 2] * dz) + dy * (Si[1, 0] * dx + Si[1, 1] * dy + Si[1, 2] * dz)
-                  + dz * (Si[2, 0] * dx + Si[2, 1] * dy + Si[2, 2] * dz))
-            if m2 <= gate_k2 and m2 < best_m2:
-                best, best_m2 = q, m2
+            if d2 <= gate_k2 * (var_new + var_rem[r]) and d2 < best_d2:
+                best, best_d2 = q, d2
         if best >= 0 and taken[best] < 0:
             taken[best] = i
     rj = np.flatnonzero(taken >= 0)
@@ -189,11 +179,27 @@ def _merge_pairs_k(p, P, cand, map_p, map_P, map_t, rem, t, gate_k2, drift_mps, 
     n = rj.size
     p_f = np.empty((n, 3))
     P_f = np.empty((n, 3, 3))
+    fused = np.zeros(n, np.bool_)
     for k in range(n):
         P_old = map_P[rj[k]].copy()
         s = min(drift_mps * max(t - map_t[rj[k]], 0.0), drift_max)
         for a in range(3):
             P_old[a, a] += s * s
+        d = np.empty(3)
+        for a in range(3):
+            d[a] = p[ci[k], a] - map_p[rj[k], a]
+        Si = _inv3(P_old + P[ci[k]])
+        m2 = 0.0
+        for a in range(3):
+            for b in range(3):
+                m2 += d[a] * Si[a, b] * d[b]
+        if m2 > gate_k2:  # they disagree: the new estimate supersedes the old one
+            for a in range(3):
+                p_f[k, a] = p[ci[k], a]
+                for b in range(3):
+                    P_f[k, a, b] = P[ci[k], a, b]
+            continue
+        fused[k] = True
         I_old = _inv3(P_old)
         I_new = _inv3(P[ci[k]])
         Pk = _inv3(I_old + I_new)
@@ -206,7 +212,7 @@ def _merge_pairs_k(p, P, cand, map_p, map_P, map_t, rem, t, gate_k2, drift_mps, 
                 I_new[a, 0] * p[ci[k], 0] + I_new[a, 1] * p[ci[k], 1] + I_new[a, 2] * p[ci[k], 2])
         for a in range(3):
             p_f[k, a] = P_f[k, a, 0] * info[0] + P_f[k, a, 1] * info[1] + P_f[k, a, 2] * info[2]
-    return ci, rj, p_f, P_f
+    return ci, rj, p_f, P_f, fused
 
 
 @_jit.njit
@@ -387,7 +393,7 @@ def _observe_k(map_keys, map_p, map_P, map_t, map_o, map_u, keys_in, p_in, P_in,
     """:meth:`ObstacleMap.observe` (docs/derivations/obstacle_map.md): refuse bad landmarks, mark the
     live rows, refresh the held ones, merge new ones into remembered points (fused), append the rest.
     Rows are updated in place (as the reference does); returns the map's arrays (new ones when points
-    were appended), the refusal counts and the number merged."""
+    were appended), the refusal counts, the number merged and how many of those were superseded."""
     ok, n_bad, n_not_pd = _entry_checks_k(p_in, P_in)
     sel = np.flatnonzero(ok)
     keys = keys_in[sel]
@@ -415,10 +421,11 @@ def _observe_k(map_keys, map_p, map_P, map_t, map_o, map_u, keys_in, p_in, P_in,
                     map_P[r, a, b] = P[k, a, b]
             map_t[r] = t
     n_merged = 0
+    n_superseded = 0
     rem = np.flatnonzero(~live)
     cand = np.flatnonzero(new)
     if rem.size and cand.size:
-        ci, rj, p_f, P_f = _merge_pairs_k(p, P, cand, map_p, map_P, map_t, rem, t, gate_k2, drift_mps, drift_max)
+        ci, rj, p_f, P_f, fused = _merge_pairs_k(p, P, cand, map_p, map_P, map_t, rem, t, gate_k2, drift_mps, drift_max)
         for k in range(ci.size):
             r, c = rj[k], ci[k]
             map_keys[r] = keys[c]
@@ -431,9 +438,10 @@ def _observe_k(map_keys, map_p, map_P, map_t, map_o, map_u, keys_in, p_in, P_in,
             map_o[r] += 1
             new[c] = False
         n_merged = ci.size
+        n_superseded = ci.size - int(np.count_nonzero(fused))
     add = np.flatnonzero(new)
     if add.size == 0:
-        return map_keys, map_p, map_P, map_t, map_o, map_u, live, n_bad, n_not_pd, n_merged
+        return map_keys, map_p, map_P, map_t, map_o, map_u, live, n_bad, n_not_pd, n_merged, n_superseded
     N = n + add.size
     out_keys = np.empty(N, np.int64)
     out_p = np.empty((N, 3))
@@ -455,7 +463,7 @@ def _observe_k(map_keys, map_p, map_P, map_t, map_o, map_u, keys_in, p_in, P_in,
             out_p[i, a] = p[k, a]
             for b in range(3):
                 out_P[i, a, b] = P[k, a, b]
-    return out_keys, out_p, out_P, out_t, out_o, out_u, out_live, n_bad, n_not_pd, n_merged
+    return out_keys, out_p, out_P, out_t, out_o, out_u, out_live, n_bad, n_not_pd, n_merged, n_superseded
 
 
 @_jit.njit
@@ -643,12 +651,12 @@ def _warm_up() -> None:
     P = _landmark_covariance_k(p[ok], p_wc, np.full(3, 0.2), 0.002)
     gate_k2 = 3.0**2
     m = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
-    *m, _, _, _ = _observe_k(*m, np.array([1, 2, 3]), p, P, np.zeros(0, np.int64), True, 0.0, gate_k2, 0.02, 1.5)  # keys … live
+    *m, _, _, _, _ = _observe_k(*m, np.array([1, 2, 3]), p, P, np.zeros(0, np.int64), True, 0.0, gate_k2, 0.02, 1.5)  # keys … live
     keys, good, _, _ = _map_entries_k(np.array([1, 2]), 0, np.ones(2, bool), np.ones(2, bool), np.full(2, 0.2), np.full(2, 10.0),
                                       p[:2], np.ones(2), True, 0.15, 5.0, p_wc, 0.002)
     _live_view_k(np.array([1, 2]), np.array([2]), np.array([[160.0, 120.0]]), keys, good, p[:2], np.full(2, 0.2), np.full(2, 10.0),
                  R_wc, p_wc, 277.0, 277.0, 159.5, 119.5, True)
-    *m, _, _, _ = _observe_k(*m[:6], np.array([4, 5]), p[:2] + 0.01, P[:2], np.array([4, 5]), False, 0.1, gate_k2, 0.02, 1.5)
+    *m, _, _, _, _ = _observe_k(*m[:6], np.array([4, 5]), p[:2] + 0.01, P[:2], np.array([4, 5]), False, 0.1, gate_k2, 0.02, 1.5)
     *_, absorbed = _check_view_k(*m, R_wc, p_wc, 300.0, 300.0, 160.0, 120.0, 320.0, 240.0, np.array([[160.0, 120.0]]),
                                  np.array([10.0]), np.array([0.2]), np.array([4]), True, 0.1, 4.0, 6.0**2, 3.0, 0.02, 1.5)
     keep = np.ones(len(m[0]), bool)
