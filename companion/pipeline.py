@@ -344,7 +344,10 @@ class Pipeline:
                         self._bearing_sigma, omap.config, out.mean_nis)
         if len(e.forget):  # converged but inconsistent: not a point the map should keep, forget what it left there
             omap.forget(e.forget)
+        merged, superseded = omap.merged, omap.superseded
         rej = omap.observe(t, e.entry_keys, e.p_world, e.P_world, live_keys=e.keys)
+        self.counters["map_merged"] += omap.merged - merged  # new landmarks that landed on a remembered point ...
+        self.counters["map_superseded"] += omap.superseded - superseded  # ... and disagreed with it: not fused
         for why, n in rej.items():
             if n:
                 self.counters[f"map_rejected_{why}"] += n

@@ -102,7 +102,7 @@ class MapConfig:
     position_drift_max_m: float = 1.5  # ... bounded by this (the correlated GPS error does not grow without bound), m
     heading_drift_deg_s: float = 0.05  # heading drift since a point was last observed, degrees per s
     reobserve_radius_px: float = 6.0  # a live landmark within this of a remembered point's predicted pixel can confirm or contradict it, px
-    gate_k: float = 3.0  # depths agree when within gate_k combined σ (found); a live point beyond that is "seen through" (missed)
+    gate_k: float = 3.0  # depths agree when within gate_k combined σ (found); a live point beyond that is "seen through" (missed); a new landmark within it takes a remembered point over (fused only when Mahalanobis ≤ gate_k)
     image_margin_px: float = 4.0  # a remembered point is predicted in view only this far inside the image border, px
     min_support: int = 2  # a remembered point is published only with at least this many map points (itself included) within support_radius_m
     support_radius_m: float = 0.6  # neighbourhood of that support test, m (at least)
