@@ -334,6 +334,36 @@ def test_kernel_edge_cases(monkeypatch, case):
         m = mr[0]
 
 
+def test_kernel_fuses_and_supersedes_merges_as_the_reference(monkeypatch):
+    """New landmarks landing on remembered points: some agree with them (fused), some disagree across
+    their narrow axes (superseded by the new estimate), after different ages (the drift grows the
+    remembered covariance).  Same rows, points, covariances and counts from the kernel and the
+    reference, and both kinds occur."""
+    rng = np.random.default_rng(7)
+    m = ObstacleMap(MapConfig(min_support=1, max_age_s=60.0))
+    n = 40
+    p0 = np.column_stack([rng.uniform(5, 30, n), rng.uniform(-10, 10, n), rng.uniform(-6, -2, n)])
+    P0 = np.empty((n, 3, 3))
+    for i in range(n):  # long along a random line of sight: range σ 0.3–2 m, bearing σ 0.02–0.05 m
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        s_r, s_b = rng.uniform(0.3, 2.0), rng.uniform(0.02, 0.05)
+        P0[i] = s_r**2 * np.outer(u, u) + s_b**2 * (np.eye(3) - np.outer(u, u))
+    m.observe(0.0, np.arange(1, n + 1), p0, P0, live_keys=[])
+    m.t_seen[:] = rng.uniform(-30.0, 0.0, n)  # remembered for up to 30 s
+    p1 = p0 + rng.normal(0, 0.4, (n, 3))
+    P1 = P0[rng.permutation(n)]  # the new landmarks' lines of sight differ from the old ones'
+    keys = np.arange(101, 101 + n)
+    (rk, mk), (rr, mr) = run_both(monkeypatch, lambda mm: mm.observe(1.0, keys, p1, P1, live_keys=keys), m)
+    assert rk == rr
+    assert_same_map(mk[0], mr[0], "fuse or supersede", merged_rows=range(len(m)))
+    ref = mr[0]
+    assert 0 < ref.superseded < ref.merged, (ref.merged, ref.superseded)
+    rows = np.flatnonzero(np.isin(ref.keys, keys) & (ref.o > 0))  # merged rows (appended ones have o = 0)
+    superseded = [r for r in rows if np.allclose(ref.p[r], p1[ref.keys[r] - 101]) and np.allclose(ref.P[r], P1[ref.keys[r] - 101])]
+    assert len(superseded) == ref.superseded  # a superseded row holds the new estimate exactly
+
+
 def _edge_map(cov00=0.25):
     """Remembered points straight ahead of a camera looking north (R_world_cam = R_cam_bodyᵀ at the
     origin), with a covariance whose σ along the optical axis is exactly 0.5 m."""

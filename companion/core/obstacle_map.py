@@ -39,7 +39,8 @@ Retention (seed 003 §3.6, docs/derivations/obstacle_map.md)
 Usage score s = (o − 0.5·u)/(1 + o), o = re-observations (a remembered point predicted in view
 and found again: a live converged landmark within ``reobserve_radius_px`` of its predicted pixel
 whose depth agrees within ``gate_k`` σ; or a newly converged landmark that lands within ``gate_k``
-σ of it, which then takes the point over, fused, instead of adding another), u = missed predictions (predicted in view, and a live
+σ of it, which then takes the point over instead of adding another: fused with it when their
+covariances agree, else replacing it), u = missed predictions (predicted in view, and a live
 converged landmark near its pixel lies clearly *beyond* it: the camera sees through where the point
 should be — it moved, or it was a mismatch).  No live landmark near the pixel is no evidence either
 way (a texture-less patch, an unconverged track), and a live landmark clearly *nearer* is an
