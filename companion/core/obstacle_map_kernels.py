@@ -148,6 +148,13 @@ def _inv3(A):
 
 
 @_jit.njit
+def _drift_pos_k(dt, drift_mps, drift_max):
+    """σ of the position drift after ``dt`` s since a point was last observed (§ Drift;
+    :meth:`ObstacleMap._drift`)."""
+    return min(drift_mps * dt, drift_max)
+
+
+@_jit.njit
 def _merge_pairs_k(p, P, cand, map_p, map_P, map_t, rem, t, gate_k2, drift_mps, drift_max):
     """The pairs of :meth:`ObstacleMap._merge`: each new landmark ``cand`` nearest a remembered row
     ``rem`` within gate_k² (var_new + var_rem) (var = tr P / 3, the remembered one grown by σ_drift² =
@@ -157,10 +164,12 @@ def _merge_pairs_k(p, P, cand, map_p, map_P, map_t, rem, t, gate_k2, drift_mps, 
     False: two estimates that disagree are not averaged)."""
     nc, nr = cand.size, rem.size
     var_rem = np.empty(nr)
+    s2 = np.zeros(map_p.shape[0])  # σ_drift² of each remembered row, for the gate and the fusion
     for r in range(nr):
         q = rem[r]
-        s = min(drift_mps * max(t - map_t[q], 0.0), drift_max)
-        var_rem[r] = (map_P[q, 0, 0] + map_P[q, 1, 1] + map_P[q, 2, 2]) / 3.0 + s * s
+        s = _drift_pos_k(max(t - map_t[q], 0.0), drift_mps, drift_max)
+        s2[q] = s * s
+        var_rem[r] = (map_P[q, 0, 0] + map_P[q, 1, 1] + map_P[q, 2, 2]) / 3.0 + s2[q]
     taken = np.full(map_p.shape[0], -1, np.int64)  # remembered row -> first new landmark that landed on it
     for c in range(nc):
         i = cand[c]
@@ -182,9 +191,8 @@ def _merge_pairs_k(p, P, cand, map_p, map_P, map_t, rem, t, gate_k2, drift_mps, 
     fused = np.zeros(n, np.bool_)
     for k in range(n):
         P_old = map_P[rj[k]].copy()
-        s = min(drift_mps * max(t - map_t[rj[k]], 0.0), drift_max)
         for a in range(3):
-            P_old[a, a] += s * s
+            P_old[a, a] += s2[rj[k]]
         d = np.empty(3)
         for a in range(3):
             d[a] = p[ci[k], a] - map_p[rj[k], a]
@@ -500,7 +508,7 @@ def _check_view_k(map_keys, p, P, t_seen, o, u, live, R, p_world_cam, fx, fy, cx
     n_missed = 0
     for q in range(k):
         i = rows[q]
-        s_pos = min(drift_mps * (t - t_seen[i]), drift_max)
+        s_pos = _drift_pos_k(t - t_seen[i], drift_mps, drift_max)
         s_map2 = 0.0
         for a in range(3):
             s_map2 += R[a, 2] * (P[i, a, 0] * R[0, 2] + P[i, a, 1] * R[1, 2] + P[i, a, 2] * R[2, 2])
@@ -574,7 +582,7 @@ def _remembered_k(p, P, t_seen, live, pv, t, min_support, radius_m, rel, drift_m
         uPu = (u0 * (P[i, 0, 0] * u0 + P[i, 0, 1] * u1 + P[i, 0, 2] * u2) + u1 * (P[i, 1, 0] * u0 + P[i, 1, 1] * u1 + P[i, 1, 2] * u2)
                + u2 * (P[i, 2, 0] * u0 + P[i, 2, 1] * u1 + P[i, 2, 2] * u2))
         dt[k] = max(t - t_seen[i], 0.0)
-        s_pos = min(drift_mps * dt[k], drift_max)
+        s_pos = _drift_pos_k(dt[k], drift_mps, drift_max)
         s_head = heading_rad_s * dt[k]
         r_h = np.hypot(d0, d1)
         s_r[k] = math.sqrt(max(uPu, 0.0) + s_pos * s_pos)
