@@ -41,7 +41,7 @@ class Companion:
     """
 
     def __init__(self, config, source: FrameSource, link, gcs=None, pipeline: PipelineConfig = PipelineConfig(),
-                 camera: CameraConfig | None = None, clock: Callable[[], float] = time.monotonic):
+                 camera: CameraConfig | None = None, clock: Callable[[], float] = time.monotonic, sector_sink=None):
         self.config = config
         self.pcfg = pipeline
         self.source = source
@@ -51,7 +51,7 @@ class Companion:
         self.telemetry = link.telemetry
         self.pipeline = Pipeline(camera or config.camera, config, pipeline, self.telemetry)
         self.reporter = Reporter(config, pipeline, outputs=("autopilot", "gcs") if gcs is not None else ("autopilot",),
-                                 start=clock())
+                                 start=clock(), sector_sink=sector_sink)
         self._pending: Frame | None = None
         self._last_frame_at: float | None = None
         self.counters: collections.Counter[str] = collections.Counter()

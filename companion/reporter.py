@@ -158,8 +158,11 @@ class Reporter:
     DIAG_NAMES = ("MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER", "MR_FWD_M", "MR_FWD_SIG")
 
     def __init__(self, config, pipeline: PipelineConfig, outputs=("autopilot",), start: float = 0.0,
-                 heartbeat: bool = False):
+                 heartbeat: bool = False, sector_sink=None):
         self.config = config
+        #: called as ``sector_sink(output, time_usec, distances_cm, sources)`` for every OBSTACLE_DISTANCE built
+        #: from a result (:class:`companion.sector_log.SectorLog`: where each sector's claim came from)
+        self.sector_sink = sector_sink
         self.pcfg = pipeline
         self.outputs = tuple(outputs)
         self.schedule = M.OutputSchedule(config.outputs)
@@ -209,8 +212,13 @@ class Reporter:
         if self.schedule.due(out, "obstacle_distance", now):
             if good:
                 d = sec.rotated(dyaw) if dyaw else sec.distances_cm
-                msgs.append(M.obstacle_distance(d, self.min_cm, self.max_cm, self._boot_ms(res.t_boot_capture) * 1000,
-                                                o.sensor_type))
+                time_usec = self._boot_ms(res.t_boot_capture) * 1000
+                msgs.append(M.obstacle_distance(d, self.min_cm, self.max_cm, time_usec, o.sensor_type))
+                if self.sector_sink is not None:
+                    try:  # diagnostics: never in the way of the message
+                        self.sector_sink(out, time_usec, d, sec.rotated_sources(dyaw) if dyaw else sec.sources())
+                    except Exception:
+                        self.counters["sector_log_errors"] += 1
             else:
                 msgs.append(M.obstacle_distance(self._unknown, self.min_cm, self.max_cm, 0, o.sensor_type))
                 self.counters["unknown_sent"] += 1

@@ -209,6 +209,25 @@ def pooled_nees(scores: list[dict], samples: np.ndarray, confidence: float) -> d
     return out
 
 
+def pool_claims_by_source(per_run: list) -> dict | None:
+    """The runs' ``claims_by_source`` (:func:`flightsim.score.summary.claims_by_source`) summed; None
+    when no run had a sector log."""
+    have = [c for c in per_run if c]
+    if not have:
+        return None
+    out = {"runs": len(have), "messages_scored": sum(c["messages_scored"] for c in have),
+           "messages_matched": sum(c["messages_matched"] for c in have)}
+    for view in ("in_view", "out_of_view"):
+        rows: dict[str, dict] = {}
+        for c in have:
+            for name, row in (c.get(view) or {}).items():
+                acc = rows.setdefault(name, {})
+                for k, v in row.items():
+                    acc[k] = acc.get(k, 0) + int(v)
+        out[view] = rows
+    return out
+
+
 def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig = ScoreConfig()) -> dict:
     """Pool the scored runs: summed cell counts and pooled rates, mean ± std of per-run rates, the
     targets on the pooled rates (and how many runs meet each), pooled range error, latency, NEES and
@@ -322,6 +341,7 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
     rem["rate"] = rem["within_tolerance"] / rem["cells"] if rem["cells"] else None
     beside = {k: sum(int((s.get("false_obstacles_beside_obstacle") or {}).get(k) or 0) for s in scores)
               for k in ("in_view", "in_view_total", "out_of_view", "out_of_view_total")}
+    by_source = pool_claims_by_source([s.get("claims_by_source") for s in scores])
     outcomes = [s["avoidance"] for s in scores if s.get("avoidance")]
     return _jsonable({
         "avoidance": pool_outcomes(outcomes) if outcomes else None,
@@ -330,6 +350,7 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
         "cells_in_view": cells_iv, "cells_out_of_view": cells_oov, "pooled_rates_in_view": pooled_of(cells_iv),
         "pooled_rates_out_of_view": pooled_of(cells_oov), "per_run_rates_in_view": per_run_in_view,
         "detection_by_range": det_by_range, "remembered": rem, "false_obstacles_beside_obstacle": beside,
+        "claims_by_source": by_source,
         "warmup_messages_excluded": sum(int((s.get("warmup") or {}).get("messages_excluded") or 0) for s in scores),
         "range_error": range_error, "latency": latency, "nees": nees, "obstacles": obs_rows,
         "first_claim_at_s": _mean_std(s.get("first_claim_at_s") for s in scores),

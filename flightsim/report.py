@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.score.config import REP_CLEAR, REP_RANGE, SECTOR_DEG, TRUTH_OBSTACLE
-from flightsim.score.markdown import mark, nees_lines
+from flightsim.score.markdown import claims_by_source_lines, mark, nees_lines
 
 
 def _plt():
@@ -435,6 +435,9 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
     if rem:
         L += ["", f"Remembered obstacles out of view: {rem['cells']} cells, within tolerance {rem['within_tolerance']} "
               f"({_pc(rem['rate'])}), unknown {rem['unknown']}, dangerous clears {rem['dangerous_clears']}."]
+    cbs = a.get("claims_by_source")
+    if cbs:
+        L += [""] + claims_by_source_lines(cbs)
     dbr = a.get("detection_by_range")
     if dbr:
         L += ["", "## Detection by true range, pooled", "",

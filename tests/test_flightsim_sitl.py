@@ -163,6 +163,14 @@ def test_published_ranges_agree_with_truth(lockstep_runs):
         # no phantom beside the mast (a yaw-jitter smear of its sector once put one in ~4 of 10 messages)
         assert (score["rates"]["false_obstacle_clear_cells"] or 0.0) <= 0.05
         assert (out / "score.json").is_file() and (out / "score.md").is_file()
+        # the companion's sector log names a source for every range it published (companion/sector_log.py)
+        cbs = score["claims_by_source"]
+        assert (out / "sectors.jsonl").is_file() and cbs is not None
+        assert cbs["messages_matched"] == cbs["messages_scored"] == msgs["obstacle_distance_scored"]
+        counted = score["cells"]["obstacle"] + score["cells"]["clear"]
+        attributed = sum(r["ranges"] for v in ("in_view", "out_of_view") for k, r in cbs[v].items() if k != "unattributed")
+        assert attributed > 0 and all(cbs[v]["unattributed"]["ranges"] == 0 for v in ("in_view", "out_of_view"))
+        assert attributed <= counted
 
 
 def test_cpu_of_both_processes_per_frame(lockstep_runs):

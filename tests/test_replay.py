@@ -155,12 +155,23 @@ def test_cli_replay_writes_the_tlog_and_the_plot(recording, tmp_path, capsys):
     out, png = tmp_path / "r.tlog", tmp_path / "r.png"
     rc = main(["replay", "--tlog", str(recording / "telemetry.tlog"), "--video", str(recording / "video.avi"),
                "--frames", str(recording / "frames.csv"), "--out", str(out), "--config", str(cfg), "--plot", str(png),
-               "--quiet"])
+               "--quiet", "--sector-log", str(tmp_path / "sectors.jsonl")])
     assert rc == 0
     text = capsys.readouterr().out
     assert "replayed 76 frames" in text and "OBSTACLE_DISTANCE" in text and str(out) in text
     assert out.stat().st_size > 0 and png.stat().st_size > 0
-    assert any(m.get_type() == "OBSTACLE_DISTANCE" for m in read_out(out))
+    ods = [m for m in read_out(out) if m.get_type() == "OBSTACLE_DISTANCE"]
+    assert ods
+    # the sector log has a line for every OBSTACLE_DISTANCE built from a result, with a source wherever it claims
+    from companion.sector_log import read_sector_log
+
+    lines = read_sector_log(tmp_path / "sectors.jsonl")
+    valid = [m for m in ods if m.time_usec > 0]
+    assert valid and len(lines) >= 1
+    for m in valid:
+        d = np.asarray(m.distances, np.uint16)
+        src = lines[(int(m.time_usec), d.tobytes())]
+        assert np.array_equal(src > 0, d.astype(np.int64) <= m.max_distance)
 
 
 def test_cli_replay_wrong_camera_size_exits_2_naming_it(recording, tmp_path, capsys):

@@ -64,6 +64,7 @@ from companion.core.sectors_types import (  # noqa: F401
     SectorConfig,
     SectorRanking,
     Sectors,
+    SectorSource,
     SectorState,
     rotate_sectors,
     sector_index,

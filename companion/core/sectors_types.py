@@ -37,6 +37,17 @@ class SectorState(enum.IntEnum):
     CLEAR = 2  # max_distance + 1: evidence of free space up to max_distance
 
 
+class SectorSource(enum.IntEnum):
+    """Where an obstacle sector's claim comes from (:meth:`Sectors.sources`; the sector log,
+    docs/derivations/sectors.md "Where a claim comes from")."""
+
+    NONE = 0  # no obstacle claimed (unknown or clear)
+    LIVE = 1  # converged points the camera tracks now, no map point among them
+    MIXED = 2  # live points and remembered (map) points: the published one may be either
+    REMEMBERED = 3  # remembered (map) points only: out of view, or in view where no live point is
+    INFERRED = 4  # an inference rule set the value: between two sides, a narrow gap, a vertical structure, the cap from above
+
+
 @dataclasses.dataclass(frozen=True)
 class SectorConfig:
     """The ``[sectors]`` table."""
@@ -185,6 +196,47 @@ class Sectors:
     @property
     def n_inferred(self) -> int:
         return int(np.count_nonzero(self.inferred))
+
+    def sources(self) -> np.ndarray:
+        """(72,) int8 :class:`SectorSource` of each sector's claim, from the points counted behind it
+        (``obstacle_points``, of which ``remembered_points`` are map points) and ``inferred``
+        (docs/derivations/sectors.md, "Where a claim comes from")."""
+        obs = self.state == SectorState.OBSTACLE
+        n, mem = np.asarray(self.obstacle_points), np.asarray(self.remembered_points)
+        src = np.full(SECTOR_COUNT, SectorSource.INFERRED, np.int8)  # an obstacle with no point of its own: a rule set it
+        src[obs & (n > 0) & (mem == 0)] = SectorSource.LIVE
+        src[obs & (mem > 0) & (mem < n)] = SectorSource.MIXED
+        src[obs & (mem > 0) & (mem >= n)] = SectorSource.REMEMBERED
+        src[obs & np.asarray(self.inferred, bool)] = SectorSource.INFERRED
+        src[~obs] = SectorSource.NONE
+        return src
+
+    def rotated_sources(self, yaw_change_rad: float) -> np.ndarray:
+        """:meth:`sources` for the distances of :meth:`rotated` (the same yaw change).
+
+        New sector ``i`` holds what old sectors ``i + lo`` and ``i + lo + 1`` held (``lo`` = ⌊Δψ / 5°⌋,
+        as in :func:`rotate_sectors`; a point re-binned at bearing − Δψ lands in one of them): it takes
+        the source of the one whose published value it now carries, else of the nearer obstacle of
+        the two; :attr:`SectorSource.NONE` where the turned sector claims no obstacle."""
+        d_new = self.rotated(yaw_change_rad).astype(np.int64)
+        out = np.zeros(SECTOR_COUNT, np.int8)
+        if not math.isfinite(yaw_change_rad):
+            return out
+        src = self.sources()
+        shift = math.degrees(yaw_change_rad) / SECTOR_DEG
+        shift = (shift + SECTOR_COUNT / 2) % SECTOR_COUNT - SECTOR_COUNT / 2
+        lo = math.floor(shift)
+        i = np.arange(SECTOR_COUNT)
+        a, b = (i + lo) % SECTOR_COUNT, (i + lo + 1) % SECTOR_COUNT
+        old = self.distances_cm.astype(np.int64)
+        obs = self.state == SectorState.OBSTACLE
+        take_a = obs[a] & (old[a] == d_new)
+        take_b = ~take_a & obs[b] & (old[b] == d_new)
+        nearer_a = obs[a] & (~obs[b] | (old[a] <= old[b]))
+        out = np.where(take_a, src[a], np.where(take_b, src[b], np.where(nearer_a, src[a], np.where(obs[b], src[b], 0))))
+        out = out.astype(np.int8)
+        out[d_new > self.max_distance_cm] = SectorSource.NONE
+        return out
 
     @property
     def clear_cm(self) -> int:

@@ -25,6 +25,7 @@ from companion.io.atomic import StagedFiles, atomic_path
 from companion.io.config_files import read_toml
 from companion.io.inputs import check_input_file
 from companion.io.tlog import read_tlog
+from companion.sector_log import read_sector_log
 from flightsim.score.config import N_SECTORS, ScoreConfig
 from flightsim.score.evaluation import evaluate
 from flightsim.score.inputs import RangeMessages, SectorTruth
@@ -150,10 +151,12 @@ def companion_score_params(companion_config) -> dict:
 
 
 NEES_PLOT = "nees.png"
+#: the companion's sector log in a run directory (``companion run --sector-log``; :mod:`companion.sector_log`)
+SECTOR_LOG = "sectors.jsonl"
 
 
 def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, companion_config=None, world=None,
-              component_id: int = COMPANION_COMPONENT, series_out=None, plot_dir=None, **fields) -> dict:
+              component_id: int = COMPANION_COMPONENT, series_out=None, plot_dir=None, sector_log=None, **fields) -> dict:
     """Score one run: read the ranges tlog and ``truth.npz``, evaluate, summarize (the ``score.json``
     dict, with the avoidance outcome when a closed-loop ``trajectory.npz`` lies beside the truth).
 
@@ -161,7 +164,9 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
     directory, or a :class:`~companion.io.atomic.StagedFiles`, to draw ``nees.png`` into
     (:func:`flightsim.plots.plot_run_nees`: the forward error with its ±2σ envelope and the running
     NEES against its n_eff band); skipped without matplotlib; the score then names it under
-    ``plots``.  ``fields`` override :class:`ScoreConfig` fields."""
+    ``plots``.  ``sector_log``: the companion's sector log (default: ``sectors.jsonl`` beside the
+    ranges tlog, used when present): the claims split by source (``claims_by_source``).
+    ``fields`` override :class:`ScoreConfig` fields."""
     cfg = config or ScoreConfig()
     over = {}
     if companion_config is not None:
@@ -175,8 +180,19 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
     msgs = read_ranges_tlog(ranges_tlog, component_id)
     truth = read_truth_npz(truth_npz)
     ev = evaluate(msgs, truth, cfg, namer=world_namer(world) if world is not None else None)
-    score = summarize(ev)
+    log_path = Path(ranges_tlog).with_name(SECTOR_LOG) if sector_log is None else Path(sector_log)
+    lines = None
+    if log_path.is_file():
+        try:
+            lines = read_sector_log(log_path)
+        except (InputError, OSError) as e:  # the score stands without it
+            log.warning("sector log %s not read: %s", log_path, e)
+    elif sector_log is not None:
+        raise InputError(f"sector log {sector_log}: no such file")
+    score = summarize(ev, lines)
     score["inputs"] = {"ranges": str(ranges_tlog), "truth": str(truth_npz)}
+    if lines is not None:
+        score["inputs"]["sector_log"] = str(log_path)
     traj = Path(truth_npz).with_name("trajectory.npz")
     if traj.is_file():  # a closed-loop flight (flightsim.avoidance): its outcome
         from flightsim.outcome import evaluate_outcome, read_trajectory

@@ -110,6 +110,7 @@ def markdown(score: dict, title: str = "Score") -> str:
         L += [f"False obstacles beside an obstacle (the range of a true obstacle cell within {fb['sectors']} sectors, within "
               f"tolerance: a real obstacle on a neighbouring bearing, not a phantom): in view {fb['in_view']} of "
               f"{fb['in_view_total']}, out of view {fb['out_of_view']} of {fb['out_of_view_total']}.", ""]
+    L += claims_by_source_lines(s.get("claims_by_source"))
     dbr = s.get("detection_by_range")
     if dbr:
         L += ["## Detection by true range", "",
@@ -172,3 +173,21 @@ def markdown(score: dict, title: str = "Score") -> str:
     if s.get("notes"):
         L += ["", "## Notes", ""] + [f"- {n}" for n in s["notes"]]
     return "\n".join(L) + "\n"
+
+
+def claims_by_source_lines(cbs) -> list[str]:
+    """The "Claims by source" table (the companion's sector log; ``claims_by_source`` of a score or a campaign)."""
+    if not cbs:
+        return []
+    L = ["## Claims by source (the companion's sector log)", "",
+         f"Messages scored {cbs['messages_scored']}, of them found in the sector log {cbs['messages_matched']}. "
+         "Source of a sector's claim: live points only, live and remembered (mixed), remembered (map) points only, "
+         "an inference rule; unattributed = no log line.", "",
+         "| view | source | ranges | on obstacles | within tolerance | too near | over range | false obstacles | of them beside an obstacle |",
+         "|---|---|---|---|---|---|---|---|---|"]
+    for view in ("in_view", "out_of_view"):
+        for name, row in (cbs.get(view) or {}).items():
+            if row["ranges"]:
+                L.append(f"| {view.replace('_', ' ')} | {name} | {row['ranges']} | {row['on_obstacles']} | {row['valid']} | "
+                         f"{row['too_near']} | {row['over_range']} | {row['false_obstacles']} | {row['beside_obstacle']} |")
+    return L + [""]

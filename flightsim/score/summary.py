@@ -185,8 +185,52 @@ def matches_neighbour(r: np.ndarray, T_obstacle: np.ndarray, sectors: int, cfg) 
     return out
 
 
-def summarize(ev: Evaluation) -> dict:
-    """The JSON-ready score of one run (the contents of ``score.json``)."""
+#: the companion's sector sources (companion.core.sectors_types.SectorSource), by code
+SOURCE_NAMES = ("none", "live", "mixed", "remembered", "inferred")
+_SOURCE_COUNTS = ("ranges", "on_obstacles", "valid", "too_near", "over_range", "false_obstacles", "beside_obstacle")
+
+
+def message_sources(ev: Evaluation, sector_log: dict) -> np.ndarray:
+    """(N, 72) int8: the source of each cell of each OBSTACLE_DISTANCE from the companion's sector log
+    (:func:`companion.sector_log.read_sector_log`: its lines by ``(time_usec, distances)``); −1 for a
+    message that has no line there."""
+    msgs = ev.messages
+    n = len(ev.od_t)
+    src = np.full((n, N_SECTORS), -1, np.int8)
+    cm = np.asarray(msgs.od_distances_cm).reshape(n, N_SECTORS).astype(np.uint16)
+    for i in range(n):
+        row = sector_log.get((int(msgs.od_time_usec[i]), cm[i].tobytes()))
+        if row is not None:
+            src[i] = row
+    return src
+
+
+def claims_by_source(ev: Evaluation, m: CellMasks, src: np.ndarray, beside: np.ndarray) -> dict:
+    """The scored range claims split by where the companion says each came from (``src``,
+    :func:`message_sources`), in view and out of view: ranges, those on obstacle cells, within
+    tolerance, too near, over range, false obstacles in clear cells (and of them beside an
+    obstacle).  ``unattributed``: a range in a message without a log line, or whose line names no
+    source for that sector."""
+    rng = (ev.od_rep == REP_RANGE) & ev.od_scored[:, None]
+    counted = m.obstacle | m.clear
+    out = {"messages_scored": int(ev.od_scored.sum()),
+           "messages_matched": int(np.sum(ev.od_scored & np.all(src >= 0, axis=1)))}
+    groups = [(name, src == code) for code, name in enumerate(SOURCE_NAMES) if code > 0]
+    groups.append(("unattributed", (src <= 0)))
+    for view, vm in (("in_view", m.in_view), ("out_of_view", ~m.in_view)):
+        rows = {}
+        for name, sel in groups:
+            c = rng & counted & sel & vm
+            rows[name] = {"ranges": int(c.sum()), "on_obstacles": int((c & m.obstacle).sum()), "valid": int((c & m.valid).sum()),
+                          "too_near": int((c & m.too_near).sum()), "over_range": int((c & m.over_range).sum()),
+                          "false_obstacles": int((c & m.false_clear).sum()), "beside_obstacle": int((c & beside).sum())}
+        out[view] = rows
+    return out
+
+
+def summarize(ev: Evaluation, sector_log: dict | None = None) -> dict:
+    """The JSON-ready score of one run (the contents of ``score.json``); with the companion's
+    ``sector_log`` (:func:`companion.sector_log.read_sector_log`) also its claims by source."""
     cfg = ev.config
     m = cell_masks(ev)
     msgs = ev.messages
@@ -340,6 +384,7 @@ def summarize(ev: Evaluation) -> dict:
         "detection_by_range": det_tables,
         "remembered": remembered,
         "false_obstacles_beside_obstacle": false_beside,
+        "claims_by_source": None if sector_log is None else claims_by_source(ev, m, message_sources(ev, sector_log), beside),
         "targets": targets,
         "sectors": sectors,
         "range_error": range_error,

@@ -220,7 +220,7 @@ def run_sitl(scenario_path: str | Path, out_dir: str | Path, *, seed: int | None
                     if run.hostile_cfg.active else None),
         "companion_rss_kib": run.rss if cfg.rss_sample_s > 0 else None,  # [simulation s, loop wall s, VmRSS kiB]
         "paths": {name: str(out / name) for name in ("truth.npz", "trajectory.npz", "avoidance.png", "frames.csv", "camera.toml", "telemetry.tlog",
-                                                     "received.tlog", "companion.log", "sitl.json", "video.avi",
+                                                     "received.tlog", "sectors.jsonl", "companion.log", "sitl.json", "video.avi",
                                                      "score.json", "score.md") if (out / name).exists() or name == "sitl.json"},
         "score": sc_result, "score_note": note, "score_failed": score_failed,
     }

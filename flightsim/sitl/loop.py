@@ -58,6 +58,7 @@ from flightsim.fly import EPS_T, Flight, StreamSchedule, camera_toml, open_video
 from flightsim.hostile import HostileInjector
 from flightsim.scenario import Scenario
 from flightsim.sitl.config import SitlConfig, SitlError
+from flightsim.score.files import SECTOR_LOG
 from flightsim.sitl.process import (CompanionProcess, companion_command, companion_rss_kib, cpu_seconds,
                                     process_cpu_seconds)
 from flightsim.tlog import TlogWriter
@@ -227,7 +228,7 @@ class Run:
                                 f"({exc.strerror or exc}); pick another with --camera-port, or 0 for any free port") from None
         self.cmd = companion_command(self.endpoint.port, self.server.port, (out / "camera.toml").resolve(),
                                      lockstep=self.lockstep, processing_ms=self.cfg.processing_ms,
-                                     companion_config=self.companion_config)
+                                     companion_config=self.companion_config, sector_log=(out / SECTOR_LOG).resolve())
         if self.attach:
             print("flightsim sitl: waiting for the companion; start it with\n  " + shlex.join(self.cmd), file=sys.stderr,
                   flush=True)
