@@ -216,7 +216,7 @@ class Reporter:
                 msgs.append(M.obstacle_distance(d, self.min_cm, self.max_cm, time_usec, o.sensor_type))
                 if self.sector_sink is not None:
                     try:  # diagnostics: never in the way of the message
-                        self.sector_sink(out, time_usec, d, sec.rotated_sources(dyaw) if dyaw else sec.sources())
+                        self.sector_sink(out, time_usec, d, sec.rotated_sources(dyaw, d) if dyaw else sec.sources())
                     except Exception:
                         self.counters["sector_log_errors"] += 1
             else:

@@ -211,17 +211,17 @@ class Sectors:
         src[~obs] = SectorSource.NONE
         return src
 
-    def rotated_sources(self, yaw_change_rad: float) -> np.ndarray:
-        """:meth:`sources` for the distances of :meth:`rotated` (the same yaw change).
+    def rotated_sources(self, yaw_change_rad: float, rotated_cm=None) -> np.ndarray:
+        """:meth:`sources` for the distances of :meth:`rotated` (the same yaw change; pass them as
+        ``rotated_cm`` when already computed).
 
         New sector ``i`` holds what old sectors ``i + lo`` and ``i + lo + 1`` held (``lo`` = ⌊Δψ / 5°⌋,
         as in :func:`rotate_sectors`; a point re-binned at bearing − Δψ lands in one of them): it takes
         the source of the one whose published value it now carries, else of the nearer obstacle of
         the two; :attr:`SectorSource.NONE` where the turned sector claims no obstacle."""
-        d_new = self.rotated(yaw_change_rad).astype(np.int64)
-        out = np.zeros(SECTOR_COUNT, np.int8)
         if not math.isfinite(yaw_change_rad):
-            return out
+            return np.zeros(SECTOR_COUNT, np.int8)
+        d_new = np.asarray(self.rotated(yaw_change_rad) if rotated_cm is None else rotated_cm).astype(np.int64)
         src = self.sources()
         shift = math.degrees(yaw_change_rad) / SECTOR_DEG
         shift = (shift + SECTOR_COUNT / 2) % SECTOR_COUNT - SECTOR_COUNT / 2
