@@ -1,8 +1,9 @@
 """Which mechanism the published ranges of finished SITL campaigns came from, by the companion's sector log.
 
 Every SITL run records the companion's sector log (``sectors.jsonl``: per OBSTACLE_DISTANCE, the
-source of each sector's claim — live points, live and remembered, remembered only, an inference
-rule; docs/derivations/sectors.md, "Where a claim comes from"), and the score pools the ranges by
+source of each sector's claim — live points, live and remembered, remembered only, inferred across
+sectors, inferred from points above or below the band; docs/derivations/sectors.md, "Where a claim
+comes from"), and the score pools the ranges by
 source into ``claims_by_source`` (``flightsim/score/summary.py``).  This prints, per campaign, the
 ranges of each source in view and out of view, the share within tolerance, and where the false
 obstacles and the too-near ranges came from:
@@ -19,7 +20,7 @@ import json
 import sys
 from pathlib import Path
 
-SOURCES = ("live", "mixed", "remembered", "inferred", "unattributed")
+SOURCES = ("live", "mixed", "remembered", "inferred", "vertical", "unattributed")
 
 
 def load(path: Path) -> tuple[str, dict | None]:
@@ -80,7 +81,7 @@ def main(argv=None) -> int:
         return 0
     L = ["| scenario | view | source | ranges | within tolerance (of those on obstacles) | too near | false obstacles |",
          "|---|---|---|---|---|---|---|"]
-    share = ["", "| scenario | false obstacles: live / mixed / remembered / inferred / unattributed | too near: the same |",
+    share = ["", "| scenario | false obstacles: live / mixed / remembered / inferred / vertical / unattributed | too near: the same |",
              "|---|---|---|"]
     missing = []
     for label, cbs in loaded:

@@ -140,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: run until Ctrl-C / SIGTERM)")
     r.add_argument("--sector-log", metavar="FILE",
                    help="write one JSON line per OBSTACLE_DISTANCE sent to the autopilot: its time_usec and distances and, "
-                        "per sector, where the claim came from (live points, live and remembered, remembered only, inferred); "
+                        "per sector, where the claim came from (live points, live and remembered, remembered only, inferred across "
+                        "sectors, inferred from points above or below the band); "
                         "~20 MB an hour at 15 Hz (companion/sector_log.py)")
     r.add_argument("--camera-config", metavar="TOML",
                    help="a TOML whose [camera] table replaces the config's (e.g. the camera.toml flightsim writes)")

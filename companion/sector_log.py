@@ -13,7 +13,8 @@ then one line per OBSTACLE_DISTANCE the companion built from a result, for the o
 72 distances in cm, after the turn since exposure), so a reader finds the line of any
 OBSTACLE_DISTANCE in a tlog by those two; ``src`` holds one digit per sector, a
 :class:`~companion.core.sectors_types.SectorSource` (0 none, 1 live points, 2 live and remembered,
-3 remembered only, 4 inferred; docs/derivations/sectors.md, "Where a claim comes from").
+3 remembered only, 4 inferred across sectors, 5 inferred from points above or below the band;
+docs/derivations/sectors.md, "Where a claim comes from").
 
 About 0.4 kB a line: at 15 Hz some 20 MB an hour.  A write that fails (disk full, a vanished
 mount) is logged once and ends the log; the companion flies on.  I/O only: the sources themselves

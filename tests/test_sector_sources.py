@@ -5,6 +5,7 @@ claims by source (flightsim/score/summary.py)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -59,6 +60,22 @@ def test_each_claim_names_its_source(fn):
     # a source exactly where an obstacle is claimed
     assert np.array_equal(src != SectorSource.NONE, sec.state == SectorState.OBSTACLE)
     assert set(np.flatnonzero(src)) == {0, 1, 2, 36, 68, 69, 70}
+
+
+@pytest.mark.parametrize("fn", [compute_sectors, compute_sectors_reference])
+def test_claims_from_points_above_the_band_are_told_apart(fn):
+    """A pole at 6 m, 30° right, ranged only above the band (2.0 and 2.7 m above the vehicle: a vertical structure
+    reaching down to it) and, 60° left, a wall at 20 m in the band under a point 8 m away just above it (the cap)."""
+    live = np.array([at(6, 30, -2.0), at(6, 30.3, -2.7), at(20, -60), at(20, -59.5), at(8, -60.2, -1.8)])
+    n = len(live)
+    sec = fn(live, np.full(n, 0.1), np.ones(n, bool), np.ones(n, bool), math.radians(170), 0.0, CFG)
+    src = sec.sources()
+    assert src[6] == SectorSource.VERTICAL and sec.inferred_vertical[6] and sec.range_m[6] < 6
+    assert src[60] == SectorSource.VERTICAL and sec.range_m[60] < 8  # capped at the point above: 8 m, not 20
+    off = fn(live, np.full(n, 0.1), np.ones(n, bool), np.ones(n, bool), math.radians(170), 0.0,
+             dataclasses.replace(CFG, infer_vertical=False, cap_above_m=0.0))
+    assert off.sources()[6] == SectorSource.NONE and off.sources()[60] == SectorSource.LIVE
+    assert not np.any(off.inferred_vertical)
 
 
 def test_kernel_and_reference_agree_on_the_sources():

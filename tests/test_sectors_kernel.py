@@ -43,7 +43,7 @@ N_SCENES = 300 if jit.ENABLED else 30
 RTOL = ATOL = 1e-12
 
 _INT_FIELDS = ("distances_cm", "state", "in_view", "fully_in_view", "obstacle_points", "clear_points", "obstacle_cm",
-               "remembered_points", "inferred")
+               "remembered_points", "inferred", "inferred_vertical")
 _FLOAT_FIELDS = ("range_m", "sigma_m", "obstacle_bearing_rad")
 
 
@@ -176,6 +176,8 @@ def test_kernel_equals_reference_on_seeded_scenes(name, config):
     """Seeded random scenes, every rule on or off by config: the kernel is the reference."""
     rng = np.random.default_rng(20240611 + len(name))
     seen = {"clear": 0, "obstacle": 0, "inferred": 0, "remembered": 0, "rejected": 0}
+    if config.infer_vertical or config.cap_above_m > 0:
+        seen["inferred_vertical"] = 0
     mounts = [0.0, math.radians(-20.0), mount_rotation(0.0, 15.0, 10.0), mount_rotation(5.0, -10.0, 180.0)]
     for i in range(N_SCENES):
         ground = rng.uniform(0.5, 20.0)
@@ -195,6 +197,10 @@ def test_kernel_equals_reference_on_seeded_scenes(name, config):
         seen["clear"] += int(np.sum(r.state == SectorState.CLEAR))
         seen["obstacle"] += int(np.sum(r.state == SectorState.OBSTACLE))
         seen["inferred"] += r.n_inferred
+        if "inferred_vertical" in seen:
+            seen["inferred_vertical"] += int(np.sum(r.inferred_vertical))
+        else:  # neither rule on: none set by them
+            assert not np.any(r.inferred_vertical)
         seen["remembered"] += int(np.sum(r.remembered_points))
         seen["rejected"] += r.points_rejected
     # the scenes exercise what is compared (a vacuous comparison would pass anything)

@@ -387,6 +387,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
 
     inferred = _infer_between(state, dist, range_m, sigma_m, config)
     inferred |= _infer_narrow(state, dist, range_m, sigma_m, xy_m, config, ~inferred)
+    vertical = np.zeros(SECTOR_COUNT, bool)  # claims set by a rule on points above or below the band
     if config.infer_vertical:
         # a structure standing through the band (docs/derivations/sectors.md: inference only adds obstacles): converged
         # points just above and just below it in one sector at consistent ranges; the nearer one is claimed
@@ -403,6 +404,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         vert = vpick >= 0
         vert[vert] &= ~has_obs[vert] | (d_pub[vpick[vert]] < range_m[vert])
         pick = _claim_inferred(vert, vpick, state, dist, range_m, sigma_m, pick, inferred, pt_cm, d_pub, sig)
+        vertical |= vert
 
     if config.cap_above_m > 0:
         # a surface just above the band limits what the band may claim (docs/derivations/sectors.md: only nearer, never
@@ -414,6 +416,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
             capped = (cap >= 0) & ((state == SectorState.CLEAR) | (state == SectorState.OBSTACLE))
             capped[capped] &= (state[capped] == SectorState.CLEAR) | (d_pub[cap[capped]] < range_m[capped])
             pick = _claim_inferred(capped, cap, state, dist, range_m, sigma_m, pick, inferred, pt_cm, d_pub, sig)
+            vertical |= capped
 
     # ---- forward window (DISTANCE_SENSOR) ------------------------------------------------------
     centres = np.arange(SECTOR_COUNT) * SECTOR_DEG
@@ -465,6 +468,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         obstacle_rank=k,
         remembered_points=n_mem,
         inferred=inferred,
+        inferred_vertical=vertical,
     )
 
 
@@ -609,7 +613,7 @@ def _sectors_kernel(p_body, range_sigma, converged, valid, hfov_rad, R_cam_body,
     # equal conservative ranges (copies of one remembered point) are broken the same way
     p_level = np.where(usable[:, None], p, 0.0) @ R_lb.T
     (dist, state, range_m, sigma_m, n_obs, n_clr, n_mem, inferred, used, ob_bearing, ob_cm, fwd_state, fwd_vals,
-     near_p, near_vals, near_sector) = _sectors_core(
+     near_p, near_vals, near_sector, vertical) = _sectors_core(
         p, sig, conv, usable, r, p_level, n, mem_tan, R_lb, in_view, fully, float(gamma), math.tan(gamma),
         float(ground_height_m) if ground_known else 0.0, ground_known, cfg)
     forward = ForwardRange(_STATES[fwd_state], float(fwd_vals[0]), float(fwd_vals[1]), float(fwd_vals[2]))
@@ -620,5 +624,5 @@ def _sectors_kernel(p_body, range_sigma, converged, valid, hfov_rad, R_cam_body,
         fully_in_view=fully, obstacle_points=n_obs, clear_points=n_clr, forward=forward, nearest=nearest,
         min_distance_cm=config.min_distance_cm, max_distance_cm=config.max_distance_cm, points_used=int(used),
         points_rejected=int(rejected), obstacle_bearing_rad=ob_bearing, obstacle_cm=ob_cm,
-        obstacle_rank=config.min_points_obstacle, remembered_points=n_mem, inferred=inferred,
+        obstacle_rank=config.min_points_obstacle, remembered_points=n_mem, inferred=inferred, inferred_vertical=vertical,
     )

@@ -350,6 +350,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     narrow = _infer_narrow_k(state, dist, range_m, sigma_m, xy_m, ~inferred, np.int64(cfg[_K_NARROW_N]), cfg[_K_NARROW_M],
                              min_m, max_m, min_cm, max_cm)
     inferred |= narrow
+    vertical = np.zeros(SECTOR_COUNT, np.bool_)  # set by a rule on points above or below the band (vertical, cap)
 
     if cfg[_K_VERT] != 0:
         # a structure standing through the band: the nearer point of consistent pairs above and below it
@@ -370,6 +371,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                 state[s] = _S_OBSTACLE
                 dist[s], range_m[s], sigma_m[s] = pt_cm[pt], d_pub[pt], sig[pt]
                 inferred[s] = True
+                vertical[s] = True
                 pick[s] = pt
 
     if cfg[_K_CAP] > 0:
@@ -388,6 +390,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                 state[s] = _S_OBSTACLE
                 dist[s], range_m[s], sigma_m[s] = pt_cm[pt], d_pub[pt], sig[pt]
                 inferred[s] = True
+                vertical[s] = True
                 pick[s] = pt
 
     # ---- forward window (DISTANCE_SENSOR) ---------------------------------------------------------
@@ -449,7 +452,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                 ob_bearing[o], ob_cm[o] = (s * SECTOR_DEG) * _DEG2RAD, dist[s]
                 o += 1
     return (dist, state, range_m, sigma_m, n_obs, n_clr, n_mem, inferred, used, ob_bearing, ob_cm, fwd_state, fwd_vals, near_p,
-            near_vals, near_sector)
+            near_vals, near_sector, vertical)
 
 
 @_jit.njit(inline="always")

@@ -45,7 +45,8 @@ class SectorSource(enum.IntEnum):
     LIVE = 1  # converged points the camera tracks now, no map point among them
     MIXED = 2  # live points and remembered (map) points: the published one may be either
     REMEMBERED = 3  # remembered (map) points only: out of view, or in view where no live point is
-    INFERRED = 4  # an inference rule set the value: between two sides, a narrow gap, a vertical structure, the cap from above
+    INFERRED = 4  # inferred across sectors: between two consistent sides, or a narrow gap
+    VERTICAL = 5  # inferred from points above or below the band: a vertical structure through it, the cap from above
 
 
 @dataclasses.dataclass(frozen=True)
@@ -192,6 +193,7 @@ class Sectors:
     obstacle_rank: int = 1  # the n-th nearest point of a sector is published (``min_points_obstacle``)
     remembered_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(SECTOR_COUNT, np.int64))  # (72,) map points behind each sector's claim
     inferred: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(SECTOR_COUNT, bool))  # (72,) obstacle inferred between two sides
+    inferred_vertical: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(SECTOR_COUNT, bool))  # (72,) of those, set by a rule on points above or below the band (a vertical structure, the cap from above)
 
     @property
     def n_inferred(self) -> int:
@@ -208,6 +210,7 @@ class Sectors:
         src[obs & (mem > 0) & (mem < n)] = SectorSource.MIXED
         src[obs & (mem > 0) & (mem >= n)] = SectorSource.REMEMBERED
         src[obs & np.asarray(self.inferred, bool)] = SectorSource.INFERRED
+        src[obs & np.asarray(self.inferred, bool) & np.asarray(self.inferred_vertical, bool)] = SectorSource.VERTICAL
         src[~obs] = SectorSource.NONE
         return src
 

@@ -182,7 +182,8 @@ def claims_by_source_lines(cbs) -> list[str]:
     L = ["## Claims by source (the companion's sector log)", "",
          f"Messages scored {cbs['messages_scored']}, of them found in the sector log {cbs['messages_matched']}. "
          "Source of a sector's claim: live points only, live and remembered (mixed), remembered (map) points only, "
-         "an inference rule; unattributed = no log line.", "",
+         "inferred across sectors (between two sides, a narrow gap), inferred from points above or below the band "
+         "(vertical: a structure through the band, the cap from above); unattributed = no log line.", "",
          "| view | source | ranges | on obstacles | within tolerance | too near | over range | false obstacles | of them beside an obstacle |",
          "|---|---|---|---|---|---|---|---|---|"]
     for view in ("in_view", "out_of_view"):

@@ -186,7 +186,7 @@ def matches_neighbour(r: np.ndarray, T_obstacle: np.ndarray, sectors: int, cfg) 
 
 
 #: the companion's sector sources (companion.core.sectors_types.SectorSource), by code
-SOURCE_NAMES = ("none", "live", "mixed", "remembered", "inferred")
+SOURCE_NAMES = ("none", "live", "mixed", "remembered", "inferred", "vertical")
 _SOURCE_COUNTS = ("ranges", "on_obstacles", "valid", "too_near", "over_range", "false_obstacles", "beside_obstacle")
 
 
