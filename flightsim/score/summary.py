@@ -14,6 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
+from companion.core.sectors_types import SectorSource
 from flightsim.score.config import N_SECTORS, REP_CLEAR, REP_RANGE, REP_UNKNOWN, SECTOR_DEG, TRUTH_OBSTACLE
 from flightsim.score.evaluation import CellMasks, Evaluation, cell_masks
 from flightsim.score.stats import EffectiveSize, effective_sample_size, nees_band, normal_coverage, stretch_labels
@@ -185,9 +186,8 @@ def matches_neighbour(r: np.ndarray, T_obstacle: np.ndarray, sectors: int, cfg) 
     return out
 
 
-#: the companion's sector sources (companion.core.sectors_types.SectorSource), by code
-SOURCE_NAMES = ("none", "live", "mixed", "remembered", "inferred", "vertical")
-_SOURCE_COUNTS = ("ranges", "on_obstacles", "valid", "too_near", "over_range", "false_obstacles", "beside_obstacle")
+#: the companion's sector sources by code ("none", "live", "mixed", "remembered", "inferred", "vertical")
+SOURCE_NAMES = tuple(s.name.lower() for s in SectorSource)
 
 
 def message_sources(ev: Evaluation, sector_log: dict) -> np.ndarray:
