@@ -494,3 +494,27 @@ def test_forward_reading_of_an_inferred_sector_carries_that_sector_sigma():
     assert s.inferred[0] and s.state[0] == SectorState.OBSTACLE
     assert s.forward.sigma_m == pytest.approx(0.3)
     assert math.isnan(s.forward.estimate_m)
+
+
+def test_the_cap_gate_keeps_a_walls_fused_range_and_still_caps_a_pole():
+    """``cap_gate_k`` (docs/derivations/sectors.md, rule 8): a wall at 20 m ranged in the band by ten points and
+    just above it by one point of the same wall.  Without the gate the single nearest conservative value above the
+    band replaces the sector's fused one (an order statistic: short of the wall by its own 2σ); with it the fused
+    range stays.  A pole at 6 m ranged only above the band, before a background the band ranged at 26 m, is a
+    different, nearer surface: capped either way."""
+    rng = np.random.default_rng(5)
+    wall_band = [[20.0 + e, 0.05 * k - 0.25, 0.3] for k, e in enumerate(rng.normal(0.0, 0.4, 10))]
+    above = [[19.6, 0.1, -2.0]]  # 2.0 m above the vehicle, 0.5 m above the band's edge: the same wall
+    sig = [0.4] * 10 + [0.4]
+    c0 = dataclasses.replace(CFG, cap_gate_k=0.0, infer_vertical=False)
+    c2 = dataclasses.replace(CFG, cap_gate_k=2.0, infer_vertical=False)
+    no_cap = dataclasses.replace(CFG, cap_above_m=0.0, infer_vertical=False)
+    fused = run(wall_band + above, sigma=sig, config=no_cap).range_m[0]
+    capped = run(wall_band + above, sigma=sig, config=c0).range_m[0]
+    gated = run(wall_band + above, sigma=sig, config=c2).range_m[0]
+    assert capped == pytest.approx(19.6 - 2 * 0.4, abs=0.05) and capped < fused - 0.3
+    assert gated == fused
+    pole = [[26.0, 0.0, 0.0], [26.3, 0.1, 0.2], [6.0, 0.05, -2.0]]
+    for c in (c0, c2):
+        s = run(pole, sigma=[2.0, 2.0, 0.2], config=c)
+        assert s.range_m[0] == pytest.approx(6.0 - 2 * 0.2, abs=0.05) and s.inferred_vertical[0]

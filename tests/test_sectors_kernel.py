@@ -165,6 +165,7 @@ def configs():
     yield "two-sided only", dataclasses.replace(base, infer_vertical_one_side=False, ground_margin_m=0.0, sigma_k=0.0)
     yield "exact ranges", dataclasses.replace(base, sigma_k=0.0)  # d_cons = d_h: points sharing (x, y) tie
     yield "cap only", dataclasses.replace(base, sigma_k=0.0, infer_vertical=False)
+    yield "cap and vertical gated", dataclasses.replace(base, cap_gate_k=2.0)
     yield "no surface fusion", dataclasses.replace(base, fuse_gate_k=0.0)
     yield "edge margin", dataclasses.replace(base, clear_edge_margin_deg=1.0, min_points_clear=1)
     yield "fusion: wide gate, independent", dataclasses.replace(base, fuse_gate_k=5.0, fuse_correlation=0.0)

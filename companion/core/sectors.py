@@ -402,7 +402,9 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
                                                                   config.infer_vertical_min_extent_m, config.infer_vertical_reach_m)])
         vpick = _nearest_per_sector(idx, d_cons, cand)  # two-sided pairs first: they win ties
         vert = vpick >= 0
-        vert[vert] &= ~has_obs[vert] | (d_pub[vpick[vert]] < range_m[vert])
+        vp = vpick[vert]
+        vert[vert] &= ~has_obs[vert] | ((d_pub[vp] < range_m[vert]) &
+                                        _nearer_surface(d_h[vp], sig[vp], range_m[vert], sigma_m[vert], config))
         pick = _claim_inferred(vert, vpick, state, dist, range_m, sigma_m, pick, inferred, pt_cm, d_pub, sig)
         vertical |= vert
 
@@ -414,7 +416,10 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         if cap_pts.size:
             cap = SectorRanking(idx[cap_pts], d_cons[cap_pts], ids=cap_pts).nth(1)
             capped = (cap >= 0) & ((state == SectorState.CLEAR) | (state == SectorState.OBSTACLE))
-            capped[capped] &= (state[capped] == SectorState.CLEAR) | (d_pub[cap[capped]] < range_m[capped])
+            cp = cap[capped]
+            capped[capped] &= (state[capped] == SectorState.CLEAR) | ((d_pub[cp] < range_m[capped]) &
+                                                                     _nearer_surface(d_h[cp], sig[cp], range_m[capped],
+                                                                                     sigma_m[capped], config))
             pick = _claim_inferred(capped, cap, state, dist, range_m, sigma_m, pick, inferred, pt_cm, d_pub, sig)
             vertical |= capped
 
@@ -470,6 +475,18 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         inferred=inferred,
         inferred_vertical=vertical,
     )
+
+
+def _nearer_surface(est_m, sigma, range_m, sigma_m, config: SectorConfig) -> np.ndarray:
+    """Whether points above or below the band at horizontal estimates ``est_m`` (range σ ``sigma``) lie on a
+    different, nearer surface than their sectors' claims (published ``range_m``, σ ``sigma_m``; the claim's
+    estimate is ``range_m + sigma_k·sigma_m``): nearer by more than ``cap_gate_k`` combined σ
+    (docs/derivations/sectors.md, rules 7 and 8).  Always true with ``cap_gate_k`` = 0, and where a σ is
+    not a number (the rule then keeps its nearer value)."""
+    if config.cap_gate_k <= 0:
+        return np.ones(np.shape(est_m), bool)
+    est_s = range_m + config.sigma_k * sigma_m
+    return ~(est_m + config.cap_gate_k * np.hypot(sigma, sigma_m) >= est_s)
 
 
 def _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, cand, config: SectorConfig):

@@ -36,7 +36,7 @@ _VIEW_OFFSETS = np.radians(np.linspace(-SECTOR_DEG / 2, SECTOR_DEG / 2, _SAMPLES
 (_K_MIN_M, _K_MAX_M, _K_SIGMA_K, _K_BAND_METRES, _K_HALF_H, _K_HALF_ANGLE_RAD, _K_TAN_HALF_ANGLE, _K_N_OBS, _K_N_CLR,
  _K_VETO, _K_TOUCH, _K_SPREAD_K, _K_MAX_SPREAD_RAD, _K_DROP_SPREAD_RAD, _K_GAP, _K_REL_TOL, _K_NARROW_M, _K_NARROW_N,
  _K_VERT, _K_VERT_WIN, _K_VERT_GROUND, _K_ONE_SIDE, _K_MIN_EXTENT, _K_REACH, _K_CAP, _K_GROUND_MARGIN, _K_MIN_CM,
- _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_SIZE) = range(34)
+ _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_CAP_GATE, _K_SIZE) = range(35)
 
 
 def _kernel_config(config: SectorConfig) -> np.ndarray:
@@ -64,6 +64,7 @@ def _kernel_config(config: SectorConfig) -> np.ndarray:
     v[_K_MIN_CM], v[_K_MAX_CM] = c.min_distance_cm, c.max_distance_cm
     v[_K_FUSE_G], v[_K_FUSE_RHO] = c.fuse_gate_k, c.fuse_correlation
     v[_K_EDGE] = c.clear_edge_margin_deg
+    v[_K_CAP_GATE] = c.cap_gate_k
     v.flags.writeable = False
     _KERNEL_CONFIGS[id(config)] = (config, v)  # the config is kept alive with its id: no reuse while cached
     if len(_KERNEL_CONFIGS) > 64:  # bounded: configs are few (one per process, a handful in tests)
@@ -367,7 +368,8 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                                  cfg[_K_MIN_EXTENT], cfg[_K_REACH])
         for s in range(SECTOR_COUNT):
             pt = vpick[s]
-            if pt >= 0 and (not has_obs[s] or d_pub[pt] < range_m[s]):
+            if pt >= 0 and (not has_obs[s] or (d_pub[pt] < range_m[s] and
+                                               _nearer_surface_k(d_h[pt], sig[pt], range_m[s], sigma_m[s], cfg))):
                 state[s] = _S_OBSTACLE
                 dist[s], range_m[s], sigma_m[s] = pt_cm[pt], d_pub[pt], sig[pt]
                 inferred[s] = True
@@ -386,7 +388,8 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
             pt = cap[s]
             if pt < 0:
                 continue
-            if state[s] == _S_CLEAR or (state[s] == _S_OBSTACLE and d_pub[pt] < range_m[s]):
+            if state[s] == _S_CLEAR or (state[s] == _S_OBSTACLE and d_pub[pt] < range_m[s] and
+                                        _nearer_surface_k(d_h[pt], sig[pt], range_m[s], sigma_m[s], cfg)):
                 state[s] = _S_OBSTACLE
                 dist[s], range_m[s], sigma_m[s] = pt_cm[pt], d_pub[pt], sig[pt]
                 inferred[s] = True
@@ -512,6 +515,15 @@ def _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, cand, gate_k, rho, si
             if member[q]:
                 i = ranked[q]
                 d_cons[i], sig_pub[i], est[i] = value, s_bar, d_bar
+
+
+@_jit.njit(inline="always")
+def _nearer_surface_k(est_m, sigma, range_m, sigma_m, cfg):
+    """:func:`companion.core.sectors._nearer_surface` for one point and its sector."""
+    g = cfg[_K_CAP_GATE]
+    if g <= 0:
+        return True
+    return not (est_m + g * math.hypot(sigma, sigma_m) >= range_m + cfg[_K_SIGMA_K] * sigma_m)
 
 
 @_jit.njit
