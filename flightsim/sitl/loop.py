@@ -218,6 +218,7 @@ class Run:
     def setup(self) -> None:
         out = self.out
         write_text_atomic(out / "camera.toml", camera_toml(self.sc.camera))  # the companion needs it at start
+        (out / SECTOR_LOG).unlink(missing_ok=True)  # a previous run's log must not be read as this one's
         self.endpoint = UdpEndpoint(self.mavlink_port, self.tel.system_id)
         if self.hostile_cfg.rate_hz > 0:
             self.injector = HostileInjector(self.hostile_cfg, self.tel.system_id)
