@@ -20,7 +20,9 @@ import json
 import sys
 from pathlib import Path
 
-SOURCES = ("live", "mixed", "remembered", "inferred", "vertical", "unattributed")
+from flightsim.score.summary import SOURCE_NAMES
+
+SOURCES = (*SOURCE_NAMES[1:], "unattributed")  # the companion's sources ("none" has no ranges), then no log line
 
 
 def load(path: Path) -> tuple[str, dict | None]:

@@ -81,6 +81,7 @@ def read_sector_log(path, output: str = "autopilot") -> dict[tuple[int, bytes], 
     → the (72,) int8 sources.  A line cut short (a companion killed mid-write) is skipped; a file
     that is not a sector log raises :class:`~companion.errors.InputError`."""
     out: dict[tuple[int, bytes], np.ndarray] = {}
+    top = max(SectorSource)
     with open(path, encoding="ascii", errors="replace") as fh:
         head = fh.readline()
         try:
@@ -98,7 +99,7 @@ def read_sector_log(path, output: str = "autopilot") -> dict[tuple[int, bytes], 
                 src = np.frombuffer(r["src"].encode("ascii"), np.uint8).astype(np.int8) - ord("0")
             except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
                 continue
-            if d.shape != (SECTOR_COUNT,) or src.shape != (SECTOR_COUNT,) or np.any((src < 0) | (src > max(SectorSource))):
+            if d.shape != (SECTOR_COUNT,) or src.shape != (SECTOR_COUNT,) or np.any((src < 0) | (src > top)):
                 continue
             out[(int(r["time_usec"]), d.astype(np.uint16).tobytes())] = src
     return out

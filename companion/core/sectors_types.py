@@ -205,16 +205,10 @@ class Sectors:
         """(72,) int8 :class:`SectorSource` of each sector's claim, from the points counted behind it
         (``obstacle_points``, of which ``remembered_points`` are map points) and ``inferred``
         (docs/derivations/sectors.md, "Where a claim comes from")."""
-        obs = self.state == SectorState.OBSTACLE
         n, mem = np.asarray(self.obstacle_points), np.asarray(self.remembered_points)
-        src = np.full(SECTOR_COUNT, SectorSource.INFERRED, np.int8)  # an obstacle with no point of its own: a rule set it
-        src[obs & (n > 0) & (mem == 0)] = SectorSource.LIVE
-        src[obs & (mem > 0) & (mem < n)] = SectorSource.MIXED
-        src[obs & (mem > 0) & (mem >= n)] = SectorSource.REMEMBERED
-        src[obs & np.asarray(self.inferred, bool)] = SectorSource.INFERRED
-        src[obs & np.asarray(self.inferred, bool) & np.asarray(self.inferred_vertical, bool)] = SectorSource.VERTICAL
-        src[~obs] = SectorSource.NONE
-        return src
+        src = np.where(mem == 0, SectorSource.LIVE, np.where(mem < n, SectorSource.MIXED, SectorSource.REMEMBERED))
+        src = np.where(self.inferred, np.where(self.inferred_vertical, SectorSource.VERTICAL, SectorSource.INFERRED), src)
+        return np.where(self.state == SectorState.OBSTACLE, src, SectorSource.NONE).astype(np.int8)
 
     def rotated_sources(self, yaw_change_rad: float, rotated_cm=None) -> np.ndarray:
         """:meth:`sources` for the distances of :meth:`rotated` (the same yaw change; pass them as
