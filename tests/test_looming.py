@@ -144,8 +144,8 @@ def head_on(K=120, fps=30.0, speed=4.0, d0=30.0, sigma_px=0.3, sigma_s=0.004, se
     return pts, frames
 
 
-def _run(frames, looming, scales=True):
-    est = RangeEstimator(CAM, EstimatorConfig(), ekf_anchored=AnchoredEKFConfig(sigma_px=0.3, looming=looming))
+def _run(frames, looming, scales=True, **kw):
+    est = RangeEstimator(CAM, EstimatorConfig(), ekf_anchored=AnchoredEKFConfig(looming=looming, **{"sigma_px": 0.3, **kw}))
     for t, R, p, ids, uv, s, ss in frames:
         out = est.process(t, R, p, ids, uv, scale=s if scales else None, scale_sigma=ss if scales else None)
     return out
@@ -165,6 +165,28 @@ def test_range_at_the_focus_of_expansion_needs_looming():
     assert abs(on.range[0] - truth) < 3 * on.range_sigma[0]
     assert on.range_sigma[0] < 0.15 * truth
     assert abs(on.range[0] - truth) < 0.1 * truth
+
+
+def test_looming_at_the_focus_of_expansion_with_the_position_error_states():
+    """The filter with the position-error states (δ, σ_p 0.1 m, τ 30 s) on head-on flights with exact telemetry, 12
+    seeds, points 0, 2 and 5° off the axis.  With 1 px of pixel noise every point converges and the range's σ holds its
+    error (NEES within 0.5–1.5, mean error under 1σ).  With 0.3 px the same flights range short: mean error −1.5σ, NEES
+    4 (the white term gives +0.15σ, NEES 0.4): the δ prior then outweighs the pixels; not found why
+    (docs/BENCHMARKS.md, "The quads on the position-error states, with the cap gated and uncertain remembered points
+    withheld")."""
+    def z_of(sigma_px, all_kept=True):
+        z = []
+        for seed in range(12):
+            pts, frames = head_on(seed=seed, offsets_deg=(0.0, 2.0, 5.0), sigma_px=sigma_px)
+            out = _run(frames, looming=True, sigma_px=sigma_px, position_tau_s=30.0, position_sigma_m=0.1)
+            assert not all_kept or (len(out.ids) == 3 and out.converged.all())
+            z.extend((out.range - np.linalg.norm(pts[out.ids] - frames[-1][2], axis=1)) / out.range_sigma)
+        return np.asarray(z)
+
+    z = z_of(1.0)
+    assert 0.5 < np.mean(z**2) < 1.5 and abs(np.mean(z)) < 1.0
+    z = z_of(0.3, all_kept=False)  # the open case (one point of 36 is also retired), held so that a change to it shows
+    assert np.mean(z) < -1.0 and np.mean(z**2) > 2.0
 
 
 def test_looming_off_or_absent_leaves_outputs_unchanged():

@@ -1,5 +1,6 @@
 """Local obstacle map (DESIGN §7): retention, re-observation, drift, sectors over 360°, inference."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -539,3 +540,30 @@ def test_map_entry_needs_a_nis_near_the_frames_median():
     assert consistent_for_entry(nis[:5], conv[:5], 10.0).all()
     with pytest.raises(ConfigError, match="max_entry_nis_ratio"):
         MapConfig(max_entry_nis_ratio=-1.0)
+
+
+def test_a_point_ranged_from_afar_and_passed_close_by_is_withheld_by_the_drop_rule():
+    """``remembered_drop_spread_deg`` = 5 (measured, not shipped; docs/BENCHMARKS.md, "The quads on the
+    position-error states, with the cap gated and uncertain remembered points withheld"): three points on a pole 10 m north, ranged from the south with a 0.6 m range σ, then passed 1.5 m
+    beside.  Their old range σ now lies across the line of sight (σ_t ≈ 0.43 m at 1.5 m: a 16° spread), so
+    they say nothing about the bearing and are not published; the same points ranged from close by (σ along
+    the new line of sight) still are.  With the rule off (90°, shipped) the uncertain ones claim sectors."""
+    pole = np.array([[10.0, 0.0, 0.0], [10.0, 0.05, -0.4], [10.0, -0.05, 0.4]])
+    along_north = np.diag([0.6**2, 0.03**2, 0.03**2])
+    along_east = np.diag([0.03**2, 0.1**2, 0.03**2])
+    vehicle = np.array([10.0, -1.5, 0.0])
+    shipped = dataclasses.replace(SectorConfig(), remembered_drop_spread_deg=5.0)
+    claimed = {}
+    for name, P in (("afar", along_north), ("close", along_east)):
+        m = ObstacleMap(MapConfig())
+        m.observe(0.0, [1, 2, 3], pole, np.repeat(P[None], 3, 0), live_keys=[])
+        rem = m.remembered(1.0, vehicle)
+        assert sorted(rem.keys.tolist()) == [1, 2, 3]
+        kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=world_to_body(rem.p_world, np.eye(3), vehicle),
+                  remembered_sigma=rem.range_sigma, remembered_tangential_sigma=rem.tangential_sigma)
+        for cfg in (shipped, dataclasses.replace(shipped, remembered_drop_spread_deg=90.0)):
+            s = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, 0.0, cfg, **kw)
+            claimed[name, cfg.remembered_drop_spread_deg] = np.flatnonzero(s.state == SectorState.OBSTACLE).tolist()
+    assert claimed["afar", 5.0] == []  # dropped: unknown, never "clear"
+    assert claimed["close", 5.0] == claimed["close", 90.0] and 18 in claimed["close", 5.0]  # east, 1.5 m: kept as it was
+    assert len(claimed["afar", 90.0]) > len(claimed["close", 90.0])  # the rule off: spread over the sectors around
