@@ -567,3 +567,36 @@ def test_a_point_ranged_from_afar_and_passed_close_by_is_withheld_by_the_drop_ru
     assert claimed["afar", 5.0] == []  # dropped: unknown, never "clear"
     assert claimed["close", 5.0] == claimed["close", 90.0] and 18 in claimed["close", 5.0]  # east, 1.5 m: kept as it was
     assert len(claimed["afar", 90.0]) > len(claimed["close", 90.0])  # the rule off: spread over the sectors around
+
+
+def test_the_drop_rule_across_the_line_of_sight_only_keeps_a_pole_hovered_before():
+    """``remembered_drop_across_only``: a pole 1.9 m ahead, its points last seen 10 s ago from where the vehicle still
+    hovers.  Their σ has grown with the drift model (0.02 m/s) along and across the line of sight alike, so their
+    bearing σ (≈ 6°) exceeds a 5° drop: the plain rule withholds them and the sector goes unknown (what let a
+    simulated PX4 fly into the slalom's pole, docs/BENCHMARKS.md, "The quads on the position-error states"); across
+    the line of sight only, they stay.  The pole ranged from afar and passed close by is still withheld."""
+    pole = np.array([[1.9, 0.0, 0.0], [1.9, 0.03, -0.4], [1.9, -0.03, 0.4]])
+    seen_here = np.diag([0.15**2, 0.02**2, 0.02**2])  # ranged from here: its σ along the line of sight
+    vehicle = np.zeros(3)
+    m = ObstacleMap(MapConfig())
+    m.observe(0.0, [1, 2, 3], pole, np.repeat(seen_here[None], 3, 0), live_keys=[])
+    rem = m.remembered(10.0, vehicle)
+    assert np.all(rem.tangential_sigma / 1.9 > math.radians(5.0)) and np.all(rem.tangential_sigma <= rem.range_sigma)
+    kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=world_to_body(rem.p_world, np.eye(3), vehicle),
+              remembered_sigma=rem.range_sigma, remembered_tangential_sigma=rem.tangential_sigma)
+    plain = dataclasses.replace(SectorConfig(), remembered_drop_spread_deg=5.0)
+    across = dataclasses.replace(plain, remembered_drop_across_only=True)
+    s_plain = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, 0.0, plain, **kw)
+    s_across = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, 0.0, across, **kw)
+    assert s_plain.state[0] == SectorState.UNKNOWN
+    assert s_across.state[0] == SectorState.OBSTACLE and s_across.distances_cm[0] < 190
+    # the point ranged from afar and passed close by (σ_t ≫ σ_r) is withheld by both
+    passed = np.array([[10.0, 0.0, 0.0], [10.0, 0.05, -0.4], [10.0, -0.05, 0.4]])
+    m = ObstacleMap(MapConfig())
+    m.observe(0.0, [1, 2, 3], passed, np.repeat(np.diag([0.6**2, 0.03**2, 0.03**2])[None], 3, 0), live_keys=[])
+    rem = m.remembered(1.0, np.array([10.0, -1.5, 0.0]))
+    kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=world_to_body(rem.p_world, np.eye(3), np.array([10.0, -1.5, 0.0])),
+              remembered_sigma=rem.range_sigma, remembered_tangential_sigma=rem.tangential_sigma)
+    assert not np.any(compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, 0.0, across, **kw).state == SectorState.OBSTACLE)
+    with pytest.raises(ConfigError, match="remembered_drop_across_only"):
+        SectorConfig(remembered_drop_across_only=1)

@@ -545,11 +545,15 @@ def _spread_remembered(p, p_level, sig, conv, usable, mem, r, mem_tan, n_live, c
     """Copies of each remembered point at bearings covering β ± k·σ_t/d (k = ``remembered_spread_k``,
     at most ``remembered_max_spread_deg``), turned about the levelled vertical through the vehicle (range and height unchanged).
     A point with k·σ_t/d beyond ``remembered_drop_spread_deg`` is marked unusable: spread over that
-    many sectors it would claim obstacles in the clear sectors beside a thin one (docs/derivations/sectors.md)."""
+    many sectors it would claim obstacles in the clear sectors beside a thin one (docs/derivations/sectors.md);
+    with ``remembered_drop_across_only`` only if also σ_t > its range σ (uncertain across the line of sight)."""
     d_h = np.hypot(p_level[n_live:, 0], p_level[n_live:, 1])
     w_raw = config.remembered_spread_k * mem_tan / np.maximum(d_h, 1e-6)
     usable = usable.copy()
-    usable[n_live:] &= w_raw <= math.radians(config.remembered_drop_spread_deg)  # bearing too uncertain: not published
+    drop = ~(w_raw <= math.radians(config.remembered_drop_spread_deg))  # bearing too uncertain: not published ...
+    if config.remembered_drop_across_only:
+        drop &= ~(mem_tan <= sig[n_live:])  # ... when that uncertainty lies across the line of sight
+    usable[n_live:] &= ~drop
     w = np.minimum(w_raw, math.radians(config.remembered_max_spread_deg))
     half = math.radians(SECTOR_DEG / 2)
     J = np.where(usable[n_live:] & (w > half), np.ceil(w / math.radians(SECTOR_DEG)).astype(np.int64), 0)

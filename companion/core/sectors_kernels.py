@@ -36,7 +36,7 @@ _VIEW_OFFSETS = np.radians(np.linspace(-SECTOR_DEG / 2, SECTOR_DEG / 2, _SAMPLES
 (_K_MIN_M, _K_MAX_M, _K_SIGMA_K, _K_BAND_METRES, _K_HALF_H, _K_HALF_ANGLE_RAD, _K_TAN_HALF_ANGLE, _K_N_OBS, _K_N_CLR,
  _K_VETO, _K_TOUCH, _K_SPREAD_K, _K_MAX_SPREAD_RAD, _K_DROP_SPREAD_RAD, _K_GAP, _K_REL_TOL, _K_NARROW_M, _K_NARROW_N,
  _K_VERT, _K_VERT_WIN, _K_VERT_GROUND, _K_ONE_SIDE, _K_MIN_EXTENT, _K_REACH, _K_CAP, _K_GROUND_MARGIN, _K_MIN_CM,
- _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_CAP_GATE, _K_SIZE) = range(35)
+ _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_CAP_GATE, _K_DROP_ACROSS, _K_SIZE) = range(36)
 
 
 def _kernel_config(config: SectorConfig) -> np.ndarray:
@@ -60,6 +60,7 @@ def _kernel_config(config: SectorConfig) -> np.ndarray:
     v[_K_VETO], v[_K_VERT], v[_K_ONE_SIDE] = c.unconverged_veto_clear, c.infer_vertical, c.infer_vertical_one_side
     v[_K_MAX_SPREAD_RAD] = math.radians(c.remembered_max_spread_deg)
     v[_K_DROP_SPREAD_RAD] = math.radians(c.remembered_drop_spread_deg)
+    v[_K_DROP_ACROSS] = c.remembered_drop_across_only
     v[_K_GAP], v[_K_NARROW_N] = c.infer_max_gap_sectors, c.infer_narrow_max_sectors
     v[_K_MIN_CM], v[_K_MAX_CM] = c.min_distance_cm, c.max_distance_cm
     v[_K_FUSE_G], v[_K_FUSE_RHO] = c.fuse_gate_k, c.fuse_correlation
@@ -199,8 +200,8 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
             i = n_live + q
             dh = np.hypot(pl_in[i, 0], pl_in[i, 1])
             w_raw = cfg[_K_SPREAD_K] * mem_tan[q] / max(dh, 1e-6)
-            if not (w_raw <= cfg[_K_DROP_SPREAD_RAD]):
-                usable_in[i] = False  # bearing too uncertain: not published
+            if not (w_raw <= cfg[_K_DROP_SPREAD_RAD]) and (cfg[_K_DROP_ACROSS] == 0.0 or not (mem_tan[q] <= sig_in[i])):
+                usable_in[i] = False  # bearing too uncertain (across the line of sight): not published
             w = min(w_raw, cfg[_K_MAX_SPREAD_RAD])
             spread_w[q] = w
             if usable_in[i] and w > half:

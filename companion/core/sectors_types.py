@@ -71,6 +71,7 @@ class SectorConfig:
     remembered_spread_k: float = 1.0  # a remembered point is spread over bearings ± remembered_spread_k·σ_tangential/range ...
     remembered_max_spread_deg: float = 15.0  # ... at most this far, degrees
     remembered_drop_spread_deg: float = 90.0  # a remembered point whose k·σ_tangential/range exceeds this is not published (its bearing is too uncertain to place it), degrees
+    remembered_drop_across_only: bool = False  # ... only when its σ_tangential also exceeds its range σ: uncertain across the line of sight (ranged from afar, passed close by), not a point whose whole σ grew with time (hovered before)
     infer_max_gap_sectors: int = 1  # unknown gaps up to this many sectors between two consistent obstacle sectors are inferred obstacles (0 = off)
     infer_rel_tol: float = 0.15  # the two sides are consistent when their ranges differ by at most this fraction of the nearer
     infer_narrow_gap_m: float = 4.0  # an unknown gap (up to infer_narrow_max_sectors) between two obstacle sectors whose points lie at most this far apart is filled with the straight line between them (too narrow to fly through); 0 = off
@@ -118,6 +119,7 @@ class SectorConfig:
         require_finite("remembered_spread_k", self.remembered_spread_k, nonnegative=True)
         require_finite("remembered_drop_spread_deg", self.remembered_drop_spread_deg, positive=True)
         require(self.remembered_drop_spread_deg <= 90, "remembered_drop_spread_deg must be <= 90")
+        require(isinstance(self.remembered_drop_across_only, bool), f"remembered_drop_across_only must be true or false, got {self.remembered_drop_across_only!r}")
         require(isinstance(self.infer_max_gap_sectors, int) and not isinstance(self.infer_max_gap_sectors, bool)
                 and 0 <= self.infer_max_gap_sectors <= 6, f"infer_max_gap_sectors must be an integer in 0..6, got {self.infer_max_gap_sectors!r}")
         require_finite("infer_rel_tol", self.infer_rel_tol, nonnegative=True)
