@@ -542,31 +542,37 @@ def test_map_entry_needs_a_nis_near_the_frames_median():
         MapConfig(max_entry_nis_ratio=-1.0)
 
 
+def _remembered_claims(points, P, vehicle, t_now, cfg):
+    """Obstacle sectors that ``points`` (entered at t = 0 with covariance ``P`` each, no longer live) claim at
+    ``t_now`` from ``vehicle`` (NED, heading north), through the map's ``remembered`` and ``compute_sectors``."""
+    m = ObstacleMap(MapConfig())
+    m.observe(0.0, np.arange(1, len(points) + 1), points, np.repeat(P[None], len(points), 0), live_keys=[])
+    rem = m.remembered(t_now, vehicle)
+    assert len(rem) == len(points)
+    s = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, 0.0, cfg, roll_pitch_rad=(0.0, 0.0),
+                        remembered_p_body=world_to_body(rem.p_world, np.eye(3), vehicle), remembered_sigma=rem.range_sigma,
+                        remembered_tangential_sigma=rem.tangential_sigma)
+    return s, rem
+
+
 def test_a_point_ranged_from_afar_and_passed_close_by_is_withheld_by_the_drop_rule():
     """``remembered_drop_spread_deg`` = 5 (measured, not shipped; docs/BENCHMARKS.md, "The quads on the
-    position-error states, with the cap gated and uncertain remembered points withheld"): three points on a pole 10 m north, ranged from the south with a 0.6 m range σ, then passed 1.5 m
-    beside.  Their old range σ now lies across the line of sight (σ_t ≈ 0.43 m at 1.5 m: a 16° spread), so
-    they say nothing about the bearing and are not published; the same points ranged from close by (σ along
-    the new line of sight) still are.  With the rule off (90°, shipped) the uncertain ones claim sectors."""
+    position-error states, with the cap gated and uncertain remembered points withheld"): three points on a pole 10 m
+    north, ranged from the south with a 0.6 m range σ, then passed 1.5 m beside.  Their old range σ now lies across the
+    line of sight (σ_t ≈ 0.43 m at 1.5 m: a 16° spread), so they say nothing about the bearing and are not published,
+    with ``remembered_drop_across_only`` too; the same points ranged from close by (σ along the new line of sight)
+    still are.  With the rule off (90°, shipped) the uncertain ones claim sectors."""
     pole = np.array([[10.0, 0.0, 0.0], [10.0, 0.05, -0.4], [10.0, -0.05, 0.4]])
-    along_north = np.diag([0.6**2, 0.03**2, 0.03**2])
-    along_east = np.diag([0.03**2, 0.1**2, 0.03**2])
+    covariances = {"afar": np.diag([0.6**2, 0.03**2, 0.03**2]), "close": np.diag([0.03**2, 0.1**2, 0.03**2])}
     vehicle = np.array([10.0, -1.5, 0.0])
-    shipped = dataclasses.replace(SectorConfig(), remembered_drop_spread_deg=5.0)
-    claimed = {}
-    for name, P in (("afar", along_north), ("close", along_east)):
-        m = ObstacleMap(MapConfig())
-        m.observe(0.0, [1, 2, 3], pole, np.repeat(P[None], 3, 0), live_keys=[])
-        rem = m.remembered(1.0, vehicle)
-        assert sorted(rem.keys.tolist()) == [1, 2, 3]
-        kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=world_to_body(rem.p_world, np.eye(3), vehicle),
-                  remembered_sigma=rem.range_sigma, remembered_tangential_sigma=rem.tangential_sigma)
-        for cfg in (shipped, dataclasses.replace(shipped, remembered_drop_spread_deg=90.0)):
-            s = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, 0.0, cfg, **kw)
-            claimed[name, cfg.remembered_drop_spread_deg] = np.flatnonzero(s.state == SectorState.OBSTACLE).tolist()
-    assert claimed["afar", 5.0] == []  # dropped: unknown, never "clear"
-    assert claimed["close", 5.0] == claimed["close", 90.0] and 18 in claimed["close", 5.0]  # east, 1.5 m: kept as it was
-    assert len(claimed["afar", 90.0]) > len(claimed["close", 90.0])  # the rule off: spread over the sectors around
+    drop = dataclasses.replace(SectorConfig(), remembered_drop_spread_deg=5.0)
+    configs = {"5": drop, "90": dataclasses.replace(drop, remembered_drop_spread_deg=90.0),
+               "5 across": dataclasses.replace(drop, remembered_drop_across_only=True)}
+    claimed = {(name, c): np.flatnonzero(_remembered_claims(pole, P, vehicle, 1.0, cfg)[0].state == SectorState.OBSTACLE).tolist()
+               for name, P in covariances.items() for c, cfg in configs.items()}
+    assert claimed["afar", "5"] == [] and claimed["afar", "5 across"] == []  # dropped: unknown, never "clear"
+    assert claimed["close", "5"] == claimed["close", "90"] and 18 in claimed["close", "5"]  # east, 1.5 m: kept as it was
+    assert len(claimed["afar", "90"]) > len(claimed["close", "90"])  # the rule off: spread over the sectors around
 
 
 def test_the_drop_rule_across_the_line_of_sight_only_keeps_a_pole_hovered_before():
@@ -574,29 +580,15 @@ def test_the_drop_rule_across_the_line_of_sight_only_keeps_a_pole_hovered_before
     hovers.  Their σ has grown with the drift model (0.02 m/s) along and across the line of sight alike, so their
     bearing σ (≈ 6°) exceeds a 5° drop: the plain rule withholds them and the sector goes unknown (what let a
     simulated PX4 fly into the slalom's pole, docs/BENCHMARKS.md, "The quads on the position-error states"); across
-    the line of sight only, they stay.  The pole ranged from afar and passed close by is still withheld."""
+    the line of sight only, they stay.  (The pole ranged from afar and passed close by is still withheld: the test
+    above.)"""
     pole = np.array([[1.9, 0.0, 0.0], [1.9, 0.03, -0.4], [1.9, -0.03, 0.4]])
     seen_here = np.diag([0.15**2, 0.02**2, 0.02**2])  # ranged from here: its σ along the line of sight
-    vehicle = np.zeros(3)
-    m = ObstacleMap(MapConfig())
-    m.observe(0.0, [1, 2, 3], pole, np.repeat(seen_here[None], 3, 0), live_keys=[])
-    rem = m.remembered(10.0, vehicle)
-    assert np.all(rem.tangential_sigma / 1.9 > math.radians(5.0)) and np.all(rem.tangential_sigma <= rem.range_sigma)
-    kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=world_to_body(rem.p_world, np.eye(3), vehicle),
-              remembered_sigma=rem.range_sigma, remembered_tangential_sigma=rem.tangential_sigma)
     plain = dataclasses.replace(SectorConfig(), remembered_drop_spread_deg=5.0)
-    across = dataclasses.replace(plain, remembered_drop_across_only=True)
-    s_plain = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, 0.0, plain, **kw)
-    s_across = compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, 0.0, across, **kw)
+    s_plain, rem = _remembered_claims(pole, seen_here, np.zeros(3), 10.0, plain)
+    s_across, _ = _remembered_claims(pole, seen_here, np.zeros(3), 10.0, dataclasses.replace(plain, remembered_drop_across_only=True))
+    assert np.all(rem.tangential_sigma / 1.9 > math.radians(5.0)) and np.all(rem.tangential_sigma <= rem.range_sigma)
     assert s_plain.state[0] == SectorState.UNKNOWN
     assert s_across.state[0] == SectorState.OBSTACLE and s_across.distances_cm[0] < 190
-    # the point ranged from afar and passed close by (σ_t ≫ σ_r) is withheld by both
-    passed = np.array([[10.0, 0.0, 0.0], [10.0, 0.05, -0.4], [10.0, -0.05, 0.4]])
-    m = ObstacleMap(MapConfig())
-    m.observe(0.0, [1, 2, 3], passed, np.repeat(np.diag([0.6**2, 0.03**2, 0.03**2])[None], 3, 0), live_keys=[])
-    rem = m.remembered(1.0, np.array([10.0, -1.5, 0.0]))
-    kw = dict(roll_pitch_rad=(0.0, 0.0), remembered_p_body=world_to_body(rem.p_world, np.eye(3), np.array([10.0, -1.5, 0.0])),
-              remembered_sigma=rem.range_sigma, remembered_tangential_sigma=rem.tangential_sigma)
-    assert not np.any(compute_sectors(np.zeros((0, 3)), [], [], [], HFOV, 0.0, across, **kw).state == SectorState.OBSTACLE)
     with pytest.raises(ConfigError, match="remembered_drop_across_only"):
         SectorConfig(remembered_drop_across_only=1)
