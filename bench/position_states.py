@@ -9,9 +9,11 @@ truth (from the *true* camera): NEES (ideal 1), the share within ±σ and ±2σ 
 error and the median σ.  The landmarks of one run share the position error, so the band of the mean
 NEES is the χ²₁ band of ``runs`` independent samples, not of every landmark.
 
-Cases: a quad (σ_p 0.1 m, 4 m/s, landmarks 10–40 m ahead, 6 s) and a fixed-wing (σ_p 0.5 m, 30 m/s,
-100–250 m, 5 s), each with the error treated as white noise (``position_tau_s`` = 0: R gets
-2 (ρ σ_p)²) and estimated as states (``position_tau_s`` = 30).
+Cases: a quad (σ_p 0.1 m, 4 m/s, landmarks 10–40 m ahead, 6 s), a fixed-wing (σ_p 0.5 m, 30 m/s,
+100–250 m, 5 s) and a quad that approaches at 1 m/s for 3 s and then hovers 6 s in front of
+landmarks 2–6 m away (σ_p 0.1 m, a few centimetres of sway), each with the error treated as white
+noise (``position_tau_s`` = 0: R gets 2 (ρ σ_p)²), estimated as states (``position_tau_s`` = 30) and
+carried as consider states (``position_consider``: their covariance only, mean 0).
 
     python -m bench.position_states --runs 100
 """
@@ -28,21 +30,26 @@ import numpy as np
 CASES = {
     "quad": dict(sigma=0.1, speed=4.0, dist=(10.0, 40.0), lat=5.0, T=6.0),
     "fixed-wing": dict(sigma=0.5, speed=30.0, dist=(100.0, 250.0), lat=30.0, T=5.0),
+    "hover": dict(sigma=0.1, speed=1.0, dist=(5.0, 9.0), lat=1.5, T=9.0, stop=3.0, sway=0.03),
 }
-MODELS = {"white": 0.0, "states": 30.0}  # position_tau_s
+#: model → (position_tau_s, position_consider)
+MODELS = {"white": (0.0, False), "states": (30.0, False), "consider": (30.0, True)}
 
 
 def gauss_markov_flight(cfg, runs: int, sigma: float, tau: float = 30.0, speed: float = 8.0, dist=(30.0, 80.0),
-                        lat: float = 8.0, n: int = 8, T: float = 3.0, hz: float = 20.0, seed0: int = 1000):
+                        lat: float = 8.0, n: int = 8, T: float = 3.0, hz: float = 20.0, seed0: int = 1000,
+                        stop: float | None = None, sway: float = 1.0):
     """Range errors of the landmarks in view at the end of ``runs`` seeded flights (module docstring).
 
-    ``cfg`` is the :class:`AnchoredEKFConfig`; returns (error m, σ m, run index) per landmark, arrays."""
+    ``cfg`` is the :class:`AnchoredEKFConfig`; the camera flies at ``speed`` until ``stop`` s (None: to the end)
+    and sways ``sway`` m sideways; returns (error m, σ m, run index) per landmark, arrays."""
     from companion.core.ekf_anchored import AnchoredInverseDepthEKF
     from companion.core.frames import so3_exp
 
     K, dt, f = int(T * hz), 1.0 / hz, 500.0
     t = np.arange(K) * dt
-    C = np.stack([np.zeros(K), np.sin(2 * t), speed * t], 1)  # true camera centre: along z (the optical axis), swaying
+    C = np.stack([np.zeros(K), sway * np.sin(2 * t), speed * np.minimum(t, T if stop is None else stop)], 1)  # true camera
+    # centre: along z (the optical axis), swaying
     R = so3_exp(np.stack([0.02 * np.sin(t), 0.03 * np.sin(1.3 * t), 0.02 * t], 1))
     a = np.exp(-dt / tau)
     err, sig, run = [], [], []
@@ -79,9 +86,9 @@ def run(runs: int = 100) -> dict:
     out = {}
     band = nees_band(runs)  # the mean of `runs` independent χ²₁ samples (one per run: its landmarks share the error)
     for case, kw in CASES.items():
-        for model, tau in MODELS.items():
+        for model, (tau, consider) in MODELS.items():
             cfg = AnchoredEKFConfig(attitude_drift_deg_s=0.0, max_mean_nis=0.0, max_drift_chi2=0.0, position_sigma_m=kw["sigma"],
-                                    position_tau_s=tau)
+                                    position_tau_s=tau, position_consider=consider)
             e, s, _ = gauss_markov_flight(cfg, runs, **kw)
             nees = e**2 / s**2
             out[f"{case}/{model}"] = dict(
@@ -97,7 +104,8 @@ def markdown(res: dict) -> str:
              "within ±σ / ±2σ | RMS error | median σ |", "|---|---|---|---|---|---|---|---|"]
     for r in res.values():
         lo, hi = r["band"]
-        model = "white, 2 (ρ σ_p)² in R" if r["model"] == "white" else "states δ (τ 30 s)"
+        model = {"white": "white, 2 (ρ σ_p)² in R", "states": "states δ (τ 30 s)",
+                 "consider": "consider states δ (τ 30 s, mean 0)"}[r["model"]]
         lines.append(f"| {r['case']} | {model} | {r['landmarks']} ({r['runs']}) | {r['nees_mean']:.2f} ({lo:.2f}–{hi:.2f} "
                      f"{'✓' if r['consistent'] else '✗'}) | {r['nees_median']:.2f} | {100 * r['within_1sigma']:.1f} % / "
                      f"{100 * r['within_2sigma']:.1f} % | {r['rms_error_m']:.3f} m | {r['median_sigma_m']:.3f} m |")

@@ -5,7 +5,9 @@ The telemetry's position carries a first-order Gauss–Markov error e(t) (σ_p, 
 analytic Jacobians of both measurement models against numeric ones for every layout, the process
 model (Var δ grows by q Δt, also across rejected updates), the compiled kernels against the numpy
 reference, and a seeded Monte Carlo with a Gauss–Markov position error in which the range σ is
-honest with the states and over-confident without them.
+honest with the states and over-confident without them.  The consider form (``position_consider``: δ's
+gain is zero, its mean stays 0, its covariance and cross-covariances are carried) is checked against the
+Joseph form with that gain, against the reference, and on a hover, where estimating δ drifts the range.
 """
 
 import numpy as np
@@ -134,20 +136,21 @@ def test_process_grows_the_delta_variance_also_when_rejected(path, kernels):
     assert bank.P[0, 3, 3] < 2 * 0.5**2
 
 
-def _bank(drift, seed=0):
+def _bank(drift, seed=0, consider=False):
     """test_ekf_anchored_kernels' flight bank with the position-error states (and the gyro bias when ``drift``)."""
-    return flight_bank(seed=seed, attitude_drift_deg_s=drift, position_sigma_m=0.3, position_tau_s=20.0, iterations=3)
+    return flight_bank(seed=seed, attitude_drift_deg_s=drift, position_sigma_m=0.3, position_tau_s=20.0, iterations=3,
+                       position_consider=consider)
 
 
-@pytest.mark.parametrize("drift", [0.0, 0.03])
-def test_kernels_match_the_reference_with_position_states(path, drift):
+@pytest.mark.parametrize("drift,consider", [(0.0, False), (0.03, False), (0.0, True), (0.03, True)])
+def test_kernels_match_the_reference_with_position_states(path, drift, consider):
     """Frame updates, replayed sequences, looming and the outputs: the compiled kernels equal the numpy
-    reference to float rounding, with δ in x (n = 6 and 9)."""
+    reference to float rounding, with δ in x (n = 6 and 9), estimated or considered."""
     runs = []
     for kernels in (False, True):
         path(kernels)
-        bank, ids, xy, R, C, t = _bank(drift)
-        seq, *_ = _bank(drift, seed=1)
+        bank, ids, xy, R, C, t = _bank(drift, consider=consider)
+        seq, *_ = _bank(drift, seed=1, consider=consider)
         results = []
         for k in range(1, len(t)):
             sel = ids[(np.arange(len(ids)) + k) % 5 != 0]
@@ -172,6 +175,53 @@ def test_kernels_match_the_reference_with_position_states(path, drift):
         np.testing.assert_allclose(getattr(e1, name), getattr(e0, name), rtol=1e-8, err_msg=name)
     np.testing.assert_array_equal(e0.converged, e1.converged)
     assert np.any(b0.P[:, b0.i_pos, b0.i_pos] > 0) and e0.converged.any()
+    d = slice(b0.i_pos, b0.i_pos + 3)
+    assert np.all(b0.x[:, d] == 0) == consider  # considered: δ's mean never moves
+
+
+@pytest.mark.parametrize("kernels", [False, True])
+@pytest.mark.parametrize("looming", [False, True])
+def test_consider_update_is_the_joseph_form_with_zero_delta_gain(path, kernels, looming):
+    """One plain-EKF update (pixel or looming) of a landmark with correlated δ: with ``position_consider`` the
+    state and covariance equal x + K y and (I − K H) P (I − K H)ᵀ + K R Kᵀ with K = P Hᵀ S⁻¹ and K's δ rows
+    zeroed, computed here from the analytic Jacobian: δ's mean and covariance do not move, the rest does."""
+    path(kernels)
+    cfg = AnchoredEKFConfig(**BARE, position_sigma_m=0.2, position_tau_s=30.0, position_consider=True, iterations=1,
+                            looming_iterations=1, looming_sigma_floor=0.003)
+    bank = AnchoredInverseDepthEKF(cfg, 400.0, 400.0)
+    g = np.random.default_rng(7)
+    bank.add([1], [[0.05, -0.02]], np.eye(3), np.zeros(3), 0.0, 0.12, 0.03)
+    A = g.normal(size=(6, 6)) * 0.02
+    bank.P[0] = bank.P[0] + A @ A.T  # correlated δ (and everything else)
+    bank.x[0, 3:] = [0.05, -0.03, 0.02]
+    bank.t_last[0] = 2.0  # δ already propagated: the update adds no process noise
+    x0, P0 = bank.x[0].copy(), bank.P[0].copy()
+    Rp, Cp = so3_exp(np.array([0.01, -0.02, 0.005])), np.array([0.2, 0.1, 2.0])
+    Rc, C = so3_exp(np.array([0.012, -0.018, 0.004])), np.array([0.22, 0.1, 2.15])
+    if looming:
+        z = np.array([1.02])
+        res = AnchoredInverseDepthEKF.update_looming_banks([(bank, np.array([1]), z, np.array([0.004]))], Rp, Cp, 1.9,
+                                                           Rc, C, 2.0)[0]
+        zhat, H = AnchoredInverseDepthEKF.measure_looming(x0[None], np.eye(3), np.zeros(3), Rp, Cp, Rc, C,
+                                                          position_states=True)
+        y, H, Rm = (z - zhat[0])[:, None], H[0][None, :], np.array([[0.004**2 + 0.003**2]])
+    else:
+        _, zhat, H = AnchoredInverseDepthEKF.measure(x0[None], np.eye(3)[None], np.zeros((1, 3)), Rc, C,
+                                                     position_states=True)
+        zhat, H = zhat[0], H[0]
+        z = zhat + np.array([0.004, -0.003])
+        res = bank.update([1], z[None], Rc, C, 2.0)
+        y, Rm = (z - zhat)[:, None], np.diag(bank.measurement_variance(x0[None])[0])
+    assert res.accepted[0]
+    S = H @ P0 @ H.T + Rm
+    K = P0 @ H.T @ np.linalg.inv(S)
+    K[3:] = 0.0
+    I_KH = np.eye(6) - K @ H
+    np.testing.assert_allclose(bank.x[0], x0 + (K @ y)[:, 0], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(bank.P[0], I_KH @ P0 @ I_KH.T + K @ Rm @ K.T, rtol=1e-7, atol=1e-12)
+    np.testing.assert_array_equal(bank.x[0, 3:], x0[3:])
+    np.testing.assert_allclose(bank.P[0, 3:, 3:], P0[3:, 3:], rtol=1e-12)
+    assert abs(bank.x[0, 2] - x0[2]) > 1e-6 and not np.allclose(bank.P[0, :3, 3:], P0[:3, 3:])  # ρ and the cross terms move
 
 
 def test_range_sigma_includes_delta():
@@ -218,6 +268,37 @@ def test_gauss_markov_position_error_honest_with_states(path, kind):
     assert nees_w.mean() > 2.0 and cov_w.mean() < 0.85, (nees_w.mean(), cov_w.mean())
 
 
+@pytest.mark.parametrize("position_sigma", [0.0, 0.1])
+def test_hover_drifts_the_range_when_delta_is_estimated_not_when_considered(path, position_sigma):
+    """bench.position_states' hover: 3 s of approach at 1 m/s, then 6 s of hover before landmarks 2–6 m away, 40
+    seeded runs, the filter told σ_p = 0.1 m.  In a hover the pixels cannot tell ρ from δ along the line of sight;
+    an EKF that estimates δ gains information there at each relinearization and drifts.  With exact telemetry
+    (``position_sigma`` 0) the estimated δ pull the ranges short by ~18σ (NEES ~630); considered, they stay put
+    (|mean error| < 0.5σ).  With the simulator's 0.1 m Gauss–Markov error: NEES ~33 estimated, ~1.4 considered,
+    ~12 with the white term."""
+    path(True)
+    from bench.position_states import CASES
+
+    kw = dict(CASES["hover"], sigma=position_sigma)
+
+    def z_of(tau, consider):
+        cfg = AnchoredEKFConfig(**BARE, max_drift_chi2=0.0, position_sigma_m=0.1, position_tau_s=tau, position_consider=consider)
+        e, s, _ = gauss_markov_flight(cfg, 40, **kw)
+        return e / s
+
+    from bench.position_states import gauss_markov_flight
+
+    z_est, z_con = z_of(30.0, False), z_of(30.0, True)
+    assert len(z_con) > 250
+    if position_sigma == 0.0:
+        assert z_est.mean() < -5.0 and np.mean(z_est**2) > 100.0
+        assert abs(z_con.mean()) < 0.5 and np.mean(z_con**2) < 1.0
+    else:
+        z_white = z_of(0.0, False)
+        assert np.mean(z_est**2) > 10.0 and np.mean(z_white**2) > 5.0
+        assert 0.5 < np.mean(z_con**2) < 2.0 and np.mean(np.abs(z_con) <= 2) > 0.85
+
+
 def test_bench_command_prints_every_case(capsys):
     """python -m bench.position_states: a table row (and a JSON entry) per case and model."""
     from bench import position_states
@@ -226,10 +307,10 @@ def test_bench_command_prints_every_case(capsys):
     import json
 
     res = json.loads(capsys.readouterr().out)
-    assert set(res) == {"quad/white", "quad/states", "fixed-wing/white", "fixed-wing/states"}
+    assert set(res) == {f"{c}/{m}" for c in ("quad", "fixed-wing", "hover") for m in ("white", "states", "consider")}
     assert all(r["runs"] == 3 and r["landmarks"] > 0 and np.isfinite(r["nees_mean"]) for r in res.values())
     assert position_states.main(["--runs", "2"]) == 0
     rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ")]
-    assert len(rows) == 1 + 4  # header + a row per case and model
+    assert len(rows) == 1 + 9  # header + a row per case and model
     with pytest.raises(SystemExit):
         position_states.main(["--runs", "1"])

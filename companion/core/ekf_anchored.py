@@ -123,6 +123,8 @@ class AnchoredInverseDepthEKF:
         #: state size n, whether the gyro bias b is x[3:6], and the index of the position-error states δ (−1: none):
         #: x = (θ, φ, ρ, [b], [δ]) (:meth:`AnchoredEKFConfig.layout`)
         self.n, self.drift, self.i_pos = config.layout()
+        #: δ are consider (Schmidt–Kalman) states: zero gain, mean kept at 0 (§ Position error states, consider form)
+        self.consider = bool(config.position_consider and self.i_pos >= 0)
         self.x = np.zeros((0, self.n))
         self.P = np.zeros((0, self.n, self.n))
         self.R_world_camA = np.zeros((0, 3, 3))
@@ -140,11 +142,11 @@ class AnchoredInverseDepthEKF:
         self.xy_anchor = np.zeros((0, 2))  # the anchor pixel (normalized): the batch refinement's prior (:meth:`_prior`)
         #: the pixel kernels' constants: (σ_px/f)² + σ_att² (2,), the white σ_p (0 with the δ states), χ²₂ gate,
         #: iterations, reject limit, NIS window, mean-NIS limit, the index of δ (−1: none), 2σ_p² and τ of its
-        #: process (§ Measurement noise, § Update, § Bookkeeping, § Position error states)
+        #: process, whether δ are consider states (§ Measurement noise, § Update, § Bookkeeping, § Position error states)
         self._kernel_constants = (
             self.sigma_xy**2 + np.radians(config.attitude_sigma_deg) ** 2, self._white_position_sigma, config.gate_threshold,
             config.iterations, config.max_consecutive_rejects, float(config.nis_window), float(config.max_mean_nis),
-            self.i_pos, float(config.position_variance_limit), float(config.position_tau_s))
+            self.i_pos, float(config.position_variance_limit), float(config.position_tau_s), self.consider)
 
     @property
     def _white_position_sigma(self) -> float:
@@ -459,23 +461,35 @@ class AnchoredInverseDepthEKF:
 
         # iterated EKF: x_{i+1} = x0 + K_i (z − h(x_i) − H_i (x0 − x_i)), K_i = P0 H_iᵀ S_i⁻¹
         xi = x0
-        K = PHt @ Si
+        K = self._consider_gain(PHt @ Si)
         innov = y  # at x_0 the H_0 (x0 − x_0) term vanishes
         for it in range(cfg.iterations):
             if it > 0:
                 h, zhat, H = _predict(xi, ray_map, a, R_cam_world, D, i_pos)
                 PHt, Si = gain(H)
-                K = PHt @ Si
+                K = self._consider_gain(PHt @ Si)
                 ok &= h[:, 2] > 1e-9
                 innov = z - zhat - (H @ (x0 - xi)[:, :, None])[:, :, 0]
             x_new = x0 + (K @ innov[:, :, None])[:, :, 0]
             xi = np.where(ok[:, None], x_new, xi)
         # P = (I − K H) P0 = P0 − K (P0 Hᵀ)ᵀ at the last linearization, symmetrized
         P_new = P0 - K @ np.swapaxes(PHt, 1, 2)
+        if self.consider:  # (I − K H) P₀ (I − K H)ᵀ + K R Kᵀ with K's δ rows 0: the δ rows mirror the δ columns, P_δδ stays
+            d = slice(i_pos, i_pos + 3)
+            P_new[:, d, :] = np.swapaxes(P_new[:, :, d], 1, 2)
+            P_new[:, d, d] = P0[:, d, d]
         P_new = 0.5 * (P_new + np.swapaxes(P_new, 1, 2))
         good = ok & np.isfinite(xi).all(1) & np.isfinite(P_new).all((1, 2))
         reason[ok & ~good] = GATED
         return np.where(good[:, None], xi, x0), np.where(good[:, None, None], P_new, P0), good, nis, reason
+
+    def _consider_gain(self, K: np.ndarray) -> np.ndarray:
+        """K (M,n[,k]) with the δ rows set to 0 when δ are consider states (§ Position error states, consider form):
+        an update then leaves δ's mean (0) and covariance alone and moves only what it correlates with."""
+        if self.consider:
+            K = K.copy()
+            K[:, self.i_pos : self.i_pos + 3] = 0.0
+        return K
 
     def _commit(self, rows, x, P, good, nis) -> None:
         """Store the updated rows and their accept / reject / NIS history."""
@@ -610,8 +624,8 @@ class AnchoredInverseDepthEKF:
         _kernels.update_looming_rows(
             self.x, self.P, self.R_world_camA, self.p_world_camA, self.t_anchor, self.n_looming, self.t_last, rows, c(sc),
             c(sg), c(Rp), c(Cp), t_prev, c(Rc), c(C), t, float(cfg.looming_sigma_floor), cfg.looming_gate_threshold,
-            cfg.looming_iterations, self.i_pos, float(cfg.position_variance_limit), float(cfg.position_tau_s), accepted, nis,
-            reason)
+            cfg.looming_iterations, self.i_pos, float(cfg.position_variance_limit), float(cfg.position_tau_s), self.consider,
+            accepted, nis, reason)
         return UpdateResult(ids, accepted, nis, reason)
 
     def _solve_looming(self, x0, P0, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t):
@@ -630,7 +644,7 @@ class AnchoredInverseDepthEKF:
         reason[behind] = BEHIND
         ok = reason == UPDATED
         xi = x0
-        K = PHt / S[:, None]
+        K = self._consider_gain(PHt / S[:, None])
         innov = y
         H = Hs
         for it in range(cfg.looming_iterations):
@@ -639,7 +653,7 @@ class AnchoredInverseDepthEKF:
                 ok &= (hzp > 1e-9) & (hzn > 1e-9)
                 PHt = (P0 @ H[:, :, None])[:, :, 0]
                 S = np.einsum("ni,ni->n", H, PHt) + var
-                K = PHt / S[:, None]
+                K = self._consider_gain(PHt / S[:, None])
                 innov = z - hs - np.einsum("ni,ni->n", H, x0 - xi)
             xi = np.where(ok[:, None], x0 + K * innov[:, None], xi)
         # Joseph form: (I − K H) P0 (I − K H)ᵀ + K R Kᵀ

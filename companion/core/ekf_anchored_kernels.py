@@ -227,14 +227,16 @@ def propagate(P, t_last, tA, r, t, i_pos, pos_var, pos_tau):
 
 
 @njit(error_model="numpy")
-def update_pixel(x, P, RA, pA, tA, z, Rc, C, t, var_px, position_sigma, gate, iterations, ws, i_pos):
+def update_pixel(x, P, RA, pA, tA, z, Rc, C, t, var_px, position_sigma, gate, iterations, ws, i_pos, consider):
     """One landmark's iterated EKF pixel update (§ Update); x (n,) and P (n×n) are overwritten only
     when accepted.  Returns (accepted, NIS at the first linearization, reason code).
 
     Anchor R_A (3×3), C_A (3,), t_A; measurement z (2,) from the pose R_c (3×3), C (3,) at t.
     ``var_px`` (2,) = (σ_px/f)² + σ_att² per axis and ``position_sigma`` = σ_p (§ Measurement noise);
     ``gate`` = χ²₂(p); ``iterations`` relinearizations (1 = plain EKF); ``ws`` = :func:`pixel_workspace`;
-    ``i_pos`` the index of δ in x (−1: none; δ's covariance already propagated to t by :func:`propagate`).
+    ``i_pos`` the index of δ in x (−1: none; δ's covariance already propagated to t by :func:`propagate`);
+    ``consider``: δ are consider states (§ Position error states, consider form): their gain rows are 0, so their mean
+    and covariance stay as they are and only their cross-covariances with the estimated states change.
     """
     x0, xi, P_new, H, PHt, K, V, zhat = ws
     n = x.shape[0]
@@ -258,6 +260,8 @@ def update_pixel(x, P, RA, pA, tA, z, Rc, C, t, var_px, position_sigma, gate, it
     y0 = z[0] - zhat[0]
     y1 = z[1] - zhat[1]
     i00, i01, i10, i11 = pixel_gain(P, H, var0, var1, PHt, K)
+    if consider:
+        _zero_rows(K, i_pos)
     nis = y0 * (i00 * y0 + i01 * y1) + y1 * (i10 * y0 + i11 * y1)
     if hz <= _HZ_MIN:
         return False, np.inf, BEHIND
@@ -271,6 +275,8 @@ def update_pixel(x, P, RA, pA, tA, z, Rc, C, t, var_px, position_sigma, gate, it
         if not hz > _HZ_MIN:  # an iterate behind the camera: update dropped; reason stays UPDATED, as in the reference
             return False, nis, UPDATED
         pixel_gain(P, H, var0, var1, PHt, K)
+        if consider:
+            _zero_rows(K, i_pos)
         e0 = z[0] - zhat[0]
         e1 = z[1] - zhat[1]
         for k in range(n):
@@ -282,7 +288,26 @@ def update_pixel(x, P, RA, pA, tA, z, Rc, C, t, var_px, position_sigma, gate, it
     for i in range(n):
         for j in range(n):
             P_new[i, j] = P[i, j] - (K[i, 0] * PHt[j, 0] + K[i, 1] * PHt[j, 1])
+    if consider:  # consider form: the δ rows are the transposed δ columns, the δ block is P₀'s (§ Position error states)
+        for i in range(i_pos, i_pos + 3):
+            for j in range(n):
+                P_new[i, j] = P_new[j, i] if j < i_pos else P[i, j]
     return _accept_if_finite(x, P, xi, P_new, nis)  # § Update step 4: non-finite → GATED, state unchanged
+
+
+@njit(error_model="numpy", inline="always")
+def _zero_rows(K, i_pos):
+    """The consider form's pixel gain: K's (n×2) rows of δ (x[i_pos:i_pos+3]) set to 0."""
+    for i in range(i_pos, i_pos + 3):
+        K[i, 0] = 0.0
+        K[i, 1] = 0.0
+
+
+@njit(error_model="numpy", inline="always")
+def _zero_entries(K, i_pos):
+    """The consider form's looming gain: K's (n) entries of δ set to 0."""
+    for i in range(i_pos, i_pos + 3):
+        K[i] = 0.0
 
 
 @njit(error_model="numpy")
@@ -337,7 +362,7 @@ def commit(r, accepted, nis, n_updates, n_rejects, diverged, nis_avg, nis_count,
 @njit(error_model="numpy")
 def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count, t_last,
                            rows, z, Rc, C, t, count, var_px, position_sigma, gate, iterations, max_rejects, nis_window,
-                           max_mean_nis, i_pos, pos_var, pos_tau, accepted, nis, reason):
+                           max_mean_nis, i_pos, pos_var, pos_tau, consider, accepted, nis, reason):
     """Fuse, for each listed landmark i (bank row ``rows[i]``), its observations j < ``count[i]`` in
     order (z (M,K,2) from poses Rc (M,K,3,3), C (M,K,3) at times t (M,K)), each followed by :func:`commit`.
 
@@ -352,7 +377,7 @@ def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis
         for j in range(count[i]):
             propagate(P, t_last, tA, r, t[i, j], i_pos, pos_var, pos_tau)
             ok, nis_ij, reason_ij = update_pixel(x[r], P[r], RA[r], pA[r], tA[r], z[i, j], Rc[i, j], C[i, j], t[i, j],
-                                                 var_px, position_sigma, gate, iterations, ws, i_pos)
+                                                 var_px, position_sigma, gate, iterations, ws, i_pos, consider)
             accepted[i, j] = ok
             nis[i, j] = nis_ij
             reason[i, j] = reason_ij
@@ -363,7 +388,7 @@ def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis
 @njit(error_model="numpy")
 def update_pixel_rows(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count, t_last,
                       rows, z, Rc, C, t, var_px, position_sigma, gate, iterations, max_rejects, nis_window, max_mean_nis,
-                      i_pos, pos_var, pos_tau, accepted, nis, reason):
+                      i_pos, pos_var, pos_tau, consider, accepted, nis, reason):
     """One frame: fuse z[i] (M,2) into bank row ``rows[i]``, all seen from the pose Rc (3,3), C (3,)
     at t, each followed by :func:`commit`; ``accepted``, ``nis``, ``reason`` (M,) written per landmark.
     The same as :func:`update_pixel_sequences` with K = 1 and that pose in every slot."""
@@ -372,7 +397,7 @@ def update_pixel_rows(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg,
         r = rows[i]
         propagate(P, t_last, tA, r, t, i_pos, pos_var, pos_tau)
         ok, nis_i, reason_i = update_pixel(x[r], P[r], RA[r], pA[r], tA[r], z[i], Rc, C, t, var_px, position_sigma,
-                                           gate, iterations, ws, i_pos)
+                                           gate, iterations, ws, i_pos, consider)
         accepted[i] = ok
         nis[i] = nis_i
         reason[i] = reason_i
@@ -405,10 +430,11 @@ def predict_looming(x, RA, a_prev, R_cam_world_prev, D_prev, a, R_cam_world, D, 
 
 
 @njit(error_model="numpy")
-def update_looming(x, P, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t, gate, iterations, ws, i_pos):
+def update_looming(x, P, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t, gate, iterations, ws, i_pos, consider):
     """One landmark's looming update (looming.md § Noise, gate and update): scalar z = scale, R_s = ``var``,
     χ²₁ ``gate``, iterated ``iterations`` times, Joseph form; x, P overwritten only when accepted.
-    Previous pose (Rp, Cp, t_prev), current (Rc, C, t).  Returns (accepted, NIS at the first linearization, reason code)."""
+    Previous pose (Rp, Cp, t_prev), current (Rc, C, t); ``consider``: δ's gain is 0 (:func:`update_pixel`; the Joseph form
+    holds for any gain).  Returns (accepted, NIS at the first linearization, reason code)."""
     x0, xi, H, PHt, K, A, AP, P_new, Vp, Vn = ws
     n = x.shape[0]
     drift = layout_drift(n, i_pos)
@@ -422,6 +448,8 @@ def update_looming(x, P, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t, gate, ite
     Rcw_prev, Rcw = mat3_transposed(Rp), mat3_transposed(Rc)
     hzp, hzn, hs = predict_looming(x0, RA_, a_prev, Rcw_prev, D_prev, a, Rcw, D, H, Vp, Vn, drift, i_pos)
     S = _looming_gain(P, H, var, PHt, K)  # P₀ H_sᵀ, S = H_s P₀ H_sᵀ + R_s, K = P₀ H_sᵀ / S
+    if consider:
+        _zero_entries(K, i_pos)
     y = z - hs
     nis = y * y / S
     if hzp <= _HZ_MIN or hzn <= _HZ_MIN:
@@ -435,6 +463,8 @@ def update_looming(x, P, RA, pA, tA, z, var, Rp, Cp, t_prev, Rc, C, t, gate, ite
         if not (hzp > _HZ_MIN and hzn > _HZ_MIN):
             return False, nis, UPDATED
         _looming_gain(P, H, var, PHt, K)
+        if consider:
+            _zero_entries(K, i_pos)
         e = z - hs
         for k in range(n):
             e -= H[k] * (x0[k] - xi[k])
@@ -479,7 +509,7 @@ def _looming_gain(P0, H, var, PHt, K):
 
 @njit(error_model="numpy")
 def update_looming_rows(x, P, RA, pA, tA, n_looming, t_last, rows, z, sigma, Rp, Cp, t_prev, Rc, C, t, sigma_floor, gate,
-                        iterations, i_pos, pos_var, pos_tau, accepted, nis, reason):
+                        iterations, i_pos, pos_var, pos_tau, consider, accepted, nis, reason):
     """Looming updates of bank rows ``rows`` with scales z (M,) of σ ``sigma`` (M,) between the shared
     previous (Rp, Cp, t_prev) and current (Rc, C, t) poses; bank arrays updated in place, ``n_looming``
     counts accepted ones.  A NaN scale is skipped (LOOM_NAN), a non-positive or non-finite scale or σ
@@ -500,7 +530,7 @@ def update_looming_rows(x, P, RA, pA, tA, n_looming, t_last, rows, z, sigma, Rp,
             continue
         var = si * si + sigma_floor * sigma_floor
         ok, nis_i, reason_i = update_looming(x[r], P[r], RA[r], pA[r], tA[r], zi, var, Rp, Cp, t_prev, Rc, C, t, gate,
-                                             iterations, ws, i_pos)
+                                             iterations, ws, i_pos, consider)
         accepted[i] = ok
         nis[i] = nis_i
         reason[i] = reason_i
@@ -651,6 +681,7 @@ def warm_up() -> None:
     """Compile (or load) every kernel on one landmark with 3, 6 and 9 states (with and without δ), in the array
     layouts the filter passes (one signature serves them all: the layout is a run-time argument)."""
     for n, i_pos in ((3, -1), (6, -1), (6, 3), (9, 6)):
+        consider = i_pos >= 0  # a run-time flag: one signature for both forms
         x = np.zeros((1, n))
         x[0, 2] = 0.1
         P = np.eye(n)[None] * 1e-4
@@ -660,13 +691,13 @@ def warm_up() -> None:
         Rc, C = np.eye(3), np.array([0.0, 0.0, -1.0])
         update_pixel_sequences(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(), np.zeros(1),
                                rows, np.zeros((1, 1, 2)), Rc[None, None].copy(), C[None, None].copy(), np.ones((1, 1)),
-                               one, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 0.02, 30.0,
+                               one, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 0.02, 30.0, consider,
                                np.zeros((1, 1), bool), np.zeros((1, 1)), np.zeros((1, 1), np.int8))
         update_pixel_rows(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(), np.zeros(1),
-                          rows, np.zeros((1, 2)), Rc, C, 1.0, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 0.02, 30.0,
+                          rows, np.zeros((1, 2)), Rc, C, 1.0, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 0.02, 30.0, consider,
                           np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
         update_looming_rows(x, P, RA, pA, tA, i64.copy(), np.zeros(1), rows, np.ones(1), np.zeros(1), Rc, np.zeros(3), 0.0,
-                            Rc, C, 1.0, 0.003, 10.8, 1, i_pos, 0.02, 30.0, np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
+                            Rc, C, 1.0, 0.003, 10.8, 1, i_pos, 0.02, 30.0, consider, np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
         estimates(x, P, RA, pA, b, i64, np.zeros(3), 1e4, 0.1, 3, i_pos, np.zeros((1, 3)), np.zeros(1), np.zeros(1),
                   np.zeros(1), np.zeros(1, bool), np.zeros(1, bool))
         if i_pos < 0:  # the batch refinement (static states only)

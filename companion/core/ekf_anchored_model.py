@@ -99,6 +99,7 @@ class AnchoredEKFConfig:
     attitude_drift_deg_s: float = 0.03  # σ of the gyro bias per axis (°/s); > 0 adds 3 bias states
     position_sigma_m: float = 0.1  # σ of the telemetry's camera position error per axis (m), seen as ρ·σ at the landmark
     position_tau_s: float = 0.0  # correlation time of that error (s); > 0 adds 3 states δ = e(t) − e(t_anchor) per landmark
+    position_consider: bool = False  # with the δ states: carry them as consider states (their covariance only, mean 0; § Position error states)
     converged_rel_sigma: float = 0.1  # converged when range σ / range is below this ...
     converged_sigma_floor_m: float = 0.6  # ... and σ below max(this, converged_far_rel_sigma · range), m
     converged_far_rel_sigma: float = 0.0  # ... (far ranges need a tighter relative σ than near ones: § Outputs and convergence); 0 = off
@@ -133,6 +134,7 @@ class AnchoredEKFConfig:
         require_finite("max_range_m", self.max_range_m, positive=True)
         require_finite("position_sigma_m", self.position_sigma_m, nonnegative=True)
         require_finite("position_tau_s", self.position_tau_s, nonnegative=True)
+        require(isinstance(self.position_consider, bool), f"position_consider must be true or false, got {self.position_consider!r}")
         require_finite("nis_window", self.nis_window)
         require(self.nis_window >= 1.0, f"nis_window must be >= 1, got {self.nis_window}")
         require_finite("max_mean_nis", self.max_mean_nis, nonnegative=True)
