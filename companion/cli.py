@@ -143,6 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "per sector, where the claim came from (live points, live and remembered, remembered only, inferred across "
                         "sectors, inferred from points above or below the band); "
                         "~20 MB an hour at 15 Hz (companion/sector_log.py)")
+    r.add_argument("--landmark-log", metavar="FILE",
+                   help="write one JSON line per processed frame with every landmark the estimator holds: its point, range, "
+                        "σ, mean NIS, converged and valid flags, and the camera pose; ~15 MB a minute at 15 Hz with 300 landmarks, "
+                        "for the flights that need explaining (companion/landmark_log.py)")
     r.add_argument("--camera-config", metavar="TOML",
                    help="a TOML whose [camera] table replaces the config's (e.g. the camera.toml flightsim writes)")
     r.add_argument("--clock", choices=("monotonic", "sim"), default="monotonic",
@@ -175,6 +179,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.add_argument("--sector-log", metavar="FILE", help="also write the sector log (as 'companion run --sector-log': "
                    "per OBSTACLE_DISTANCE, where each sector's claim came from)")
+    q.add_argument("--landmark-log", metavar="FILE", help="also write the landmark log (as 'companion run --landmark-log': "
+                   "per processed frame, every landmark's point, range, σ and flags)")
     q.set_defaults(func=cmd_replay)
 
     c = sub.add_parser("check", help="pre-flight check: link, heartbeat, telemetry rates, TIMESYNC, camera, calibration",
@@ -350,7 +356,7 @@ def cmd_run(args) -> int:
         log.info("%s; %s %.1f s", jit.describe(), jit.WARMUP_DONE, time.perf_counter() - t0)
     else:
         log.info("%s", jit.describe())
-    link = gcs = source = sector_log = None
+    link = gcs = source = sector_log = landmark_log = None
     stop = threading.Event()
 
     def _stop(signum, _frame):
@@ -371,6 +377,11 @@ def cmd_run(args) -> int:
 
             sector_log = SectorLog(args.sector_log)
         companion = Companion(cfg, source, link, gcs, rc.pipeline, camera=cam, clock=clock, sector_sink=sector_log)
+        if args.landmark_log:
+            from companion.landmark_log import LandmarkLog
+
+            landmark_log = LandmarkLog(args.landmark_log)
+            companion.pipeline.landmark_sink = landmark_log
         if sim_clock is not None:
             log.info("lockstep clock (--clock sim): simulation time, %s per processed frame",
                      "measured processing time" if sim_clock.processing_s is None else f"{sim_clock.processing_s * 1000:g} ms")
@@ -380,6 +391,9 @@ def cmd_run(args) -> int:
         log.info("stopped: %s; pipeline: %s", dict(companion.counters), dict(sorted(companion.pipeline.counters.items())))
         if sector_log is not None:
             log.info("sector log %s: %d lines%s", sector_log.path, sector_log.lines, " (ended by a write error)" if sector_log.failed else "")
+        if landmark_log is not None:
+            log.info("landmark log %s: %d frames%s", landmark_log.path, landmark_log.lines,
+                     " (ended by a write error)" if landmark_log.failed else "")
         if sim_clock is not None:
             ts = link.timesync
             off = ts.offset_s
@@ -400,7 +414,7 @@ def cmd_run(args) -> int:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-        for thing in (source, link, gcs, sector_log):
+        for thing in (source, link, gcs, sector_log, landmark_log):
             if thing is not None:
                 try:
                     thing.close()
@@ -459,16 +473,21 @@ def cmd_replay(args) -> int:
              rc.companion.estimator.filter)
     from companion.io.progress import ProgressBar
 
-    sector_log = None
+    sector_log = landmark_log = None
     if args.sector_log:
         from companion.sector_log import SectorLog
 
         sector_log = SectorLog(args.sector_log)
+    if args.landmark_log:
+        from companion.landmark_log import LandmarkLog
+
+        landmark_log = LandmarkLog(args.landmark_log)
     try:
         with ProgressBar("replay", enabled=None if not args.quiet else False) as bar:
             s = replay(args.tlog, args.video, args.frames, out, rc.companion, camera=cam, pipeline=rc.pipeline,
                        plot=args.plot, telemetry_latency_s=args.telemetry_latency_ms / 1000.0,
                        progress=lambda done, total: bar.update(done, total), truth=truth, sector_sink=sector_log,
+                       landmark_sink=landmark_log,
                        fixed_processing_s=None if args.fixed_processing_ms is None else args.fixed_processing_ms / 1000.0)
     except BaseException as exc:
         if interrupt_exit_code(exc) is not None:
@@ -476,8 +495,9 @@ def cmd_replay(args) -> int:
             log.warning("%s not written%s", out, f"; the ranges so far are in {part}" if part.is_file() else "")
         raise
     finally:
-        if sector_log is not None:
-            sector_log.close()
+        for sink in (sector_log, landmark_log):
+            if sink is not None:
+                sink.close()
     fails = ", ".join(f"{k}: {v}" for k, v in sorted(s.failed.items())) or "none"
     print(f"replayed {s.frames} frames ({s.recording_s:.1f} s of flight) in {s.wall_s:.1f} s: {s.processed} with valid sectors, "
           f"{s.stale} stale, {s.superseded} superseded; without ranges: {fails}")

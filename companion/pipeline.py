@@ -155,6 +155,9 @@ class Pipeline:
         mcfg = getattr(config, "map", None)
         self.map = ObstacleMap(mcfg) if mcfg is not None and mcfg.enabled else None
         self._bearing_sigma = config.ekf_anchored.sigma_px / min(camera.fx, camera.fy)
+        #: called once per processed frame with (t, R_world_cam, p_world_cam, the estimator's RangeOutput, its points on
+        #: the current rays), e.g. a :class:`companion.landmark_log.LandmarkLog`; an exception in it is logged and ends it
+        self.landmark_sink: Callable | None = None
         self._new_state()
 
     # -- state -------------------------------------------------------------------------------------
@@ -334,6 +337,15 @@ class Pipeline:
         """The estimator's output for the latest processed frame (world points, ranges, σ)."""
         return self._out_prev
 
+    def _log_landmarks(self, t, R_wc, p_wc, out: RangeOutput, p_world) -> None:
+        """Hand this frame's landmarks to ``landmark_sink``; a sink that raises is dropped (logged), ranging goes on."""
+        try:
+            self.landmark_sink(t, R_wc, p_wc, out, p_world)
+        except Exception as exc:  # a diagnostic must never cost a frame
+            log.error("landmark sink failed (%r): no more landmarks are logged; ranging goes on", exc)
+            self.counters["landmark_sink_errors"] += 1
+            self.landmark_sink = None
+
     def _update_map(self, t, out: RangeOutput, tf, p_world, R_wc, p_wc, p_wb):
         """The local obstacle map's steps for this frame, in order (docs/derivations/obstacle_map.md; see
         :mod:`companion.core.obstacle_map`); returns the remembered points (None without a map)."""
@@ -435,6 +447,8 @@ class Pipeline:
 
         rays_cam = self.camera.unproject(tf.uv) if len(tf.ids) else np.zeros((0, 3))
         p_world = points_on_current_rays(out.ids, out.p_world, out.range, tf.ids, rays_cam, R_wc, p_wc)
+        if self.landmark_sink is not None:
+            self._log_landmarks(t, R_wc, p_wc, out, p_world)
         rem = self._update_map(t, out, tf, p_world, R_wc, p_wc, p_wb)
         c0, c1 = c1, time.thread_time()
         stage["map"] = c1 - c0

@@ -209,14 +209,16 @@ def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str
            camera: CameraConfig | None = None, pipeline: PipelineConfig = PipelineConfig(), plot: str | Path | None = None,
            fixed_processing_s: float | None = None, telemetry_latency_s: float = 0.0, tick_s: float = 0.01,
            progress: Callable[[int, int], None] | None = None, truth: str | Path | None = None,
-           on_frame: Callable[[Pipeline, "FrameResult"], None] | None = None, sector_sink=None) -> ReplaySummary:
+           on_frame: Callable[[Pipeline, "FrameResult"], None] | None = None, sector_sink=None,
+           landmark_sink=None) -> ReplaySummary:
     """Replay a recorded flight (see the module docstring).  ``config``: a CompanionConfig.
 
     ``fixed_processing_s`` replaces the measured processing time (a deterministic output);
     ``progress(done, total)`` is called after each frame; ``truth``: a flightsim ``truth.npz`` whose
     forward-sector distance is drawn on the plot; ``on_frame(pipeline, result)`` is called after each
     processed frame (benchmarks read the estimator's landmarks through it); ``sector_sink``: the
-    reporter's (a :class:`companion.sector_log.SectorLog`: where each sector's claim came from).
+    reporter's (a :class:`companion.sector_log.SectorLog`: where each sector's claim came from);
+    ``landmark_sink``: the pipeline's (a :class:`companion.landmark_log.LandmarkLog`: every landmark, frame by frame).
     """
     wall0 = time.perf_counter()
     cam = camera or config.camera
@@ -229,6 +231,7 @@ def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str
     total = len(source)
     tel = TelemetryBuffer(config.telemetry)
     pipe = Pipeline(cam, config, pipeline, tel)
+    pipe.landmark_sink = landmark_sink
     first_frame_t = float(source.t[0])
     rep = Reporter(config, pipeline, outputs=("autopilot",), start=first_frame_t, heartbeat=True, sector_sink=sector_sink)
     trace = _Trace()

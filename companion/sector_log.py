@@ -24,56 +24,33 @@ are :meth:`companion.core.sectors_types.Sectors.sources`.
 from __future__ import annotations
 
 import json
-import logging
-from pathlib import Path
 
 import numpy as np
 
 from companion.core.sectors_types import SECTOR_COUNT, SECTOR_DEG, SectorSource
-from companion.errors import ConfigError, InputError
-
-log = logging.getLogger(__name__)
+from companion.errors import InputError
+from companion.jsonl_log import JsonlLog
 
 FORMAT_VERSION = 1
 
 
-class SectorLog:
+class SectorLog(JsonlLog):
     """Writes the sector log (module docstring); call it as the reporter's ``sector_sink``."""
 
+    NAME = "sector log"
+    OPTION = "--sector-log"
+
     def __init__(self, path, outputs=("autopilot",)):
-        self.path = Path(path)
         self.outputs = tuple(outputs)
-        self.lines = 0
-        self.failed = False
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._fh = open(self.path, "w", encoding="ascii", buffering=1)  # line-buffered: complete lines if killed
-            self._fh.write(json.dumps({"sector_log": FORMAT_VERSION, "sectors": SECTOR_COUNT, "increment_deg": SECTOR_DEG,
-                                       "sources": {str(int(s)): s.name.lower() for s in SectorSource}}) + "\n")
-        except OSError as e:
-            raise ConfigError(f"--sector-log {path}: cannot write: {e}") from e
+        super().__init__(path, {"sector_log": FORMAT_VERSION, "sectors": SECTOR_COUNT, "increment_deg": SECTOR_DEG,
+                                "sources": {str(int(s)): s.name.lower() for s in SectorSource}})
 
     def __call__(self, out: str, time_usec: int, distances_cm, sources) -> None:
-        if self.failed or self._fh is None or out not in self.outputs:
+        if not self.open or out not in self.outputs:
             return
         d = np.asarray(distances_cm).astype(np.int64).reshape(-1)
         src = np.asarray(sources).astype(np.int64).reshape(-1)
-        line = json.dumps({"out": out, "time_usec": int(time_usec), "d": d.tolist(), "src": "".join(str(int(v)) for v in src)})
-        try:
-            self._fh.write(line + "\n")
-            self.lines += 1
-        except (OSError, ValueError) as e:
-            self.failed = True
-            log.error("sector log %s: write failed (%s): no more lines are logged; ranging goes on", self.path, e)
-            self.close()
-
-    def close(self) -> None:
-        fh, self._fh = getattr(self, "_fh", None), None
-        if fh is not None:
-            try:
-                fh.close()
-            except OSError:
-                pass
+        self.write({"out": out, "time_usec": int(time_usec), "d": d.tolist(), "src": "".join(str(int(v)) for v in src)})
 
 
 def read_sector_log(path, output: str = "autopilot") -> dict[tuple[int, bytes], np.ndarray]:

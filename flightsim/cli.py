@@ -69,7 +69,7 @@ def cmd_sitl(args) -> int:
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
     cfg = SitlConfig(processing_ms=args.processing_ms, connect_timeout_s=args.connect_timeout, hostile=hostile,
-                     rss_sample_s=args.rss_sample_s)
+                     rss_sample_s=args.rss_sample_s, landmark_log=args.landmark_log)
     # --config, else the scenario's [scenario] companion_config, else (None) the shipped configs/companion.toml
     companion_config = default_companion_config(args.scenario, args.config)
     log.info("SITL %s (%s clock) into %s, companion config %s", args.scenario, args.clock, args.out,
@@ -330,6 +330,9 @@ def main(argv=None) -> int:
     q.add_argument("--connect-timeout", type=float, default=60.0, metavar="S",
                    help="seconds the companion has to connect (×5 with --attach; default 60)")
     q.add_argument("--no-score", action="store_true", help="do not score the received ranges")
+    q.add_argument("--landmark-log", action="store_true",
+                   help="the companion also writes landmarks.jsonl: per frame, every landmark's point, range, σ, mean NIS and "
+                        "flags with the camera pose (companion run --landmark-log; ~15 MB a minute)")
     q.add_argument("--hostile-rate", type=float, default=0.0, metavar="HZ",
                    help="hostile datagrams per simulated second interleaved with the telemetry: random bytes, bad CRC, "
                         "truncated, unknown ids, NaN/inf payloads, glued packets, spoofed ATTITUDE (flightsim/hostile.py; "

@@ -56,7 +56,8 @@ def lockstep_runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("sitl")
     scen = short_scenario(tmp)
     a = run_sitl(scen, tmp / "a", seed=1)
-    b = run_sitl(scen, tmp / "b", seed=1, score=False, config=SitlConfig(build_ahead=False))  # telemetry step by step
+    # run b: telemetry step by step, and the companion writes its landmark log too (flightsim sitl --landmark-log)
+    b = run_sitl(scen, tmp / "b", seed=1, score=False, config=SitlConfig(build_ahead=False, landmark_log=True))
     return scen, a, tmp / "a", b, tmp / "b"
 
 
@@ -210,6 +211,12 @@ def test_lockstep_is_deterministic(lockstep_runs):
     # requests; run b built it step by step: the bytes above are the same
     assert a["telemetry_ahead"]["steps"] > 0 and a["telemetry_ahead"]["rebuilt"] > 0
     assert b["telemetry_ahead"] == {"steps": 0, "rebuilt": 0}
+    # run b's companion also logged its landmarks, and sent the same bytes (above): the log changes nothing
+    from companion.landmark_log import read_landmark_log
+
+    frames = read_landmark_log(out_b / "landmarks.jsonl")
+    assert len(frames) > 20 and sum(int(f["converged"].sum()) for f in frames) > 0
+    assert not (out_a / "landmarks.jsonl").exists()
 
 
 def test_realtime_clock(tmp_path):

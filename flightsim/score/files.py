@@ -153,6 +153,7 @@ def companion_score_params(companion_config) -> dict:
 NEES_PLOT = "nees.png"
 #: the companion's sector log in a run directory (``companion run --sector-log``; :mod:`companion.sector_log`)
 SECTOR_LOG = "sectors.jsonl"
+LANDMARK_LOG = "landmarks.jsonl"  # the companion's landmark log (flightsim sitl --landmark-log; companion/landmark_log.py)
 
 
 def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, companion_config=None, world=None,

@@ -26,6 +26,7 @@ class SitlConfig:
     build_ahead: bool = True  # lockstep: build the telemetry of the steps ahead while the companion works (same messages; False = step by step, for tests)
     hostile: HostileConfig = HostileConfig()  # hostile traffic and telemetry blackouts (flightsim/hostile.py; off by default)
     rss_sample_s: float = 0.0  # sample the companion's resident set (/proc/PID/status VmRSS) every this many simulated seconds; 0 = off
+    landmark_log: bool = False  # the companion also writes its landmark log, landmarks.jsonl (companion run --landmark-log; ~15 MB a minute)
 
     def __post_init__(self) -> None:
         require_finite("processing_ms", self.processing_ms, nonnegative=True)
@@ -38,6 +39,7 @@ class SitlConfig:
         require_finite("tail_s", self.tail_s, nonnegative=True)
         require(isinstance(self.hostile, HostileConfig), "hostile must be a HostileConfig")
         require_finite("rss_sample_s", self.rss_sample_s, nonnegative=True)
+        require(isinstance(self.landmark_log, bool), "landmark_log must be true or false")
 
 
 class SitlError(CompanionError, RuntimeError):

@@ -58,7 +58,7 @@ from flightsim.fly import EPS_T, Flight, StreamSchedule, camera_toml, open_video
 from flightsim.hostile import HostileInjector
 from flightsim.scenario import Scenario
 from flightsim.sitl.config import SitlConfig, SitlError
-from flightsim.score.files import SECTOR_LOG
+from flightsim.score.files import LANDMARK_LOG, SECTOR_LOG
 from flightsim.sitl.process import (CompanionProcess, companion_command, companion_rss_kib, cpu_seconds,
                                     process_cpu_seconds)
 from flightsim.tlog import TlogWriter
@@ -219,6 +219,7 @@ class Run:
         out = self.out
         write_text_atomic(out / "camera.toml", camera_toml(self.sc.camera))  # the companion needs it at start
         (out / SECTOR_LOG).unlink(missing_ok=True)  # a previous run's log must not be read as this one's
+        (out / LANDMARK_LOG).unlink(missing_ok=True)
         self.endpoint = UdpEndpoint(self.mavlink_port, self.tel.system_id)
         if self.hostile_cfg.rate_hz > 0:
             self.injector = HostileInjector(self.hostile_cfg, self.tel.system_id)
@@ -229,7 +230,8 @@ class Run:
                                 f"({exc.strerror or exc}); pick another with --camera-port, or 0 for any free port") from None
         self.cmd = companion_command(self.endpoint.port, self.server.port, (out / "camera.toml").resolve(),
                                      lockstep=self.lockstep, processing_ms=self.cfg.processing_ms,
-                                     companion_config=self.companion_config, sector_log=(out / SECTOR_LOG).resolve())
+                                     companion_config=self.companion_config, sector_log=(out / SECTOR_LOG).resolve(),
+                                     landmark_log=(out / LANDMARK_LOG).resolve() if self.cfg.landmark_log else None)
         if self.attach:
             print("flightsim sitl: waiting for the companion; start it with\n  " + shlex.join(self.cmd), file=sys.stderr,
                   flush=True)

@@ -120,15 +120,19 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child between 
 
 
 def companion_command(mavlink_port: int, camera_port: int, camera_config: Path, *, lockstep: bool, processing_ms: float,
-                      companion_config: Path | None, python: str = sys.executable, sector_log: Path | None = None) -> list[str]:
+                      companion_config: Path | None, python: str = sys.executable, sector_log: Path | None = None,
+                      landmark_log: Path | None = None) -> list[str]:
     """The ``companion run`` command line that talks to this simulator (``sector_log``: where the
-    companion writes its sector log, :mod:`companion.sector_log`, which the score reads)."""
+    companion writes its sector log, :mod:`companion.sector_log`, which the score reads; ``landmark_log``: its
+    landmark log, :mod:`companion.landmark_log`, when asked for)."""
     cmd = [python, "-m", "companion", "run", "--mavlink", f"udpout:127.0.0.1:{mavlink_port}",
            "--camera", f"sim://127.0.0.1:{camera_port}", "--camera-config", str(camera_config)]
     if companion_config is not None:
         cmd += ["--config", str(companion_config)]
     if sector_log is not None:
         cmd += ["--sector-log", str(sector_log)]
+    if landmark_log is not None:
+        cmd += ["--landmark-log", str(landmark_log)]
     if lockstep:
         cmd += ["--clock", "sim", "--sim-processing-ms", f"{processing_ms:g}"]
     return cmd
