@@ -12,6 +12,8 @@ Subcommands:
   too_near  the too-near cells of finished SITL campaigns split by cause (bench/too_near.py; reads campaigns, flies nothing)
   looming_truth  the tracker's scale changes on rendered flights against the true depth ratio: is the looming σ honest,
             are a track's errors independent (bench/looming_truth.py)
+  landmark_truth  each converged landmark's range against the truth on a SITL flight with a landmark log: is its σ
+            honest, by true range (bench/landmark_truth.py)
   all       all of these plus the simulator's speed; with --write FILE, rewrite the sections of docs/BENCHMARKS.md
             it produces and keep the sections other commands produced (report.merge_document)
 """
@@ -120,7 +122,8 @@ def cmd_timing(args) -> dict:
 
 
 #: subcommands that are modules with their own argparse (``python -m bench NAME …`` = ``python -m bench.NAME …``)
-OWN_COMMAND_LINE = ("hostile", "compute", "position_states", "telemetry_ablation", "too_near", "looming_truth")
+OWN_COMMAND_LINE = ("hostile", "compute", "position_states", "telemetry_ablation", "too_near", "looming_truth",
+                    "landmark_truth")
 
 
 def main(argv=None) -> int:
@@ -206,6 +209,9 @@ def main(argv=None) -> int:
                                     "python -m bench too_near --help)", add_help=False)
     sub.add_parser("looming_truth", help="the tracker's scale changes on rendered flights against the truth: the looming "
                                          "noise model checked (options: python -m bench looming_truth --help)", add_help=False)
+    sub.add_parser("landmark_truth", help="each converged landmark's range and σ against the truth on a SITL flight "
+                                          "flown with --landmark-log: z by true range (options: python -m bench "
+                                          "landmark_truth --help)", add_help=False)
     sub.add_parser("position_states", help="the anchored EKF under a Gauss–Markov position error, white model vs the "
                                            "position-error states: range NEES and coverage (options: python -m bench "
                                            "position_states --help)", add_help=False)

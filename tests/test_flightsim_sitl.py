@@ -219,6 +219,23 @@ def test_lockstep_is_deterministic(lockstep_runs):
     assert not (out_a / "landmarks.jsonl").exists()
 
 
+def test_landmark_truth_reads_a_sitl_run(lockstep_runs, capsys):
+    """python -m bench landmark_truth on the run flown with --landmark-log: every logged frame finds its truth pose
+    (the companion's clock is the autopilot's boot clock), the converged landmarks hit the world, and their z is
+    that of a working filter (most within ±3σ); a run without the log is refused with exit code 2."""
+    from bench import landmark_truth
+
+    _scen, _a, out_a, _b, out_b = lockstep_runs
+    frames, t, R, p, raycast = landmark_truth.load_run(out_b)
+    assert all(np.min(np.abs(t - f["t"])) < 1e-3 for f in frames)
+    z = landmark_truth.landmark_z(frames, t, R, p, raycast)
+    assert len(z) > 50 and np.mean(np.abs(z[:, 0]) <= 3) > 0.8
+    assert landmark_truth.main([str(out_b)]) == 0
+    assert "| true range | samples" in capsys.readouterr().out
+    assert landmark_truth.main([str(out_a)]) == 2
+    assert "--landmark-log" in capsys.readouterr().err
+
+
 def test_realtime_clock(tmp_path):
     s = run_sitl(short_scenario(tmp_path, 2.0), tmp_path / "rt", clock="realtime", score=False)
     assert s["companion_exit_code"] == 0
