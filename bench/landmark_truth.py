@@ -1,10 +1,11 @@
 """Each landmark's range and σ against the truth, on a SITL flight with a landmark log (issue 15).
 
-``python -m bench landmark_truth DIR [--young S] [--axis DEG] [--bins 0,3,5,8,12,20,40] [--json]``
+``python -m bench landmark_truth DIR… [--young S] [--axis DEG] [--bins 0,3,5,8,12,20,40] [--json]``
 
 The scorer judges the *published* sector values; this looks one level down, at what the estimator
 believed about each landmark.  DIR is the output of ``flightsim sitl … --landmark-log`` (it holds
-``landmarks.jsonl``, ``truth.npz`` and ``sitl.json``).  For every converged, valid landmark of every
+``landmarks.jsonl``, ``truth.npz`` and ``sitl.json``), or a campaign flown with ``flightsim campaign … --mode sitl
+--landmark-log`` (all its runs pooled).  For every converged, valid landmark of every
 logged frame, the landmark's measured ray (from the logged, i.e. the telemetry's, camera pose to its
 logged point) is turned into the camera frame and cast from the *true* camera pose into the scenario's
 world (``World.raycast``); where it hits something within 100 m, the distance to the hit is the
@@ -124,7 +125,9 @@ def load_run(run_dir: Path, scenario: str | None = None):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog=COMMAND, description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
-    ap.add_argument("runs", nargs="+", metavar="DIR", help="flightsim sitl output directories flown with --landmark-log")
+    ap.add_argument("runs", nargs="+", metavar="DIR",
+                    help="flightsim sitl output directories flown with --landmark-log, or SITL campaign directories "
+                         "(flightsim campaign … --mode sitl --landmark-log): all their runs")
     ap.add_argument("--scenario", help="the scenario file, if not the one sitl.json names (relative to the run's working directory)")
     ap.add_argument("--young", type=float, metavar="S", help="only landmarks first logged less than S seconds before the frame")
     ap.add_argument("--axis", type=float, metavar="DEG", help="only landmarks within DEG of the optical axis")
@@ -139,10 +142,13 @@ def main(argv=None) -> int:
         ap.error("--bins: at least two increasing edges")
     from companion.errors import CompanionError
 
+    dirs = []
+    for d in map(Path, args.runs):  # a campaign directory stands for its runs
+        dirs += sorted((d / "runs").glob("seed_*")) if (d / "runs").is_dir() else [d]
     samples = []
     try:
-        for d in args.runs:
-            frames, t, R, p, raycast = load_run(Path(d), args.scenario)
+        for d in dirs:
+            frames, t, R, p, raycast = load_run(d, args.scenario)
             samples.append(landmark_z(frames, t, R, p, raycast, young_s=args.young, axis_deg=args.axis))
     except (CompanionError, OSError, KeyError, json.JSONDecodeError) as e:
         print(f"{COMMAND}: {e}", file=sys.stderr)

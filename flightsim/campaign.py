@@ -73,6 +73,7 @@ class RunJob:
     fixed_processing_ms: float
     keep_video: bool = False
     avoidance: str | None = None  # overrides the scenario's [avoidance] model (closed loop: SITL only)
+    landmark_log: bool = False  # each run also writes the companion's landmark log, landmarks.jsonl (companion/landmark_log.py)
 
 
 # ---------------------------------------------------------------------- one run (worker) --------
@@ -95,16 +96,28 @@ def _replay_run(job: RunJob, sc, run_dir: Path) -> Path:
     fly(sc, run_dir, plot=False)
     rc = load_config(job.companion_config, None, str(run_dir / "camera.toml"))
     out = run_dir / "ranges.tlog"
-    replay(run_dir / "telemetry.tlog", run_dir / "video.avi", run_dir / "frames.csv", out, rc.companion,
-           camera=rc.companion.camera, pipeline=rc.pipeline, fixed_processing_s=job.fixed_processing_ms / 1000.0)
+    sink = None
+    if job.landmark_log:
+        from companion.landmark_log import LandmarkLog
+        from flightsim.score.files import LANDMARK_LOG
+
+        sink = LandmarkLog(run_dir / LANDMARK_LOG)
+    try:
+        replay(run_dir / "telemetry.tlog", run_dir / "video.avi", run_dir / "frames.csv", out, rc.companion,
+               camera=rc.companion.camera, pipeline=rc.pipeline, fixed_processing_s=job.fixed_processing_ms / 1000.0,
+               landmark_sink=sink)
+    finally:
+        if sink is not None:
+            sink.close()
     return out
 
 
 def _sitl_run(job: RunJob, run_dir: Path) -> Path:
-    from flightsim.sitl import run_sitl
+    from flightsim.sitl import SitlConfig, run_sitl
 
     run_sitl(job.scenario, run_dir, seed=job.seed, clock="lockstep", port_base=None, companion_config=job.companion_config,
-             processing_ms=job.fixed_processing_ms, score=False, avoidance=job.avoidance)
+             processing_ms=job.fixed_processing_ms, score=False, avoidance=job.avoidance,
+             config=SitlConfig(landmark_log=job.landmark_log))
     return run_dir / "received.tlog"
 
 
@@ -416,13 +429,14 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
                  obstacle: str = "forward", times: list[float] | None = None,
                  progress: Callable[[int, int, int], None] | None = None,
                  run_fn: Callable[[RunJob], dict] = run_one, avoidance: str | None = None,
-                 backend: str = "process", address: str | None = None) -> dict:
+                 backend: str = "process", address: str | None = None, landmark_log: bool = False) -> dict:
     """Run, score and report a campaign (module docstring); returns the campaign.json contents.
 
     ``progress(done, total, failed)`` is called as runs finish.  ``run_fn`` runs one job in the
     worker (a picklable module-level function; :func:`run_one` by default).  ``backend``: "process"
     (a local process pool, the default) or "ray" (Ray tasks, at ``address`` or a local Ray; inputs
-    and outputs travel as data, no shared file system: :mod:`flightsim.campaign_ray`).
+    and outputs travel as data, no shared file system: :mod:`flightsim.campaign_ray`).  ``landmark_log``: each run
+    also writes the companion's landmark log (``python -m bench landmark_truth`` reads it).
     """
     from flightsim.report import write_report
     from flightsim.scenario import load_scenario, resolve_companion_config
@@ -467,7 +481,7 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     _remove_stale_results(out)
     jobs = [RunJob(str(scenario), base + i, str(out / "runs" / f"seed_{base + i:04d}"), mode,
                    None if companion_config is None else str(companion_config), cfg, float(fixed_processing_ms), keep_video,
-                   avoidance)
+                   avoidance, bool(landmark_log))
             for i in range(runs)]
     log.info("campaign %s: %d runs (seeds %d…%d), mode %s, %d workers, companion config %s → %s", sc.meta.name, runs, base,
              base + runs - 1, mode, workers, companion_config or "built-in defaults", out)
@@ -620,7 +634,8 @@ def campaign_from_args(args) -> int:
         c = run_campaign(args.scenario, args.out, runs=args.runs, workers=args.workers, mode=args.mode, seed0=args.seed0,
                          companion_config=args.companion_config, score_config=cfg,
                          fixed_processing_ms=args.fixed_processing_ms, keep_video=args.keep_video, obstacle=args.obstacle,
-                         times=times, progress=tick, avoidance=args.avoidance, backend=args.backend, address=args.address)
+                         times=times, progress=tick, avoidance=args.avoidance, backend=args.backend, address=args.address,
+                         landmark_log=args.landmark_log)
     a = c["aggregate"]
     print(f"{c['scenario_name']}: {a['runs_ok']} of {a['runs']} runs scored ({c['mode']} mode) in {c['wall_s']:.0f} s")
     av = a.get("avoidance")

@@ -413,6 +413,9 @@ def main(argv=None) -> int:
                    help="override the scenario's [avoidance] model: the simulated autopilot avoids obstacles with the "
                         "companion's ranges (closed loop; runs in SITL) and every run gets an outcome (collision, stop "
                         "clearance, false stop, progress), pooled with 95 %% confidence intervals")
+    p.add_argument("--landmark-log", action="store_true",
+                   help="each run also writes the companion's landmark log, landmarks.jsonl (per frame, every landmark's "
+                        "point, range, σ and flags; ~15 MB a minute); python -m bench landmark_truth reads them")
     p.add_argument("--keep-video", action="store_true", help="keep each run's video.avi (default: deleted after scoring; "
                                                              "the seed reproduces it)")
     args = ap.parse_args(argv)

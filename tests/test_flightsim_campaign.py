@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from companion.errors import ConfigError
+from companion.landmark_log import read_landmark_log
 from flightsim import campaign as C
 from flightsim.cli import main as flightsim_main
 from flightsim.score.config import ScoreConfig
@@ -31,7 +32,7 @@ def tiny_campaign(tmp_path_factory):
     sp = short_scenario(tmp)
     ticks = []
     c = C.run_campaign(sp, tmp / "camp", runs=2, workers=2, mode="replay", fixed_processing_ms=30.0, times=[1.0, 2.0],
-                       progress=lambda done, total, failed: ticks.append((done, total, failed)))
+                       progress=lambda done, total, failed: ticks.append((done, total, failed)), landmark_log=True)
     return tmp / "camp", c, ticks
 
 
@@ -46,6 +47,8 @@ def test_tiny_campaign_runs_scores_and_reports(tiny_campaign):
         assert not (run / "video.avi").exists()  # deleted after scoring (the seed reproduces it)
         assert json.loads((run / "flight.json").read_text())["seed"] == seed
         assert (run / "nees.png").is_file()  # each run's forward error and NEES over time
+        frames = read_landmark_log(run / "landmarks.jsonl")  # --landmark-log: the companion's landmarks, frame by frame
+        assert len(frames) > 10 and any(f["converged"].any() for f in frames)
     ne = c["aggregate"]["nees"]
     assert {"n", "n_eff", "n_eff_sum_of_runs", "band", "band_independent", "consistent", "coverage", "runs_consistent"} <= set(ne)
     assert "NEES and coverage of the forward σ, pooled over runs" in (out / "report" / "index.md").read_text()
