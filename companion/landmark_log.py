@@ -21,8 +21,9 @@ the ray measured in this frame (where the map and the sectors take it from,
 estimator's (m), ``mean_nis`` its filter's mean NIS (NaN before any update).  Positions are rounded to
 the millimetre, ranges and σ to the millimetre, NIS to 0.01.
 
-Size: ~60 B per landmark, so ~15 MB a minute with 300 landmarks at 15 Hz (~1 GB an hour): a tool for a flight that
-needs explaining, not for every flight.  A write that fails is logged once and ends the log; the
+Size: ~60 B per landmark, so ~15 MB a minute with 300 landmarks at 15 Hz (~1 GB an hour); CPU: ~7 µs per
+landmark and frame (the slalom's SITL, ~85 landmarks: the pipeline's map stage, where it runs, 0.4 → 1.0 ms).  A
+tool for a flight that needs explaining, not for every flight.  A write that fails is logged once and ends the log; the
 companion flies on.  I/O only.
 """
 
