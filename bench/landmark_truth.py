@@ -17,7 +17,8 @@ correlated: read the counts as frames, not as independent draws.
 ``--young S`` keeps only landmarks first logged less than S seconds before the frame (new points,
 not tracks carried since take-off); ``--axis DEG`` only those within DEG of the camera's optical axis
 (the direction of travel on a straight approach).  docs/BENCHMARKS.md, "Why the pole ahead was ranged
-long", measured the same thing with a hook, before this tool existed.
+long", measured the same thing with a hook, before this tool existed.  The computation is
+:mod:`flightsim.score.landmarks` (campaign reports use it too); this is its command line.
 """
 
 from __future__ import annotations
@@ -29,97 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from flightsim.score.landmarks import DEFAULT_BINS, landmark_z, load_run, markdown, summarize  # noqa: F401 (re-exported)
+
 COMMAND = "python -m bench landmark_truth"
-DEFAULT_BINS = (0.0, 3.0, 5.0, 8.0, 12.0, 20.0, 40.0)
-MAX_TRUTH_M = 100.0
-
-
-def landmark_z(frames, t_truth, R_truth, p_truth, raycast, *, young_s: float | None = None,
-               axis_deg: float | None = None, tol_s: float = 1e-3):
-    """(z, true range, range, σ, landmark id, frame time) of the converged, valid landmarks of ``frames``
-    (:func:`companion.landmark_log.read_landmark_log`) against the truth poses (``t_truth`` (K,) on the
-    companion's clock, ``R_truth`` (K,3,3) camera to world, ``p_truth`` (K,3)); ``raycast(origin (3,), dirs (N,3))``
-    returns the distance along each unit direction, inf where nothing is hit.  A frame with no truth
-    pose within ``tol_s`` is skipped.  Arrays, one row per sample."""
-    first: dict[int, float] = {}
-    rows = []
-    for f in frames:
-        for i in f["ids"]:
-            first.setdefault(int(i), f["t"])
-        k = int(np.argmin(np.abs(t_truth - f["t"]))) if len(t_truth) else -1
-        if k < 0 or abs(t_truth[k] - f["t"]) > tol_s:
-            continue
-        m = f["converged"] & f["valid"] & np.isfinite(f["range"]) & np.isfinite(f["range_sigma"]) & (f["range_sigma"] > 0)
-        if young_s is not None:
-            m &= np.array([f["t"] - first[int(i)] < young_s for i in f["ids"]], bool)
-        d_world = f["p_world"] - f["p_world_cam"]
-        norm = np.linalg.norm(d_world, axis=1)
-        m &= np.isfinite(norm) & (norm > 0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            d_cam = (d_world / norm[:, None]) @ f["R_world_cam"]  # R^T d per row: the measured ray in the camera frame
-        if axis_deg is not None:
-            m &= d_cam[:, 2] >= np.cos(np.radians(axis_deg))
-        idx = np.flatnonzero(m)
-        if not len(idx):
-            continue
-        truth = np.asarray(raycast(p_truth[k], d_cam[idx] @ R_truth[k].T), float)  # the same ray from the true camera
-        hit = np.isfinite(truth) & (truth < MAX_TRUTH_M)
-        idx, truth = idx[hit], truth[hit]
-        r, s = f["range"][idx], f["range_sigma"][idx]
-        rows.append(np.column_stack([(r - truth) / s, truth, r, s, f["ids"][idx], np.full(len(idx), f["t"])]))
-    if not rows:
-        return np.zeros((0, 6))
-    return np.concatenate(rows)
-
-
-def summarize(samples: np.ndarray, bins=DEFAULT_BINS) -> list[dict]:
-    """Per true-range bin [lo, hi): n, mean and median z, NEES, within ±2σ, beyond +3σ and −3σ."""
-    out = []
-    z, truth = samples[:, 0], samples[:, 1]
-    for lo, hi in zip(bins[:-1], bins[1:]):
-        sel = (truth >= lo) & (truth < hi)
-        n = int(sel.sum())
-        zz = z[sel]
-        out.append(dict(lo=float(lo), hi=float(hi), n=n, landmarks=int(len(np.unique(samples[sel, 4]))),
-                        mean_z=float(zz.mean()) if n else None, median_z=float(np.median(zz)) if n else None,
-                        nees=float(np.mean(zz**2)) if n else None, within_2sigma=float(np.mean(np.abs(zz) <= 2)) if n else None,
-                        long_3sigma=float(np.mean(zz > 3)) if n else None, short_3sigma=float(np.mean(zz < -3)) if n else None))
-    return out
-
-
-def markdown(rows: list[dict]) -> str:
-    lines = ["| true range | samples (landmarks) | mean z | median z | NEES | within ±2σ | beyond +3σ (long) | beyond −3σ (short) |",
-             "|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        if not r["n"]:
-            lines.append(f"| {r['lo']:g}–{r['hi']:g} m | 0 | – | – | – | – | – | – |")
-            continue
-        lines.append(f"| {r['lo']:g}–{r['hi']:g} m | {r['n']} ({r['landmarks']}) | {r['mean_z']:+.2f} | {r['median_z']:+.2f} | "
-                     f"{r['nees']:.2f} | {100 * r['within_2sigma']:.1f} % | {100 * r['long_3sigma']:.1f} % | "
-                     f"{100 * r['short_3sigma']:.1f} % |")
-    return "\n".join(lines)
-
-
-def load_run(run_dir: Path, scenario: str | None = None):
-    """(frames, t_truth, R_truth, p_truth, raycast) of a ``flightsim sitl --landmark-log`` output directory."""
-    from companion.errors import InputError
-    from companion.landmark_log import read_landmark_log
-    from flightsim.scenario import load_scenario
-    from flightsim.score.files import LANDMARK_LOG
-
-    log_path = run_dir / LANDMARK_LOG
-    if not log_path.is_file():
-        raise InputError(f"{run_dir}: no {LANDMARK_LOG} (fly it with flightsim sitl … --landmark-log)")
-    meta = json.loads((run_dir / "sitl.json").read_text())
-    sc = load_scenario(scenario or meta["scenario_file"], seed=meta.get("seed"))
-    tr = np.load(run_dir / "truth.npz")
-    t_truth = tr["t_sim_s"] + sc.telemetry.boot_time_s  # the companion's clock in lockstep: the autopilot's boot clock
-
-    def raycast(origin, dirs):
-        h = sc.world.raycast(np.broadcast_to(origin, dirs.shape), dirs, MAX_TRUTH_M)
-        return np.where(np.isfinite(h.distance) & (h.distance > 0), h.distance, np.inf)
-
-    return read_landmark_log(log_path), t_truth, tr["R_world_cam"], tr["p_world_cam"], raycast
 
 
 def main(argv=None) -> int:

@@ -520,6 +520,8 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
         if r["status"] == "ok" and p.is_file():
             series[r["seed"]] = load_series(p)
     agg = aggregate(ordered, series, cfg)
+    if landmark_log:
+        agg["landmarks"] = landmark_rows(ordered)
     campaign = {
         "scenario": str(scenario), "scenario_name": sc.meta.name, "mode": mode, "seeds": [j.seed for j in jobs],
         "avoidance": sc.avoidance.model,
@@ -540,6 +542,28 @@ def run_campaign(scenario: str | Path, out: str | Path, *, runs: int, workers: i
     if interrupted is not None:
         raise interrupted
     return campaign
+
+
+def landmark_rows(results: list[dict]) -> dict | None:
+    """Each converged landmark against the truth, pooled over the runs that finished and wrote a landmark log
+    (:mod:`flightsim.score.landmarks`): ``{"runs": n, "bins": [...]}``; None when no run has a log.  A run whose log
+    cannot be read is left out and named in the campaign's log."""
+    from flightsim.score.landmarks import landmark_z, load_run, summarize
+
+    samples, used = [], 0
+    for r in results:
+        if r["status"] != "ok":
+            continue
+        try:
+            frames, t, R, p, raycast = load_run(Path(r["dir"]))
+        except Exception as exc:  # a missing or broken log costs the table a run, not the campaign
+            log.warning("seed %s: no landmark table (%s)", r.get("seed"), exc)
+            continue
+        samples.append(landmark_z(frames, t, R, p, raycast))
+        used += 1
+    if not used:
+        return None
+    return {"runs": used, "bins": summarize(np.concatenate(samples))}
 
 
 def _remove_stale_results(out: Path) -> None:

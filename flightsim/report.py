@@ -481,8 +481,16 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
     L += nees_lines(ne, "Pooled, against the truth at exposure")
     L += [f"Per run: mean {_ms(ne['per_run_mean'])}; consistent with its own n_eff band in {ne.get('runs_consistent', '–')} of "
           f"{ne.get('runs_with_samples', '–')} runs with forward samples.  At arrival, pooled: n = {ne['arrival']['n']}, "
-          f"n_eff = {_f(ne['arrival'].get('n_eff'), '{:.1f}')}, mean {_f(ne['arrival']['mean'])}.", "",
-          "## Plots", ""]
+          f"n_eff = {_f(ne['arrival'].get('n_eff'), '{:.1f}')}, mean {_f(ne['arrival']['mean'])}.", ""]
+    lm = a.get("landmarks")
+    if lm:
+        from flightsim.score.landmarks import markdown as landmark_table
+
+        L += ["## Each landmark against the truth (landmark log)", "",
+              f"Every converged landmark of every logged frame of {lm['runs']} runs, its measured ray cast from the true camera "
+              "into the world: z = (range − true range) / σ by true range (flightsim/score/landmarks.py; samples are "
+              "landmark-frames, correlated within a landmark).", "", landmark_table(lm["bins"]), ""]
+    L += ["## Plots", ""]
     for key, title in (("range_vs_truth", "Range estimate ± σ vs truth"), ("error_vs_range", "Error vs true range L"),
                        ("nees", "Normalized forward error and NEES per run"),
                        ("radar", "Sector radar"), ("latency", "Latency histogram")):

@@ -49,6 +49,10 @@ def test_tiny_campaign_runs_scores_and_reports(tiny_campaign):
         assert (run / "nees.png").is_file()  # each run's forward error and NEES over time
         frames = read_landmark_log(run / "landmarks.jsonl")  # --landmark-log: the companion's landmarks, frame by frame
         assert len(frames) > 10 and any(f["converged"].any() for f in frames)
+    # ... and the report sets them against the truth (flightsim/score/landmarks.py), pooled over both runs
+    lm = c["aggregate"]["landmarks"]
+    assert lm["runs"] == 2 and sum(b["n"] for b in lm["bins"]) > 0
+    assert "## Each landmark against the truth (landmark log)" in (out / "report" / "index.md").read_text()
     ne = c["aggregate"]["nees"]
     assert {"n", "n_eff", "n_eff_sum_of_runs", "band", "band_independent", "consistent", "coverage", "runs_consistent"} <= set(ne)
     assert "NEES and coverage of the forward σ, pooled over runs" in (out / "report" / "index.md").read_text()

@@ -1,4 +1,4 @@
-"""bench.landmark_truth: each landmark's range against the truth, on exact geometry.
+"""flightsim.score.landmarks (python -m bench landmark_truth): each landmark's range against the truth, on exact geometry.
 
 A wall at x = 10 m (NED north) and a camera looking north: a landmark logged exactly on the wall has z = 0,
 one logged 2σ beyond it z = +2; the measured ray is taken in the camera frame, so an attitude error of the
@@ -8,7 +8,7 @@ what they say."""
 import numpy as np
 import pytest
 
-from bench.landmark_truth import landmark_z, markdown, summarize
+from flightsim.score.landmarks import landmark_z, markdown, summarize
 from companion.core.frames import so3_exp
 
 #: camera axes (x right, y down, z forward) → NED world: forward = north, right = east, down = down
