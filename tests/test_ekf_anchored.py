@@ -262,3 +262,27 @@ def test_far_convergence_limit(kernels):
         AnchoredEKFConfig(converged_far_rel_sigma=-0.1)
     with pytest.raises(ConfigError, match="converged_sigma_floor_m"):
         AnchoredEKFConfig(converged_sigma_floor_m=float("nan"))
+
+
+def test_near_convergence_limit(kernels):
+    """§ Outputs and convergence: with converged_near_sigma_m a range σ below it counts as converged whatever σ_r/r.
+    At 2.5 m a σ of 0.3 m (12 %) fails the relative test; with σ_near 0.4 m it is converged, with 0.25 m not; at 30 m
+    a σ of 4 m (13 %) stays unconverged; min_updates and validity still apply."""
+    r = np.array([2.5, 30.0, 2.5])
+    s_r = np.array([0.3, 4.0, 0.3])
+    rho, s_rho = 1.0 / r, s_r / r**2
+
+    def converged(min_updates=0, **kw):
+        ekf = AnchoredInverseDepthEKF(AnchoredEKFConfig(min_updates=min_updates, **kw), 500.0, 500.0)
+        ekf.add([1, 2, 3], np.zeros((3, 2)), np.eye(3), np.zeros(3), 0.0, rho, s_rho)
+        ekf.diverged[2] = True  # the third is not valid
+        est = ekf.estimates(np.zeros(3))
+        np.testing.assert_allclose(est.range_sigma, s_r, rtol=1e-6)
+        return est.converged.tolist()
+
+    assert converged() == [False, False, False]  # off by default: the relative test alone
+    assert converged(converged_near_sigma_m=0.4) == [True, False, False]
+    assert converged(converged_near_sigma_m=0.25) == [False, False, False]
+    assert converged(min_updates=3, converged_near_sigma_m=0.4) == [False, False, False]  # no update accepted yet
+    with pytest.raises(ConfigError, match="converged_near_sigma_m"):
+        AnchoredEKFConfig(converged_near_sigma_m=-0.1)

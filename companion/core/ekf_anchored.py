@@ -713,10 +713,14 @@ class AnchoredInverseDepthEKF:
             self.diverged |= stat > limit  # NaN (no reference) compares False
         return stat
 
-    def _apply_far_limit(self, converged: np.ndarray, rng: np.ndarray, rsig: np.ndarray) -> None:
-        """§ Outputs and convergence: ``converged`` also needs σ_r < max(σ_floor, k_far · r), in place; nothing
-        to do when k_far = 0 (off)."""
+    def _apply_limits(self, converged: np.ndarray, valid: np.ndarray, rng: np.ndarray, rsig: np.ndarray) -> None:
+        """§ Outputs and convergence, in place: with σ_near = ``converged_near_sigma_m`` > 0 a valid landmark with
+        enough updates and ρ > 1/max_range is converged when σ_r < σ_near whatever σ_r / r; then ``converged``
+        also needs σ_r < max(σ_floor, k_far · r) when k_far > 0."""
         cfg = self.config
+        if cfg.converged_near_sigma_m > 0:
+            converged |= (valid & (self.x[:, 2] > 1.0 / cfg.max_range_m) & (self.n_updates >= cfg.min_updates)
+                          & (rsig < cfg.converged_near_sigma_m))
         if cfg.converged_far_rel_sigma > 0:
             converged &= rsig < np.maximum(cfg.converged_sigma_floor_m, cfg.converged_far_rel_sigma * rng)
 
@@ -734,7 +738,7 @@ class AnchoredInverseDepthEKF:
             _kernels.estimates(x, self.P, self.R_world_camA, self.p_world_camA, self.diverged, self.n_updates, C,
                                float(cfg.max_range_m), float(cfg.converged_rel_sigma), cfg.min_updates, self.i_pos,
                                p_world, rng, rsig, srho, valid, converged)
-            self._apply_far_limit(converged, rng, rsig)
+            self._apply_limits(converged, valid, rng, rsig)
             return LandmarkEstimates(self.ids.copy(), p_world, rng, rsig, x[:, 2].copy(), srho, converged, valid)
         rho = x[:, 2]
         srho = np.sqrt(np.maximum(self.P[:, 2, 2], 0.0))
@@ -763,5 +767,5 @@ class AnchoredInverseDepthEKF:
             p_world = p_world + x[:, self.i_pos : self.i_pos + 3]
         valid = ~self.diverged & (rho > -3.0 * srho)
         converged = valid & (rho > rho_floor) & (rsig < cfg.converged_rel_sigma * rng) & (self.n_updates >= cfg.min_updates)
-        self._apply_far_limit(converged, rng, rsig)
+        self._apply_limits(converged, valid, rng, rsig)
         return LandmarkEstimates(self.ids.copy(), p_world, rng, rsig, rho.copy(), srho, converged, valid)

@@ -103,6 +103,7 @@ class AnchoredEKFConfig:
     converged_rel_sigma: float = 0.1  # converged when range σ / range is below this ...
     converged_sigma_floor_m: float = 0.6  # ... and σ below max(this, converged_far_rel_sigma · range), m
     converged_far_rel_sigma: float = 0.0  # ... (far ranges need a tighter relative σ than near ones: § Outputs and convergence); 0 = off
+    converged_near_sigma_m: float = 0.0  # > 0: a range σ below this (m) is converged whatever σ / range (close in, where an honest σ holds the position error); 0 = off
     min_updates: int = 3  # ... and at least this many accepted updates
     max_consecutive_rejects: int = 5  # then the landmark is flagged diverged
     max_range_m: float = 10000.0  # ranges beyond this are reported as this value
@@ -129,6 +130,7 @@ class AnchoredEKFConfig:
         require_finite("converged_rel_sigma", self.converged_rel_sigma, positive=True)
         require_finite("converged_sigma_floor_m", self.converged_sigma_floor_m, nonnegative=True)
         require_finite("converged_far_rel_sigma", self.converged_far_rel_sigma, nonnegative=True)
+        require_finite("converged_near_sigma_m", self.converged_near_sigma_m, nonnegative=True)
         require(isinstance(self.min_updates, int) and self.min_updates >= 0, "min_updates must be an integer >= 0")
         require(isinstance(self.max_consecutive_rejects, int) and self.max_consecutive_rejects >= 1, "max_consecutive_rejects must be >= 1")
         require_finite("max_range_m", self.max_range_m, positive=True)
