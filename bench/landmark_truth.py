@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flightsim.score.landmarks import DEFAULT_BINS, landmark_z, load_run, markdown, summarize  # noqa: F401 (re-exported)
+from flightsim.score.landmarks import DEFAULT_BINS, landmark_z, load_run, markdown, summarize
 
 COMMAND = "python -m bench landmark_truth"
 

@@ -447,8 +447,6 @@ class Pipeline:
 
         rays_cam = self.camera.unproject(tf.uv) if len(tf.ids) else np.zeros((0, 3))
         p_world = points_on_current_rays(out.ids, out.p_world, out.range, tf.ids, rays_cam, R_wc, p_wc)
-        if self.landmark_sink is not None:
-            self._log_landmarks(t, R_wc, p_wc, out, p_world)
         rem = self._update_map(t, out, tf, p_world, R_wc, p_wc, p_wb)
         c0, c1 = c1, time.thread_time()
         stage["map"] = c1 - c0
@@ -461,6 +459,8 @@ class Pipeline:
             ground_height_m=float(p_wb[2]),  # NED: the origin's level (take-off ground) relative to the vehicle
         )
         stage["sectors"] = time.thread_time() - c1
+        if self.landmark_sink is not None:  # a diagnostic: after the stages, so their timings stay the ranging's own
+            self._log_landmarks(t, R_wc, p_wc, out, p_world)
         if self.map is not None:
             res.n_map, res.n_remembered = len(self.map), len(rem)
         res.sectors = sectors

@@ -33,6 +33,16 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 # optional rules and error models it turns on.  A test of one mechanism starts from one of these and
 # switches on, by name, what it exercises.
 
+class FullDisk:
+    """A file whose every write fails as on a full disk: what a diagnostic log must survive without costing a frame."""
+
+    def write(self, _):
+        raise OSError(28, "No space left on device")
+
+    def close(self):
+        pass
+
+
 def sectors_optional_rules_off(**changes):
     """``[sectors]`` as shipped with its optional rules switched off: narrow-gap and vertical-span
     inference, the cap above the band and the ground margin (the same-range gap rule,

@@ -19,6 +19,7 @@ from companion.errors import ConfigError, InputError
 from companion.landmark_log import LandmarkLog, read_landmark_log
 from companion.replay import replay
 
+from conftest import FullDisk
 from test_replay import read_out, recording, small  # noqa: F401 (the module-scoped recording fixture)
 
 
@@ -97,14 +98,7 @@ def test_an_unwritable_log_is_a_configuration_error_and_a_failing_write_ends_onl
         LandmarkLog(tmp_path / "d")
     lg = LandmarkLog(tmp_path / "l.jsonl")
 
-    class Full:
-        def write(self, _):
-            raise OSError(28, "No space left on device")
-
-        def close(self):
-            pass
-
-    lg._fh = Full()
+    lg._fh = FullDisk()
     out, p = _out()
     lg(1.0, np.eye(3), np.zeros(3), out, p)  # no exception
     assert lg.failed and lg.lines == 0

@@ -25,6 +25,8 @@ from flightsim.score.inputs import RangeMessages, SectorTruth
 from flightsim.score.markdown import markdown
 from flightsim.score.summary import summarize
 
+from conftest import FullDisk
+
 HFOV = math.radians(60.0)
 CFG = SectorConfig()
 
@@ -142,14 +144,7 @@ def test_a_failing_write_ends_the_log_and_nothing_else(tmp_path):
     sec = scene()
     sl = SectorLog(tmp_path / "s.jsonl")
 
-    class Full:
-        def write(self, _):
-            raise OSError(28, "No space left on device")
-
-        def close(self):
-            pass
-
-    sl._fh = Full()
+    sl._fh = FullDisk()
     sl("autopilot", 1, sec.distances_cm, sec.sources())  # no exception
     assert sl.failed and sl.lines == 0
     sl("autopilot", 2, sec.distances_cm, sec.sources())  # later calls do nothing
