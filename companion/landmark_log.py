@@ -13,12 +13,15 @@ then one line per processed frame::
 
     {"t": 31.2, "p_world_cam": [x, y, z], "R_world_cam": [9 values], "ids": [...],
      "p_world": [[x, y, z], ...], "range": [...], "range_sigma": [...], "mean_nis": [...],
-     "converged": "0110...", "valid": "1111..."}
+     "converged": "0110...", "valid": "1111...", "scale": [...], "scale_sigma": [...]}
 
 ``t`` is the frame's capture time on the companion clock; ``p_world`` is each landmark's point on
 the ray measured in this frame (where the map and the sectors take it from,
 :func:`companion.core.obstacle_map.points_on_current_rays`), ``range`` and ``range_sigma`` the
-estimator's (m), ``mean_nis`` its filter's mean NIS (NaN before any update).  Positions are rounded to
+estimator's (m), ``mean_nis`` its filter's mean NIS (NaN before any update), ``scale`` and ``scale_sigma`` the
+patch scale change the tracker measured between the previous frame and this one (looming, DESIGN §7; null where
+none was measured: not fitted within ``[ncc] max_scale_points``, or not measurable; both fields absent from logs
+written before they existed).  Positions are rounded to
 the millimetre, ranges and σ to the millimetre, NIS to 0.01.
 
 Size: ~60 B per landmark, so ~15 MB a minute with 300 landmarks at 15 Hz (~1 GB an hour); CPU: ~7 µs per
@@ -59,13 +62,15 @@ class LandmarkLog(JsonlLog):
     def __init__(self, path):
         super().__init__(path, {"landmark_log": FORMAT_VERSION, "frame": "world NED, metres; camera pose R_world_cam row-major",
                                 "fields": ["t", "p_world_cam", "R_world_cam", "ids", "p_world", "range", "range_sigma",
-                                           "mean_nis", "converged", "valid"]})
+                                           "mean_nis", "converged", "valid", "scale", "scale_sigma"]})
 
-    def __call__(self, t: float, R_world_cam, p_world_cam, out, p_world) -> None:
+    def __call__(self, t: float, R_world_cam, p_world_cam, out, p_world, scale=None, scale_sigma=None) -> None:
         if not self.open:
             return
         n = len(out.ids)
         nis = out.mean_nis if out.mean_nis is not None else np.full(n, np.nan)
+        scale = np.full(n, np.nan) if scale is None else np.asarray(scale, float).reshape(n)
+        scale_sigma = np.full(n, np.nan) if scale_sigma is None else np.asarray(scale_sigma, float).reshape(n)
         self.write({
             "t": round(float(t), 6),
             "p_world_cam": _rounded(p_world_cam, 3),
@@ -77,6 +82,8 @@ class LandmarkLog(JsonlLog):
             "mean_nis": _rounded(nis, 2),
             "converged": "".join("1" if c else "0" for c in np.asarray(out.converged, bool)),
             "valid": "".join("1" if v else "0" for v in np.asarray(out.valid, bool)),
+            "scale": _rounded(scale, 5),
+            "scale_sigma": _rounded(scale_sigma, 5),
         })
 
 
@@ -131,8 +138,10 @@ def _frame(r: dict) -> dict:
         "p_world": np.asarray([_nan_for_null(p) for p in r["p_world"]], float).reshape(n, 3),
         "range": _nan_for_null(r["range"]), "range_sigma": _nan_for_null(r["range_sigma"]),
         "mean_nis": _nan_for_null(r["mean_nis"]), **flags,
+        "scale": _nan_for_null(r["scale"]) if "scale" in r else np.full(n, np.nan),
+        "scale_sigma": _nan_for_null(r["scale_sigma"]) if "scale_sigma" in r else np.full(n, np.nan),
     }
-    for name in ("range", "range_sigma", "mean_nis"):
+    for name in ("range", "range_sigma", "mean_nis", "scale", "scale_sigma"):
         if len(frame[name]) != n:
             raise ValueError(f"{name} has {len(frame[name])} values for {n} landmarks")
     return frame

@@ -337,10 +337,17 @@ class Pipeline:
         """The estimator's output for the latest processed frame (world points, ranges, σ)."""
         return self._out_prev
 
-    def _log_landmarks(self, t, R_wc, p_wc, out: RangeOutput, p_world) -> None:
-        """Hand this frame's landmarks to ``landmark_sink``; a sink that raises is dropped (logged), ranging goes on."""
+    def _log_landmarks(self, t, R_wc, p_wc, out: RangeOutput, p_world, tf) -> None:
+        """Hand this frame's landmarks (and their tracks' patch scales) to ``landmark_sink``; a sink that raises is
+        dropped (logged), ranging goes on."""
         try:
-            self.landmark_sink(t, R_wc, p_wc, out, p_world)
+            scale, scale_sigma = np.full(len(out.ids), np.nan), np.full(len(out.ids), np.nan)
+            if len(tf.ids) and len(out.ids):
+                order = np.argsort(tf.ids)
+                j = np.clip(np.searchsorted(tf.ids, out.ids, sorter=order), 0, len(order) - 1)
+                hit = tf.ids[order[j]] == out.ids
+                scale[hit], scale_sigma[hit] = tf.scale[order[j[hit]]], tf.scale_sigma[order[j[hit]]]
+            self.landmark_sink(t, R_wc, p_wc, out, p_world, scale, scale_sigma)
         except Exception as exc:  # a diagnostic must never cost a frame
             log.error("landmark sink failed (%r): no more landmarks are logged; ranging goes on", exc)
             self.counters["landmark_sink_errors"] += 1
@@ -460,7 +467,7 @@ class Pipeline:
         )
         stage["sectors"] = time.thread_time() - c1
         if self.landmark_sink is not None:  # a diagnostic: after the stages, so their timings stay the ranging's own
-            self._log_landmarks(t, R_wc, p_wc, out, p_world)
+            self._log_landmarks(t, R_wc, p_wc, out, p_world, tf)
         if self.map is not None:
             res.n_map, res.n_remembered = len(self.map), len(rem)
         res.sectors = sectors

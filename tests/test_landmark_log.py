@@ -39,7 +39,8 @@ def test_round_trip(tmp_path):
     for k in range(3):
         out, p = _out(seed=k, nis=k != 1)
         R = np.eye(3)
-        lg(10.0 + k / 30, R, np.array([1.0, 2.0, -3.0]), out, p)
+        scale = (np.r_[np.nan, np.linspace(0.95, 1.05, len(out.ids) - 1)], np.r_[np.nan, np.full(len(out.ids) - 1, 0.01)])
+        lg(10.0 + k / 30, R, np.array([1.0, 2.0, -3.0]), out, p, *(scale if k == 0 else ()))
         frames.append((out, p))
     lg.close()
     head = json.loads(path.read_text().split("\n")[0])
@@ -59,6 +60,17 @@ def test_round_trip(tmp_path):
     assert np.all(np.isnan(got[1]["mean_nis"]))
     np.testing.assert_allclose(got[0]["mean_nis"][1:], frames[0][0].mean_nis[1:], atol=5e-3)
     assert got[1]["t"] == pytest.approx(10.0 + 1 / 30, abs=1e-6)
+    np.testing.assert_allclose(got[0]["scale"][1:], np.linspace(0.95, 1.05, 3), atol=1e-5)
+    np.testing.assert_allclose(got[0]["scale_sigma"][1:], 0.01, atol=1e-5)
+    assert np.isnan(got[0]["scale"][0]) and np.all(np.isnan(got[1]["scale"])) and np.all(np.isnan(got[2]["scale_sigma"]))
+    # a log written before the scale fields existed reads with NaN scales
+    lines = path.read_text().split("\n")
+    r = json.loads(lines[1])
+    del r["scale"], r["scale_sigma"]
+    old = tmp_path / "old.jsonl"
+    old.write_text("\n".join([lines[0], json.dumps(r), ""]))
+    (g,) = read_landmark_log(old)
+    assert g["scale"].shape == (4,) and np.all(np.isnan(g["scale"])) and np.all(np.isnan(g["scale_sigma"]))
 
 
 def test_a_line_cut_off_by_a_kill_is_skipped_anything_else_malformed_is_refused(tmp_path):
@@ -126,6 +138,10 @@ def test_replay_logs_each_landmark_at_its_range_and_logging_changes_nothing_sent
         np.testing.assert_allclose(d, f["range"], rtol=1e-3, atol=2e-3)  # the point on its ray, at its range
         n_conv += int(np.count_nonzero(f["converged"] & f["valid"]))
     assert n_conv > 0 and len(frames[-1]["ids"]) > 10
+    scales = np.concatenate([f["scale"] for f in frames])  # the tracker's patch scales, where it measured one
+    fit = np.isfinite(scales)
+    assert 0 < np.count_nonzero(fit) < len(scales) and np.all(np.abs(scales[fit] - 1) < 0.3)
+    assert np.array_equal(fit, np.isfinite(np.concatenate([f["scale_sigma"] for f in frames])))
 
 
 def test_a_sink_that_raises_is_dropped_and_costs_no_frame(recording, tmp_path):  # noqa: F811

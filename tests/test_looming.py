@@ -324,6 +324,39 @@ def test_scale_fits_are_bounded_least_parallax_first(zoom):
     assert d[done].max() <= np.median(d[res.ok])
 
 
+def test_scale_fits_follow_a_given_key(zoom):
+    """``scale_key`` orders the budgeted fits (smallest first), here the farthest from the centre."""
+    img0 = zoom.render(1.0)
+    pts, _ = detect_harris(img0, HarrisConfig(max_corners=60))
+    d = np.linalg.norm(pts - zoom.centre, axis=1)
+    res = match_ncc(img0, zoom.render(1.03), pts, zoom.move(pts, 1.03), NCCConfig(max_scale_points=10), 4, scale_key=-d)
+    done = np.isfinite(res.scale)
+    assert 5 <= done.sum() <= 10
+    assert d[done].min() >= np.sort(d[res.ok])[-10]  # only the ten farthest accepted matches were fitted
+    with pytest.raises(Exception, match="scale_key"):
+        match_ncc(img0, zoom.render(1.03), pts, zoom.move(pts, 1.03), NCCConfig(), 4, scale_key=np.full(len(pts), np.nan))
+
+
+def test_the_tracker_orders_scale_fits_by_the_predictors_parallax(zoom):
+    """With ``scale_order = "parallax"`` the predictor's third output decides which tracks get scales."""
+    cam = CameraModel(CameraConfig(width=320, height=240, fx=300.0, fy=300.0, cx=160.0, cy=120.0))
+    done = {}
+    for order in ("median_flow", "parallax"):
+        tm = TrackManager(cam, HarrisConfig(max_corners=60), NCCConfig(max_scale_points=10, scale_order=order),
+                          TrackConfig(max_tracks=60))
+        first = tm.step(zoom.render(1.0), 0.0, 0)
+        d = np.linalg.norm(first.uv - zoom.centre, axis=1)
+        key = {int(i): -float(x) for i, x in zip(first.ids, d)}  # farthest from the centre first
+        tf = tm.step(zoom.render(1.03), 1 / 30, 1,
+                     predict=lambda uv, ids: (zoom.move(uv, 1.03), 4.0, np.array([key[int(i)] for i in ids])))
+        fitted = np.isin(first.ids, tf.ids[np.isfinite(tf.scale)])
+        done[order] = d[fitted]
+        assert 5 <= fitted.sum() <= 10
+    assert done["parallax"].min() > done["median_flow"].max()  # the given key, not the median motion
+    with pytest.raises(Exception, match="parallax"):
+        tm.step(zoom.render(1.06), 2 / 30, 2, predict=lambda uv, ids: (uv, 4.0, np.full(len(uv) + 1, 1.0)))
+
+
 def test_rescaled_templates_correlate_when_the_patch_grows_fast(zoom):
     img0, img1 = zoom.render(1.0), zoom.render(1.2)
     pts, _ = detect_harris(img0, HarrisConfig(max_corners=60))
@@ -369,7 +402,8 @@ def test_tracks_report_scale_and_survive_fast_growth(zoom):
 
 def test_scale_config_is_validated():
     for kw, name in ((dict(scale_half=1), "scale_half"), (dict(max_scale_change=1.5), "max_scale_change"),
-                     (dict(max_scale_points=-1), "max_scale_points"), (dict(scale_sigma_slope=-1.0), "scale_sigma_slope")):
+                     (dict(max_scale_points=-1), "max_scale_points"), (dict(scale_sigma_slope=-1.0), "scale_sigma_slope"),
+                     (dict(scale_order="nearest"), "scale_order")):
         with pytest.raises(ConfigError, match=name):
             NCCConfig(**kw)
     with pytest.raises(ConfigError, match="template_rescale_threshold"):

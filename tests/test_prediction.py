@@ -12,6 +12,7 @@ from companion.core.prediction import (
     PRED_OK,
     PRED_PARTLY_BEHIND,
     PredictionConfig,
+    bearing_parallax,
     make_track_predictor,
     predict_pixels,
     predict_pixels_detailed,
@@ -108,13 +109,35 @@ def test_track_predictor_adapter(cam):
     cfg = PredictionConfig(depth_min_m=3.0, base_radius_px=2.0, max_radius_px=1e4)
     predict = make_track_predictor(cam, cfg, (R_prev, p_prev), (R_cur, p_cur))
     uv, z, p_cam = scene_points(cam, 40, 5.0, 60.0, seed=3)
-    uv_pred, radius = predict(uv, np.arange(40))
+    uv_pred, radius, parallax = predict(uv, np.arange(40))
     assert uv_pred.shape == (40, 2) and radius.shape == (40,)
+    np.testing.assert_allclose(parallax, bearing_parallax(cam, uv, R_prev, p_prev, R_cur, p_cur))
     truth = cam.project(cam.world_to_camera(p_cam @ R_prev.T + p_prev, R_cur, p_cur))
     assert np.all(np.linalg.norm(truth - uv_pred, axis=1) <= radius)
     with_depth = make_track_predictor(cam, cfg, (R_prev, p_prev), (R_cur, p_cur), depth_of=lambda ids: (z[ids], None))
-    uv_k, r_k = with_depth(uv, np.arange(40))
+    uv_k, r_k, _ = with_depth(uv, np.arange(40))
     assert np.abs(uv_k - truth).max() < 1e-6 and np.allclose(r_k, 2.0)
+
+
+def test_bearing_parallax_is_the_image_motion_per_inverse_depth():
+    """|∂uv/∂ρ| at ρ = 0 against a finite difference of the projection; zero at the focus of expansion."""
+    cam = CameraModel(CameraConfig(width=320, height=240, fx=277.0, fy=290.0, cx=159.5, cy=119.5))
+    R_prev, p_prev, R_cur, p_cur = poses()
+    uv, _, _ = scene_points(cam, 30, 5.0, 60.0, seed=5)
+    got = bearing_parallax(cam, uv, R_prev, p_prev, R_cur, p_cur)
+    m = np.column_stack([cam.pixels_to_normalized(uv), np.ones(len(uv))])
+    rays_world = m @ R_prev.T  # direction of each ray in the world
+    h = 1e-6  # inverse depth step (1/m): the point at depth 1/h along the ray
+    far = cam.project(cam.world_to_camera(p_prev + rays_world / h, R_cur, p_cur))
+    nearer = cam.project(cam.world_to_camera(p_prev + rays_world / (2 * h), R_cur, p_cur))  # ρ = 2h
+    np.testing.assert_allclose(got, np.linalg.norm(far - nearer, axis=1) / h, rtol=1e-3)
+    # straight ahead along the optical axis: the focus of expansion is the principal point
+    R = np.eye(3)
+    foe = bearing_parallax(cam, np.array([[159.5, 119.5], [200.0, 119.5], [300.0, 119.5]]), R, np.zeros(3), R, np.array([0.0, 0.0, 1.0]))
+    assert foe[0] == pytest.approx(0.0, abs=1e-12) and 0 < foe[1] < foe[2]
+    assert bearing_parallax(cam, np.zeros((0, 2)), R, np.zeros(3), R, np.zeros(3)).shape == (0,)
+    with pytest.raises(InputError, match="R_world_cam_cur"):
+        bearing_parallax(cam, uv, R_prev, p_prev, np.full((3, 3), np.nan), p_cur)
 
 
 def test_bad_input_names_the_problem():

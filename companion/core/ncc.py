@@ -46,8 +46,10 @@ Scale change (looming, docs/derivations/looming.md).  For each accepted match of
 :func:`estimate_scale` (:mod:`companion.core.ncc_scale`, which states the fit) measures the patch's
 scale change s = size now / size before and its σ by a Gauss–Newton fit of a scale + translation
 warp.  At most ``max_scale_points`` fits per call (cost bound), the matches with
-the least parallax first (image motion farthest below the median: the focus of expansion, where
-looming is needed).  The
+the least parallax first: by default the image motion nearest the median motion; with
+``scale_order = "parallax"`` the smallest ``scale_key`` (the bearing parallax per unit inverse
+depth the tracker's predictor computes, which vanishes at the focus of expansion, where looming
+is needed).  The
 scale is NaN where it cannot be measured: rejected match, window not inside both frames, flat or
 edge patch (singular normal matrix), no convergence, |s − 1| > ``max_scale_change`` or
 σ_s > ``max_scale_sigma``.  Templates that follow scale: :func:`match_ncc` resamples the template
@@ -126,6 +128,7 @@ class NCCConfig:
     scale_half: int = 7  # the scale is fitted over (2h+1)² = 15×15 px
     scale_iterations: int = 2  # Gauss–Newton iterations of the scale fit (started from the track's last scale)
     max_scale_points: int = 40  # scale fits per call (cost bound): those with the least parallax first
+    scale_order: str = "median_flow"  # which fits first: "median_flow" (image motion nearest the median) or "parallax" (least bearing parallax, given as scale_key)
     scale_sigma_slope: float = 0.06  # σ added in quadrature per unit |s − 1| (resampling / model error)
     max_scale_change: float = 0.3  # |s − 1| beyond this: scale reported NaN
     max_scale_sigma: float = 0.05  # scale σ beyond this: scale reported NaN
@@ -163,6 +166,8 @@ class NCCConfig:
         require(self.scale_half >= 2, f"scale_half must be >= 2, got {self.scale_half}")
         require(isinstance(self.max_scale_points, int) and not isinstance(self.max_scale_points, bool) and self.max_scale_points >= 0,
                 f"max_scale_points must be an integer >= 0, got {self.max_scale_points!r}")
+        require(self.scale_order in ("median_flow", "parallax"),
+                f"scale_order must be 'median_flow' or 'parallax', got {self.scale_order!r}")
         require_finite("scale_sigma_slope", self.scale_sigma_slope, nonnegative=True)
         require_finite("max_scale_change", self.max_scale_change, positive=True)
         require(self.max_scale_change < 1.0, f"max_scale_change must be < 1, got {self.max_scale_change}")
@@ -523,6 +528,7 @@ def match_ncc(
     search_radius=None,
     scale_pred=None,
     rescale_threshold: float = 0.0,
+    scale_key=None,
 ) -> NCCResult:
     """Find each point of ``img_prev`` in ``img_cur`` by NCC (seed 004 eq. 13–14).
 
@@ -537,6 +543,9 @@ def match_ncc(
     scale_pred : None or (N,) predicted scale change of each patch (e.g. its last measured one);
         where |scale_pred − 1| > ``rescale_threshold`` (> 0) the template is resampled at that
         scale before the search, and the scale fit starts from it.
+    scale_key : None or (N,) order of the scale fits when more matches than ``max_scale_points``
+        are accepted: smallest first (e.g. :func:`companion.core.prediction.bearing_parallax`, the
+        points bearings cannot range); default the image motion's distance from the median motion.
 
     Returns
     -------
@@ -550,6 +559,10 @@ def match_ncc(
     pts_prev = _check_pts("pts_prev", pts_prev)
     pts_pred = _check_pts("pts_pred", pts_pred, len(pts_prev))
     n = len(pts_prev)
+    if scale_key is not None:
+        scale_key = np.asarray(scale_key, float).reshape(-1)
+        if scale_key.shape != (n,) or np.any(np.isnan(scale_key)):
+            raise InputError(f"scale_key must be ({n},) without NaN")
     if scale_pred is not None:
         scale_pred = np.asarray(scale_pred, float).reshape(-1)
         if scale_pred.shape != (n,) or not np.all(np.isfinite(scale_pred)) or np.any(scale_pred <= 0):
@@ -565,9 +578,13 @@ def match_ncc(
     )
     if config.scale_estimation and np.any(res.ok) and config.max_scale_points > 0:
         g = np.flatnonzero(res.ok)
-        if len(g) > config.max_scale_points:  # least parallax first: image motion farthest below the median
-            flow = res.pts[g] - pts_prev[g]
-            g = g[np.argsort(np.linalg.norm(flow - np.median(flow, axis=0), axis=1), kind="stable")[: config.max_scale_points]]
+        if len(g) > config.max_scale_points:  # least parallax first
+            if scale_key is not None:
+                key = scale_key[g]
+            else:  # image motion nearest the median motion
+                flow = res.pts[g] - pts_prev[g]
+                key = np.linalg.norm(flow - np.median(flow, axis=0), axis=1)
+            g = g[np.argsort(key, kind="stable")[: config.max_scale_points]]
         s0 = None if scale_pred is None else scale_pred[g]
         res.scale[g], res.scale_sigma[g] = estimate_scale(img_prev, img_cur, pts_prev[g], res.pts[g], config, s0)
     return res

@@ -497,21 +497,60 @@ def predict_pixels(
     return p.uv, p.radius
 
 
+def bearing_parallax(
+    camera: CameraModel,
+    uv_prev: np.ndarray,
+    R_world_cam_prev: np.ndarray,
+    p_world_cam_prev: np.ndarray,
+    R_world_cam_cur: np.ndarray,
+    p_world_cam_cur: np.ndarray,
+) -> np.ndarray:
+    """How far each point's image moves per unit inverse depth: |∂uv/∂ρ| at ρ = 0, px·m (N,).
+
+    With the module docstring's ``P ∝ R m + ρ t`` and ``q = R m``, the normalized image
+    ``x = (q₀ + ρ t₀)/(q₂ + ρ t₂)`` has ``∂x/∂ρ = (t₀ q₂ − q₀ t₂)/q₂²`` at ρ = 0 (the same with
+    index 1 for y); scaled by the focal lengths it is the bearing parallax a point there can give
+    between the two frames, per m⁻¹ of inverse depth (lens distortion ignored: it only rescales).
+    It vanishes at the focus of expansion, where bearings alone cannot range a point and the
+    patch's scale change (looming, DESIGN §7) must: the tracker spends its scale-fit budget on the
+    smallest values first (``[ncc] scale_order = "parallax"``).  Rays at or behind the current
+    camera get +inf (last).
+    """
+    uv = np.asarray(uv_prev, float).reshape(-1, 2)
+    n = len(uv)
+    if n == 0:
+        return np.zeros(0)
+    Rp, Rc = _rotation("R_world_cam_prev", R_world_cam_prev), _rotation("R_world_cam_cur", R_world_cam_cur)
+    pp, pc = _position("p_world_cam_prev", p_world_cam_prev), _position("p_world_cam_cur", p_world_cam_cur)
+    m = np.column_stack([camera.pixels_to_normalized(uv), np.ones(n)])
+    q = m @ (Rc.T @ Rp).T
+    t = Rc.T @ (pp - pc)
+    out = np.full(n, np.inf)
+    front = q[:, 2] > _MIN_COS * np.linalg.norm(q, axis=1)
+    qz = q[front, 2]
+    dx = (t[0] * qz - q[front, 0] * t[2]) / qz**2
+    dy = (t[1] * qz - q[front, 1] * t[2]) / qz**2
+    c = camera.config
+    out[front] = np.hypot(c.fx * dx, c.fy * dy)
+    return out
+
+
 def make_track_predictor(
     camera: CameraModel,
     config: PredictionConfig,
     pose_prev: tuple[np.ndarray, np.ndarray],
     pose_cur: tuple[np.ndarray, np.ndarray],
     depth_of: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]] | None = None,
-) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """A ``predict`` callable for :meth:`companion.core.tracks.TrackManager.step`.
 
     ``pose_prev`` / ``pose_cur`` are ``(R_world_cam, p_world_cam)`` of the previous and current
     frames; ``depth_of(ids)`` optionally returns ``(depth, depth_sigma)`` per track id from a
-    filter (depth ≤ 0 where unknown).
+    filter (depth ≤ 0 where unknown).  The callable returns ``(uv_pred, radius, parallax)``, the
+    last from :func:`bearing_parallax` (the tracker's order of scale fits).
     """
 
-    def predict(uv_prev: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def predict(uv_prev: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         depth = sigma = None
         if depth_of is not None:
             depth, sigma = depth_of(ids)
@@ -521,7 +560,7 @@ def make_track_predictor(
             depth_sigma=sigma, depth_sigma_k=config.depth_sigma_k,
             max_radius_px=config.max_radius_px, samples=config.samples,
         )
-        return p.uv, p.radius
+        return p.uv, p.radius, bearing_parallax(camera, uv_prev, pose_prev[0], pose_prev[1], pose_cur[0], pose_cur[1])
 
     return predict
 

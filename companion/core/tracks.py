@@ -90,7 +90,7 @@ def zncc_patches(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 #: What :meth:`TrackManager.step` did about new corners (:attr:`TrackFrame.refill`).
 REFILL_NONE, REFILL_RUN, REFILL_PAUSED = 0, 1, 2
 
-Predictor = Callable[[np.ndarray, np.ndarray], "tuple[np.ndarray, np.ndarray | float]"]
+Predictor = Callable[[np.ndarray, np.ndarray], "tuple[np.ndarray, np.ndarray | float] | tuple[np.ndarray, np.ndarray | float, np.ndarray]"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -336,13 +336,19 @@ class TrackManager:
             raise InputError(f"frame_index must increase: {frame_index} after {self._prev_frame}")
         return gray, t, frame_index
 
-    def _prediction(self, predict: Predictor | None, uv_prev: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _prediction(self, predict: Predictor | None, uv_prev: np.ndarray,
+                    ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         n = len(uv_prev)
         if predict is None:
-            return uv_prev.copy(), np.full(n, float(self.ncc.search_half))
+            return uv_prev.copy(), np.full(n, float(self.ncc.search_half)), None
         out = predict(uv_prev.copy(), ids.copy())
-        if not isinstance(out, tuple) or len(out) != 2:
-            raise InputError("predict must return a tuple (uv_pred (N, 2), radius (N,) or scalar)")
+        if not isinstance(out, tuple) or len(out) not in (2, 3):
+            raise InputError("predict must return a tuple (uv_pred (N, 2), radius (N,) or scalar[, parallax (N,)])")
+        parallax = None
+        if len(out) == 3:
+            parallax = np.asarray(out[2], dtype=float)
+            if parallax.shape != (n,) or np.any(np.isnan(parallax)):
+                raise InputError(f"predict returned an invalid parallax (shape {parallax.shape}; must be ({n},) without NaN)")
         uv_pred = np.asarray(out[0], dtype=float)
         radius = np.asarray(out[1], dtype=float)
         if uv_pred.shape != (n, 2):
@@ -353,7 +359,7 @@ class TrackManager:
             radius = np.full(n, float(radius))
         if radius.shape != (n,) or not np.all(np.isfinite(radius)) or np.any(radius < 0):
             raise InputError(f"predict returned an invalid radius (shape {radius.shape}; must be finite, >= 0, scalar or ({n},))")
-        return uv_pred, radius
+        return uv_pred, radius, parallax
 
     def step(self, gray: np.ndarray, t: float, frame_index: int, predict: Predictor | None = None,
              priority_mask: np.ndarray | None = None, R_world_cam: np.ndarray | None = None) -> TrackFrame:
@@ -396,7 +402,8 @@ class TrackManager:
         live = np.flatnonzero(self._id >= 0)
         if len(live) and self._prev_gray is not None:
             uv_prev = self._uv[live]
-            uv_pred, radius = self._prediction(predict, uv_prev, self._id[live])
+            uv_pred, radius, parallax = self._prediction(predict, uv_prev, self._id[live])
+            scale_key = parallax if self.ncc.scale_order == "parallax" else None
             fresh = self._last_frame[live] == self._prev_frame
             # Tracks that already missed frames search a wider window (their motion is older).
             radius = radius * (1 + self._fail[live])
@@ -408,7 +415,8 @@ class TrackManager:
             f = np.flatnonzero(fresh)
             if len(f):
                 r = match_ncc(self._prev_gray, gray, uv_prev[f], uv_pred[f], self.ncc, radius[f],
-                              scale_pred=self._scale_rate[live[f]], rescale_threshold=cfg.template_rescale_threshold)
+                              scale_pred=self._scale_rate[live[f]], rescale_threshold=cfg.template_rescale_threshold,
+                              scale_key=None if scale_key is None else scale_key[f])
                 pts[f], score[f], reason[f] = r.pts, r.score, r.reason
                 scale[f], scale_sigma[f] = r.scale, r.scale_sigma
             c = np.flatnonzero(~fresh)
