@@ -286,3 +286,45 @@ def test_near_convergence_limit(kernels):
     assert converged(min_updates=3, converged_near_sigma_m=0.4) == [False, False, False]  # no update accepted yet
     with pytest.raises(ConfigError, match="converged_near_sigma_m"):
         AnchoredEKFConfig(converged_near_sigma_m=-0.1)
+
+
+def test_mean_nis_counts_only_with_baseline(kernels):
+    """§ Bookkeeping: with nis_min_baseline_deg a NIS enters the mean only once the camera has moved that far, seen from
+    the landmark.  A point 5 m ahead ranged on the way in, then watched from a hover with a slowly swinging pixel
+    error (what the telemetry's correlated position error leaves in a hover): each update passes the gate, but
+    their mean passes max_mean_nis and retires the point; counted only with baseline, the hover adds nothing to the
+    mean and the point stays.  Moving again, the NIS counts: 0.1 m sideways is 1.1° at 5 m."""
+    f = 500.0
+    p = np.array([[0.2, 0.1, 5.0]])
+
+    def run(baseline_deg):
+        cfg = AnchoredEKFConfig(sigma_px=1.0, max_mean_nis=4.0, nis_window=10.0, nis_min_baseline_deg=baseline_deg,
+                                position_sigma_m=0.0, attitude_drift_deg_s=0.0)
+        ekf = AnchoredInverseDepthEKF(cfg, f, f)
+        ekf.add([7], p[:, :2] / p[:, 2:], np.eye(3), np.zeros(3), 0.0, 0.2, 0.05)
+        k = 0
+        for k in range(1, 11):  # the approach: 0.3 m a frame, exact pixels
+            C = np.array([0.02 * k, 0.0, 0.3 * k])
+            pc = p - C
+            ekf.update([7], pc[:, :2] / pc[:, 2:], np.eye(3), C, 0.1 * k)
+        counted = int(ekf.nis_count[0])
+        C = np.array([0.2, 0.0, 3.0])
+        pc = p - C
+        for j in range(1, 41):  # a 4 s hover, the pixel error swinging ±2.2 px in x and y with a period of 0.8 s
+            k += 1
+            e = 2.2 * np.sin(2 * np.pi * j * 0.1 / 0.8) / f
+            ekf.update([7], pc[:, :2] / pc[:, 2:] + e, np.eye(3), C, 0.1 * k)
+        return ekf, counted
+
+    ekf, _ = run(0.0)
+    assert ekf.diverged[0]  # every hover update counted: the mean crosses 4
+    ekf, counted = run(1.0)
+    assert not ekf.diverged[0] and ekf.nis_count[0] == counted  # the hover added nothing to the mean
+    assert 3 <= counted <= 10  # on the way in, with 0.3 m a frame, each update counted
+    n = int(ekf.nis_count[0])
+    C = ekf.nis_C[0] + np.array([0.1, 0.0, 0.0])
+    pc = p - C
+    ekf.update([7], pc[:, :2] / pc[:, 2:], np.eye(3), C, 10.0)
+    assert ekf.nis_count[0] == n + 1 and np.allclose(ekf.nis_C[0], C)
+    with pytest.raises(ConfigError, match="nis_min_baseline_deg"):
+        AnchoredEKFConfig(nis_min_baseline_deg=-1.0)

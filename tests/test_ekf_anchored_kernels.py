@@ -61,7 +61,7 @@ def flight_bank(n=30, seed=0, frames=12, **cfg):
 
 
 def same_banks(a, b, rtol=RTOL):
-    for name in STATE_FIELDS + ("nis_avg",):
+    for name in STATE_FIELDS + ("nis_avg", "nis_C"):
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=rtol, atol=1e-300, err_msg=name)
     for name in COUNT_FIELDS:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
@@ -74,7 +74,8 @@ def same_results(ra, rb):
 
 
 @pytest.mark.parametrize("cfg", [SHIPPED, dict(iterations=1), dict(iterations=2, attitude_sigma_deg=0.05),
-                                 dict(iterations=3, attitude_drift_deg_s=0.3, max_mean_nis=2.0, max_consecutive_rejects=2)])
+                                 dict(iterations=3, attitude_drift_deg_s=0.3, max_mean_nis=2.0, max_consecutive_rejects=2),
+                                 dict(SHIPPED, max_mean_nis=2.0, nis_min_baseline_deg=1.0)])
 def test_frame_updates_match_the_reference(path, cfg):
     """update() and update_banks() frame by frame (shared pose, subsets of landmarks): states,
     covariances, NIS, reasons and the bookkeeping agree; some updates are gated, some accepted."""
@@ -98,15 +99,16 @@ def test_frame_updates_match_the_reference(path, cfg):
     assert np.any(reasons == GATED) and np.mean(reasons == UPDATED) > 0.5  # both branches exercised
 
 
-def test_per_landmark_poses_and_sequences_match_the_reference(path):
+@pytest.mark.parametrize("cfg", [SHIPPED, dict(SHIPPED, nis_min_baseline_deg=1.0)])
+def test_per_landmark_poses_and_sequences_match_the_reference(path, cfg):
     """update() with a pose per landmark, and update_sequence() replaying buffers of different lengths."""
     out = []
     for kernels in (False, True):
         path(kernels)
-        bank, ids, xy, R, C, t = flight_bank(**SHIPPED)
+        bank, ids, xy, R, C, t = flight_bank(**cfg)
         k = np.arange(len(ids)) % (len(t) - 1) + 1  # each landmark seen from another frame
         r1 = bank.update(ids, xy[k, np.arange(len(ids))], R[k], C[k], t[k])
-        seq, *_ = flight_bank(**SHIPPED)
+        seq, *_ = flight_bank(**cfg)
         count = np.arange(len(ids)) % len(t)
         acc = seq.update_sequence(ids, np.swapaxes(xy[1:], 0, 1), np.broadcast_to(R[1:], (len(ids),) + R[1:].shape),
                                   np.broadcast_to(C[1:], (len(ids),) + C[1:].shape),

@@ -38,6 +38,8 @@ not an error in flight: NaN (the matcher could not measure it) is skipped and co
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from companion.config import require_finite
@@ -135,6 +137,7 @@ class AnchoredInverseDepthEKF:
         self.diverged = np.zeros(0, dtype=bool)
         self.nis_avg = np.zeros(0)  # mean NIS over the last ~nis_window measurements (consistency with a static point)
         self.nis_count = np.zeros(0, dtype=np.int64)  # measurements in nis_avg
+        self.nis_C = np.zeros((0, 3))  # camera centre of the last measurement that entered nis_avg (the anchor's at first)
         self.n_looming = np.zeros(0, dtype=np.int64)  # accepted looming (scale) updates
         self.t_last = np.zeros(0)  # time δ's covariance was last propagated to (§ Position error states)
         self.rho_c = np.zeros(0)  # ρ̂ when the landmark was first converged, NaN before (§ Drift test)
@@ -146,7 +149,13 @@ class AnchoredInverseDepthEKF:
         self._kernel_constants = (
             self.sigma_xy**2 + np.radians(config.attitude_sigma_deg) ** 2, self._white_position_sigma, config.gate_threshold,
             config.iterations, config.max_consecutive_rejects, float(config.nis_window), float(config.max_mean_nis),
-            self.i_pos, float(config.position_variance_limit), float(config.position_tau_s), self.consider)
+            self.i_pos, float(config.position_variance_limit), float(config.position_tau_s), self.consider,
+            self._nis_baseline)
+
+    @property
+    def _nis_baseline(self) -> float:
+        """tan of ``nis_min_baseline_deg``: the least baseline per unit range for a NIS to enter the mean (0: every one)."""
+        return math.tan(math.radians(self.config.nis_min_baseline_deg))
 
     @property
     def _white_position_sigma(self) -> float:
@@ -194,7 +203,7 @@ class AnchoredInverseDepthEKF:
         x0, P0 = self._prior(xy, rho, srho)
         zi = np.zeros(m, np.int64)
         self._insert(dict(ids=ids, x=x0, P=P0, R_world_camA=R, p_world_camA=p, t_anchor=t, n_updates=zi,
-                          n_rejects=zi, diverged=np.zeros(m, bool), nis_avg=np.zeros(m), nis_count=zi, n_looming=zi,
+                          n_rejects=zi, diverged=np.zeros(m, bool), nis_avg=np.zeros(m), nis_count=zi, nis_C=p.copy(), n_looming=zi,
                           t_last=np.array(t, float), rho_c=np.full(m, np.nan), P_rho_c=np.full(m, np.nan),
                           xy_anchor=xy.copy()))
 
@@ -225,7 +234,7 @@ class AnchoredInverseDepthEKF:
 
     #: per-landmark arrays, all aligned with ``ids`` (kept sorted ascending)
     _FIELDS = ("ids", "x", "P", "R_world_camA", "p_world_camA", "t_anchor", "n_updates", "n_rejects", "diverged", "nis_avg",
-               "nis_count", "n_looming", "t_last", "rho_c", "P_rho_c", "xy_anchor")
+               "nis_count", "nis_C", "n_looming", "t_last", "rho_c", "P_rho_c", "xy_anchor")
 
     def _insert(self, rows: dict) -> None:
         """Merge new landmarks (every field of :data:`_FIELDS`, ids not yet present) keeping ids sorted."""
@@ -382,7 +391,7 @@ class AnchoredInverseDepthEKF:
         x, P, good, nis, reason = parts[0][0]._solve(*gather, np.concatenate([z for *_, z in parts]), Rc, C, t)
         out = []
         for (bank, ids, r, _), lo, hi in zip(parts, np.concatenate([[0], ends[:-1]]), ends):
-            bank._commit(r, x[lo:hi], P[lo:hi], good[lo:hi], nis[lo:hi])
+            bank._commit(r, x[lo:hi], P[lo:hi], good[lo:hi], nis[lo:hi], C)
             out.append(UpdateResult(ids, good[lo:hi], nis[lo:hi], reason[lo:hi]))
         return out
 
@@ -394,7 +403,7 @@ class AnchoredInverseDepthEKF:
         x, P, good, nis, reason = self._solve(
             self.x[rows], self.P[rows], self.R_world_camA[rows], self.p_world_camA[rows], self.t_anchor[rows], z, Rc, C, t
         )
-        self._commit(rows, x, P, good, nis)
+        self._commit(rows, x, P, good, nis, C)
         return good, nis, reason
 
     def _kernel_rows(self, rows, z, Rc, C, t):
@@ -417,7 +426,7 @@ class AnchoredInverseDepthEKF:
     def _kernel_bank(self) -> tuple:
         """The bank arrays the pixel kernels read and update in place."""
         return (self.x, self.P, self.R_world_camA, self.p_world_camA, self.t_anchor, self.n_updates, self.n_rejects,
-                self.diverged, self.nis_avg, self.nis_count, self.t_last)
+                self.diverged, self.nis_avg, self.nis_count, self.nis_C, self.t_last)
 
     def _kernel_sequences(self, rows, z, Rc, C, t, count):
         """Run :func:`ekf_anchored_kernels.update_pixel_sequences` on bank rows ``rows`` with observations
@@ -491,8 +500,9 @@ class AnchoredInverseDepthEKF:
             K[:, self.i_pos : self.i_pos + 3] = 0.0
         return K
 
-    def _commit(self, rows, x, P, good, nis) -> None:
-        """Store the updated rows and their accept / reject / NIS history."""
+    def _commit(self, rows, x, P, good, nis, C) -> None:
+        """Store the updated rows and their accept / reject / NIS history (C (3,): the camera centre of the update;
+        § Bookkeeping: with ``nis_min_baseline_deg`` a NIS enters the mean only once the camera has moved that far)."""
         cfg = self.config
         self.x[rows] = x
         self.P[rows] = P
@@ -502,6 +512,12 @@ class AnchoredInverseDepthEKF:
         self.diverged[rows] |= n_rejects >= cfg.max_consecutive_rejects
         cap = 2.0 * cfg.gate_threshold
         nis_c = np.where(np.isfinite(nis), np.minimum(nis, cap), cap)
+        rows = np.asarray(rows)
+        if self._nis_baseline > 0:
+            C = np.broadcast_to(np.asarray(C, float), (len(rows), 3))  # one pose (3,) or one per landmark (M, 3)
+            moved = np.linalg.norm(C - self.nis_C[rows], axis=1) * np.maximum(x[:, 2], 0.0) >= self._nis_baseline
+            rows, nis_c = rows[moved], nis_c[moved]
+            self.nis_C[rows] = C[moved]
         nis_count = self.nis_count[rows] + 1
         self.nis_count[rows] = nis_count
         alpha = 1.0 / np.minimum(nis_count, cfg.nis_window)  # running mean, then exponential

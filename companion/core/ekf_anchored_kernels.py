@@ -340,9 +340,12 @@ def _accept_if_finite(x, P, xi, P_new, nis):
 
 
 @njit(error_model="numpy")
-def commit(r, accepted, nis, n_updates, n_rejects, diverged, nis_avg, nis_count, gate, max_rejects, nis_window, max_mean_nis):
+def commit(r, accepted, nis, n_updates, n_rejects, diverged, nis_avg, nis_count, nis_C, rho, C, gate, max_rejects, nis_window,
+           max_mean_nis, nis_baseline):
     """§ Bookkeeping after each update of bank row r: accepted and consecutive-reject counts, the sticky
-    diverged flag, the mean NIS (capped at 2 χ²₂(p), inf → cap; running mean, then exponential)."""
+    diverged flag, the mean NIS (capped at 2 χ²₂(p), inf → cap; running mean, then exponential).  With
+    ``nis_baseline`` (tan of the least angle) > 0 the NIS enters the mean only when the camera centre C has moved
+    from ``nis_C[r]`` (where the last one did) by at least that angle seen from the landmark at inverse depth ρ."""
     if accepted:
         n_updates[r] += 1
         n_rejects[r] = 0
@@ -350,6 +353,11 @@ def commit(r, accepted, nis, n_updates, n_rejects, diverged, nis_avg, nis_count,
         n_rejects[r] += 1
     if n_rejects[r] >= max_rejects:
         diverged[r] = True
+    if nis_baseline > 0:
+        d2 = (C[0] - nis_C[r, 0]) ** 2 + (C[1] - nis_C[r, 1]) ** 2 + (C[2] - nis_C[r, 2]) ** 2
+        if not math.sqrt(d2) * max(rho, 0.0) >= nis_baseline:
+            return
+        nis_C[r, 0], nis_C[r, 1], nis_C[r, 2] = C[0], C[1], C[2]
     cap = 2.0 * gate
     nis_c = min(nis, cap) if math.isfinite(nis) else cap
     nis_count[r] += 1
@@ -360,9 +368,9 @@ def commit(r, accepted, nis, n_updates, n_rejects, diverged, nis_avg, nis_count,
 
 
 @njit(error_model="numpy")
-def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count, t_last,
+def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count, nis_C, t_last,
                            rows, z, Rc, C, t, count, var_px, position_sigma, gate, iterations, max_rejects, nis_window,
-                           max_mean_nis, i_pos, pos_var, pos_tau, consider, accepted, nis, reason):
+                           max_mean_nis, i_pos, pos_var, pos_tau, consider, nis_baseline, accepted, nis, reason):
     """Fuse, for each listed landmark i (bank row ``rows[i]``), its observations j < ``count[i]`` in
     order (z (M,K,2) from poses Rc (M,K,3,3), C (M,K,3) at times t (M,K)), each followed by :func:`commit`.
 
@@ -381,14 +389,14 @@ def update_pixel_sequences(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis
             accepted[i, j] = ok
             nis[i, j] = nis_ij
             reason[i, j] = reason_ij
-            commit(r, ok, nis_ij, n_updates, n_rejects, diverged, nis_avg, nis_count, gate, max_rejects, nis_window,
-                   max_mean_nis)
+            commit(r, ok, nis_ij, n_updates, n_rejects, diverged, nis_avg, nis_count, nis_C, x[r, 2], C[i, j], gate,
+                   max_rejects, nis_window, max_mean_nis, nis_baseline)
 
 
 @njit(error_model="numpy")
-def update_pixel_rows(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count, t_last,
+def update_pixel_rows(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg, nis_count, nis_C, t_last,
                       rows, z, Rc, C, t, var_px, position_sigma, gate, iterations, max_rejects, nis_window, max_mean_nis,
-                      i_pos, pos_var, pos_tau, consider, accepted, nis, reason):
+                      i_pos, pos_var, pos_tau, consider, nis_baseline, accepted, nis, reason):
     """One frame: fuse z[i] (M,2) into bank row ``rows[i]``, all seen from the pose Rc (3,3), C (3,)
     at t, each followed by :func:`commit`; ``accepted``, ``nis``, ``reason`` (M,) written per landmark.
     The same as :func:`update_pixel_sequences` with K = 1 and that pose in every slot."""
@@ -401,7 +409,8 @@ def update_pixel_rows(x, P, RA, pA, tA, n_updates, n_rejects, diverged, nis_avg,
         accepted[i] = ok
         nis[i] = nis_i
         reason[i] = reason_i
-        commit(r, ok, nis_i, n_updates, n_rejects, diverged, nis_avg, nis_count, gate, max_rejects, nis_window, max_mean_nis)
+        commit(r, ok, nis_i, n_updates, n_rejects, diverged, nis_avg, nis_count, nis_C, x[r, 2], C, gate, max_rejects,
+               nis_window, max_mean_nis, nis_baseline)
 
 
 # -- looming (docs/derivations/looming.md) ----------------------------------------------------------
@@ -689,13 +698,13 @@ def warm_up() -> None:
         i64, b = np.zeros(1, np.int64), np.zeros(1, bool)
         rows, one = np.zeros(1, np.int64), np.ones(1, np.int64)
         Rc, C = np.eye(3), np.array([0.0, 0.0, -1.0])
-        update_pixel_sequences(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(), np.zeros(1),
-                               rows, np.zeros((1, 1, 2)), Rc[None, None].copy(), C[None, None].copy(), np.ones((1, 1)),
-                               one, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 0.02, 30.0, consider,
-                               np.zeros((1, 1), bool), np.zeros((1, 1)), np.zeros((1, 1), np.int8))
-        update_pixel_rows(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(), np.zeros(1),
-                          rows, np.zeros((1, 2)), Rc, C, 1.0, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 0.02, 30.0, consider,
-                          np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
+        update_pixel_sequences(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(), np.zeros((1, 3)),
+                               np.zeros(1), rows, np.zeros((1, 1, 2)), Rc[None, None].copy(), C[None, None].copy(),
+                               np.ones((1, 1)), one, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos, 0.02, 30.0, consider,
+                               0.01, np.zeros((1, 1), bool), np.zeros((1, 1)), np.zeros((1, 1), np.int8))
+        update_pixel_rows(x, P, RA, pA, tA, i64.copy(), i64.copy(), b.copy(), np.zeros(1), i64.copy(), np.zeros((1, 3)),
+                          np.zeros(1), rows, np.zeros((1, 2)), Rc, C, 1.0, np.full(2, 1e-6), 0.1, 13.8, 2, 5, 10.0, 4.0, i_pos,
+                          0.02, 30.0, consider, 0.01, np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
         update_looming_rows(x, P, RA, pA, tA, i64.copy(), np.zeros(1), rows, np.ones(1), np.zeros(1), Rc, np.zeros(3), 0.0,
                             Rc, C, 1.0, 0.003, 10.8, 1, i_pos, 0.02, 30.0, consider, np.zeros(1, bool), np.zeros(1), np.zeros(1, np.int8))
         estimates(x, P, RA, pA, b, i64, np.zeros(3), 1e4, 0.1, 3, i_pos, np.zeros((1, 3)), np.zeros(1), np.zeros(1),

@@ -109,6 +109,7 @@ class AnchoredEKFConfig:
     max_range_m: float = 10000.0  # ranges beyond this are reported as this value
     nis_window: float = 10.0  # updates averaged (exponentially) in each landmark's mean NIS
     max_mean_nis: float = 4.0  # mean NIS above this flags the landmark diverged (not a static point); 0 = off
+    nis_min_baseline_deg: float = 0.0  # a NIS enters the mean only after the camera moved this far, seen from the landmark, since the last one that did (degrees); 0 = every update
     max_drift_chi2: float = 9.0  # (ρ̂ − ρ̂_c)² / (P_c − P) above this since convergence flags it diverged (§ Drift test); 0 = off
     looming: bool = True  # fuse the matcher's patch scale change (looming, docs/derivations/looming.md) when given
     looming_sigma_floor: float = 0.003  # floor added (in quadrature) to the matcher's scale σ
@@ -140,6 +141,8 @@ class AnchoredEKFConfig:
         require_finite("nis_window", self.nis_window)
         require(self.nis_window >= 1.0, f"nis_window must be >= 1, got {self.nis_window}")
         require_finite("max_mean_nis", self.max_mean_nis, nonnegative=True)
+        require_finite("nis_min_baseline_deg", self.nis_min_baseline_deg, nonnegative=True)
+        require(self.nis_min_baseline_deg < 90.0, f"nis_min_baseline_deg must be < 90, got {self.nis_min_baseline_deg}")
         require_finite("max_drift_chi2", self.max_drift_chi2, nonnegative=True)
         require(isinstance(self.looming, bool), f"looming must be true or false, got {self.looming!r}")
         require_finite("looming_sigma_floor", self.looming_sigma_floor, positive=True)
