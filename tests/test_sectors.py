@@ -518,3 +518,52 @@ def test_the_cap_gate_keeps_a_walls_fused_range_and_still_caps_a_pole():
     for c in (c0, c2):
         s = run(pole, sigma=[2.0, 2.0, 0.2], config=c)
         assert s.range_m[0] == pytest.approx(6.0 - 2 * 0.2, abs=0.05) and s.inferred_vertical[0]
+
+
+@pytest.mark.parametrize("kernels", [False, True], ids=["reference", "kernels"])
+def test_an_unconverged_point_bounds_a_far_claim_from_above(kernels, monkeypatch):
+    """unconverged_cap_k (rule 9): a live in-band point not yet converged, at r ± σ, bounds its obstacle sector's
+    claim at r / (1 − k σ / r) (k σ in inverse depth).  A take-off track riding a pole's edge, converged at 24 m,
+    and the pole's own point at 6.3 ± 1.7 m ahead: the sector says 6.3 / (1 − 2·1.7/6.3) = 13.7 m, marked inferred,
+    DISTANCE_SENSOR too.  Nearer claims stand; unknown and clear sectors stay as they are; a point whose bound is
+    infinite (k σ ≥ r), a remembered or an invalid one bounds nothing; off (0), nothing changes."""
+    from companion.core import jit
+    monkeypatch.setattr(jit, "ENABLED", kernels)
+    cfg = sectors_optional_rules_off(unconverged_cap_k=2.0, sigma_k=0.0)
+    far, pole = [24.0, 0.0, 0.0], [6.3, 0.1, 0.2]
+    r = math.hypot(*pole)
+    bound = math.hypot(6.3, 0.1) / (1 - 2 * 1.7 / r)
+    s = run([far, pole], sigma=[0.8, 1.7], converged=[True, False], config=cfg)
+    assert s.state[0] == SectorState.OBSTACLE and s.inferred[0]
+    assert s.distances_cm[0] == round(bound * 100) and s.range_m[0] == pytest.approx(bound, abs=1e-9)
+    assert s.forward.distance_m == pytest.approx(bound) and math.isnan(s.forward.estimate_m)
+    off = run([far, pole], sigma=[0.8, 1.7], converged=[True, False], config=sectors_optional_rules_off(sigma_k=0.0))
+    assert off.distances_cm[0] == 2400 and not off.inferred[0]
+    assert run([[12.0, 0.0, 0.0], pole], sigma=[0.8, 1.7], converged=[True, False], config=cfg).distances_cm[0] == 1200
+    assert np.all(run([pole], sigma=1.7, converged=False, config=cfg).distances_cm == UNKNOWN_CM)  # unknown stays
+    clear = [[60.0, b, 0.0] for b in (-1.0, 0.0, 1.0)]
+    no_veto = dataclasses.replace(cfg, unconverged_veto_clear=False)
+    c = run(clear + [pole], sigma=[0.5, 0.5, 0.5, 1.7], converged=[True, True, True, False], config=no_veto)
+    assert c.state[0] == SectorState.CLEAR  # clear stays clear (with the veto on it would not have been clear)
+    assert run([far, pole], sigma=[0.8, 3.2], converged=[True, False], config=cfg).distances_cm[0] == 2400  # 2σ ≥ r
+    assert run([far, pole], sigma=[0.8, 1.7], converged=[True, False], valid=[True, False], config=cfg).distances_cm[0] == 2400
+    with pytest.raises(ConfigError, match="unconverged_cap_k"):
+        SectorConfig(unconverged_cap_k=-1.0)
+
+
+def test_the_unconverged_cap_only_ever_lowers_an_obstacle_claim_seeded():
+    """Seeded Monte Carlo: with ``unconverged_cap_k`` on, no sector changes state, an obstacle's range never grows,
+    and every changed sector is an inferred obstacle."""
+    on = sectors_optional_rules_off(unconverged_cap_k=2.0)
+    off = sectors_optional_rules_off()
+    n_changed = 0
+    for pts, sig, conv in random_scenes(13, max_height=2.0):
+        a = run(pts, sigma=sig, converged=conv, config=off)
+        v = run(pts, sigma=sig, converged=conv, config=on)
+        np.testing.assert_array_equal(v.state, a.state)
+        was_obs = a.state == SectorState.OBSTACLE
+        assert np.all(v.distances_cm[was_obs] <= a.distances_cm[was_obs])
+        changed = v.distances_cm != a.distances_cm
+        assert np.all(v.inferred[changed])
+        n_changed += int(np.count_nonzero(changed))
+    assert n_changed > 20

@@ -166,6 +166,8 @@ def configs():
     yield "exact ranges", dataclasses.replace(base, sigma_k=0.0)  # d_cons = d_h: points sharing (x, y) tie
     yield "cap only", dataclasses.replace(base, sigma_k=0.0, infer_vertical=False)
     yield "cap and vertical gated", dataclasses.replace(base, cap_gate_k=2.0)
+    yield "unconverged cap", dataclasses.replace(base, unconverged_cap_k=2.0)
+    yield "unconverged cap, n-th nearest", dataclasses.replace(base, unconverged_cap_k=1.0, min_points_obstacle=2, sigma_k=0.0)
     yield "drop across the line of sight only", dataclasses.replace(base, remembered_drop_spread_deg=3.0, remembered_drop_across_only=True)
     yield "no surface fusion", dataclasses.replace(base, fuse_gate_k=0.0)
     yield "edge margin", dataclasses.replace(base, clear_edge_margin_deg=1.0, min_points_clear=1)

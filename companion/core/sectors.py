@@ -423,6 +423,25 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
             pick = _claim_inferred(capped, cap, state, dist, range_m, sigma_m, pick, inferred, pt_cm, d_pub, sig)
             vertical |= capped
 
+    if config.unconverged_cap_k > 0:
+        # a point not yet converged still bounds the range from above (docs/derivations/sectors.md, rule 9: only
+        # nearer, never "clear"): a pole at the focus of expansion, ranged slowly, behind a far claim
+        kk = config.unconverged_cap_k
+        ucand = np.flatnonzero(in_band & ~conv & ~mem & (kk * np.where(usable, sig, np.inf) < r_safe))
+        if ucand.size:
+            d_up = d_h[ucand] / (1.0 - kk * sig[ucand] / r_safe[ucand])  # ρ − kσ_ρ, σ_ρ = σ_r / r²
+            up = SectorRanking(idx[ucand], d_up, ids=np.arange(ucand.size)).nth(1)
+            capped = (up >= 0) & (state == SectorState.OBSTACLE)
+            cu = up[capped]
+            capped[capped] &= d_up[cu] < range_m[capped]
+            cu = up[capped]
+            pt = ucand[cu]
+            range_m[capped] = np.clip(d_up[cu], config.min_distance_m, max_m)
+            dist[capped] = np.clip(np.rint(range_m[capped] * 100).astype(np.int64), min_cm, max_cm)
+            sigma_m[capped] = sig[pt] * d_h[pt] / r_safe[pt]
+            pick[capped] = -1
+            inferred |= capped
+
     # ---- forward window (DISTANCE_SENSOR) ------------------------------------------------------
     centres = np.arange(SECTOR_COUNT) * SECTOR_DEG
     rel = (centres + 180.0) % 360.0 - 180.0

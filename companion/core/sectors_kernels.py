@@ -36,7 +36,7 @@ _VIEW_OFFSETS = np.radians(np.linspace(-SECTOR_DEG / 2, SECTOR_DEG / 2, _SAMPLES
 (_K_MIN_M, _K_MAX_M, _K_SIGMA_K, _K_BAND_METRES, _K_HALF_H, _K_HALF_ANGLE_RAD, _K_TAN_HALF_ANGLE, _K_N_OBS, _K_N_CLR,
  _K_VETO, _K_TOUCH, _K_SPREAD_K, _K_MAX_SPREAD_RAD, _K_DROP_SPREAD_RAD, _K_GAP, _K_REL_TOL, _K_NARROW_M, _K_NARROW_N,
  _K_VERT, _K_VERT_WIN, _K_VERT_GROUND, _K_ONE_SIDE, _K_MIN_EXTENT, _K_REACH, _K_CAP, _K_GROUND_MARGIN, _K_MIN_CM,
- _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_CAP_GATE, _K_DROP_ACROSS, _K_SIZE) = range(36)
+ _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_CAP_GATE, _K_DROP_ACROSS, _K_UCAP, _K_SIZE) = range(37)
 
 
 def _kernel_config(config: SectorConfig) -> np.ndarray:
@@ -66,6 +66,7 @@ def _kernel_config(config: SectorConfig) -> np.ndarray:
     v[_K_FUSE_G], v[_K_FUSE_RHO] = c.fuse_gate_k, c.fuse_correlation
     v[_K_EDGE] = c.clear_edge_margin_deg
     v[_K_CAP_GATE] = c.cap_gate_k
+    v[_K_UCAP] = c.unconverged_cap_k
     v.flags.writeable = False
     _KERNEL_CONFIGS[id(config)] = (config, v)  # the config is kept alive with its id: no reuse while cached
     if len(_KERNEL_CONFIGS) > 64:  # bounded: configs are few (one per process, a handful in tests)
@@ -396,6 +397,26 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                 inferred[s] = True
                 vertical[s] = True
                 pick[s] = pt
+
+    if cfg[_K_UCAP] > 0:
+        # a point not yet converged bounds its obstacle sector's claim from above (only nearer, never clear)
+        kk = cfg[_K_UCAP]
+        ubest = np.full(SECTOR_COUNT, -1, np.int64)
+        ud = np.full(SECTOR_COUNT, np.inf)
+        for i in range(n):
+            if in_band[i] and not conv[i] and not mem[i] and kk * sig[i] < r_safe[i]:
+                d_up = d_h[i] / (1.0 - kk * sig[i] / r_safe[i])
+                s = idx[i]
+                if ubest[s] < 0 or d_up < ud[s]:
+                    ubest[s], ud[s] = i, d_up
+        for s in range(SECTOR_COUNT):
+            pt = ubest[s]
+            if pt >= 0 and state[s] == _S_OBSTACLE and ud[s] < range_m[s]:
+                range_m[s] = min(max(ud[s], min_m), max_m)
+                dist[s] = min(max(np.int64(np.rint(range_m[s] * 100)), min_cm), max_cm)
+                sigma_m[s] = sig[pt] * d_h[pt] / r_safe[pt]
+                pick[s] = -1
+                inferred[s] = True
 
     # ---- forward window (DISTANCE_SENSOR) ---------------------------------------------------------
     fwd_state = _S_UNKNOWN
