@@ -83,7 +83,7 @@ class SectorConfig:
     infer_vertical_min_extent_m: float = 0.5  # ... the two points' heights differ by at least this, m
     infer_vertical_reach_m: float = 2.5  # ... and the lower one lies within this above the band's edge, m
     cap_above_m: float = 2.5  # a converged point up to this far above the band caps the range its sector claims (an obstacle sector reports no farther than it, a clear one becomes an obstacle at it; unknown stays unknown), m; 0 = off
-    unconverged_cap_k: float = 0.0  # a live in-band point not yet converged bounds its obstacle sector's claim from above at r/(1 − k·σ_r/r) (k σ in inverse depth), horizontal: the claim gets no farther than it (only nearer; clear and unknown unchanged); 0 = off
+    unconverged_cap_k: float = 2.0  # a live in-band point not yet converged bounds its obstacle sector's claim from above at r/(1 − k·σ_r/r) (k σ in inverse depth), horizontal: the claim gets no farther than it (only nearer; clear and unknown unchanged); 0 = off
     cap_gate_k: float = 0.0  # a point above or below the band (cap, vertical structure) replaces an obstacle sector's claim only when its estimate lies nearer than the claim's by more than this many combined σ (a different, nearer surface); 0 = whenever its conservative range is nearer
     ground_margin_m: float = 0.5  # with the ground's height known, points less than this above it are the ground: never an obstacle nor evidence of clear (taking off, landing, flying low); 0 = off
     fuse_gate_k: float = 2.0  # a sector's live obstacle points whose horizontal ranges agree with its nearest one within this many combined σ are one surface: their fused range replaces the nearest of them (the nearest of many noisy points is biased near); 0 = off (the n-th nearest point)
