@@ -429,7 +429,8 @@ class Pipeline:
         predict = None
         if self._cam_prev is not None:
             depth_of = self._depth_of(self._out_prev, self._cam_prev) if cfg.depth_prediction else None
-            predict = make_track_predictor(self.camera, self.config.prediction, self._cam_prev, (R_wc, p_wc), depth_of)
+            predict = make_track_predictor(self.camera, self.config.prediction, self._cam_prev, (R_wc, p_wc), depth_of,
+                                           with_parallax=self.config.ncc.scale_order == "parallax")
         stage = res.stage_cpu_s
         c0 = time.thread_time()
         tf = self.tracks.step(gray, t, self._k, predict, priority_mask=self._detection_priority(res, R_wb, v_w), R_world_cam=R_wc)

@@ -107,7 +107,7 @@ def test_points_behind_the_new_camera_are_flagged_never_nan():
 def test_track_predictor_adapter(cam):
     R_prev, p_prev, R_cur, p_cur = poses()
     cfg = PredictionConfig(depth_min_m=3.0, base_radius_px=2.0, max_radius_px=1e4)
-    predict = make_track_predictor(cam, cfg, (R_prev, p_prev), (R_cur, p_cur))
+    predict = make_track_predictor(cam, cfg, (R_prev, p_prev), (R_cur, p_cur), with_parallax=True)
     uv, z, p_cam = scene_points(cam, 40, 5.0, 60.0, seed=3)
     uv_pred, radius, parallax = predict(uv, np.arange(40))
     assert uv_pred.shape == (40, 2) and radius.shape == (40,)
@@ -115,7 +115,7 @@ def test_track_predictor_adapter(cam):
     truth = cam.project(cam.world_to_camera(p_cam @ R_prev.T + p_prev, R_cur, p_cur))
     assert np.all(np.linalg.norm(truth - uv_pred, axis=1) <= radius)
     with_depth = make_track_predictor(cam, cfg, (R_prev, p_prev), (R_cur, p_cur), depth_of=lambda ids: (z[ids], None))
-    uv_k, r_k, _ = with_depth(uv, np.arange(40))
+    uv_k, r_k = with_depth(uv, np.arange(40))  # without with_parallax: no third element
     assert np.abs(uv_k - truth).max() < 1e-6 and np.allclose(r_k, 2.0)
 
 

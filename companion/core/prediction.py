@@ -541,16 +541,18 @@ def make_track_predictor(
     pose_prev: tuple[np.ndarray, np.ndarray],
     pose_cur: tuple[np.ndarray, np.ndarray],
     depth_of: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]] | None = None,
-) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    with_parallax: bool = False,
+) -> Callable[[np.ndarray, np.ndarray], tuple]:
     """A ``predict`` callable for :meth:`companion.core.tracks.TrackManager.step`.
 
     ``pose_prev`` / ``pose_cur`` are ``(R_world_cam, p_world_cam)`` of the previous and current
     frames; ``depth_of(ids)`` optionally returns ``(depth, depth_sigma)`` per track id from a
-    filter (depth ≤ 0 where unknown).  The callable returns ``(uv_pred, radius, parallax)``, the
-    last from :func:`bearing_parallax` (the tracker's order of scale fits).
+    filter (depth ≤ 0 where unknown).  The callable returns ``(uv_pred, radius)``, and with
+    ``with_parallax`` also :func:`bearing_parallax` as a third element (the tracker's order of scale fits,
+    ``[ncc] scale_order = "parallax"``; not computed otherwise).
     """
 
-    def predict(uv_prev: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def predict(uv_prev: np.ndarray, ids: np.ndarray) -> tuple:
         depth = sigma = None
         if depth_of is not None:
             depth, sigma = depth_of(ids)
@@ -560,6 +562,8 @@ def make_track_predictor(
             depth_sigma=sigma, depth_sigma_k=config.depth_sigma_k,
             max_radius_px=config.max_radius_px, samples=config.samples,
         )
+        if not with_parallax:
+            return p.uv, p.radius
         return p.uv, p.radius, bearing_parallax(camera, uv_prev, pose_prev[0], pose_prev[1], pose_cur[0], pose_cur[1])
 
     return predict

@@ -432,8 +432,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
             d_up = d_h[ucand] / (1.0 - kk * sig[ucand] / r_safe[ucand])  # ρ − kσ_ρ, σ_ρ = σ_r / r²
             up = SectorRanking(idx[ucand], d_up, ids=np.arange(ucand.size)).nth(1)
             capped = (up >= 0) & (state == SectorState.OBSTACLE)
-            cu = up[capped]
-            capped[capped] &= d_up[cu] < range_m[capped]
+            capped[capped] &= d_up[up[capped]] < range_m[capped]
             cu = up[capped]
             pt = ucand[cu]
             range_m[capped] = np.clip(d_up[cu], config.min_distance_m, max_m)
