@@ -175,6 +175,7 @@ def test_fixed_wing_config_differs_from_the_default_only_where_a_fixed_wing_need
                        "map.radius_m", "map.position_drift_max_m", "ekf_anchored.max_mean_nis", "ekf_anchored.max_drift_chi2", "map.support_radius_rel",
                        "map.support_column_radius_m",
                        "sectors.infer_vertical", "sectors.cap_above_m", "sectors.unconverged_cap_k",
+                       "sectors.clear_line_of_sight", "sectors.clear_corridor_m",
                        "sectors.infer_vertical_one_side", "ekf_anchored.looming_sigma_floor"}
     assert fw.sectors.max_distance_m == 150.0 and round(fw.sectors.max_distance_m * 100) + 1 < 65535
     sc = load_scenario(SCEN / "fixedwing_pass.toml")

@@ -23,6 +23,7 @@ HFOV = math.radians(60.0)
 CFG = SectorConfig()  # as shipped: min 0.5 m, max 40 m, k = 2, band ±1.5 m, 1 point per obstacle, 3 per clear
 CLEAR = CFG.max_distance_cm + 1
 NEAREST_POINT = dataclasses.replace(CFG, fuse_gate_k=0.0)  # each sector publishes its nearest point (no surface fusion)
+NO_CORRIDOR = dataclasses.replace(CFG, clear_corridor_m=0.0)  # "clear" may stand beside an obstacle (rule 10 off)
 
 
 def run(points, sigma=0.5, converged=True, valid=True, cam=0.0, config=CFG, **kw):
@@ -119,17 +120,68 @@ def test_unconverged_near_point_vetoes_clear_but_claims_nothing():
     assert run(pts, sigma=[1, 1, 1, 5.0], converged=[True, True, True, False], config=cfg).distances_cm[0] == cfg.max_distance_cm + 1
 
 
+def test_clear_from_lines_of_sight_that_stay_in_the_band():
+    """Rule 3, the line of sight: three background points at 80 m, 2.5 m above the vehicle (the band is ±1.5 m).
+    Off, they are out of the band and the sector stays unknown. On (as shipped), each one's line
+    of sight rises 2.5·40/80 = 1.25 m over the first 40 m, inside the band: the band is free along it, so the sector
+    is clear. 3.5 m up (1.75 m at 40 m) it leaves the band before max_distance and proves nothing; a near point
+    still wins, an unconverged one still vetoes, and a degrees band (a cone, which already holds such rays) is
+    unchanged."""
+    on = SectorConfig(clear_line_of_sight=True)
+    assert CFG.clear_line_of_sight
+    high = wall(80.0, [-1, 0, 1]) + [0.0, 0.0, -2.5]  # body FRD: z down
+    assert run(high, sigma=1.0, config=SectorConfig(clear_line_of_sight=False)).state[0] == SectorState.UNKNOWN
+    s = run(high, sigma=1.0, config=on)
+    assert s.state[0] == SectorState.CLEAR and s.distances_cm[0] == CLEAR
+    assert np.all(np.delete(s.state, 0) == SectorState.UNKNOWN)
+    higher = wall(80.0, [-1, 0, 1]) + [0.0, 0.0, -3.5]
+    assert run(higher, sigma=1.0, config=on).state[0] == SectorState.UNKNOWN
+    below = wall(80.0, [-1, 0, 1]) + [0.0, 0.0, 2.5]
+    assert run(below, sigma=1.0, config=on).state[0] == SectorState.CLEAR
+    assert run(np.vstack([high, [[12.0, 0.0, 0.0]]]), sigma=1.0, config=on).distances_cm[0] == 1000
+    vetoed = run(np.vstack([high, [[20.0, 0.0, 0.0]]]), sigma=[1, 1, 1, 5.0], converged=[True] * 3 + [False], config=on)
+    assert vetoed.state[0] == SectorState.UNKNOWN
+    cone = dataclasses.replace(on, band_mode="degrees")
+    assert run(higher, sigma=1.0, config=cone).state[0] == run(higher, sigma=1.0, config=dataclasses.replace(cone, clear_line_of_sight=False)).state[0]
+    with pytest.raises(ConfigError, match="clear_line_of_sight"):
+        SectorConfig(clear_line_of_sight=1)
+
+
+def test_no_clear_within_the_corridor_of_a_near_obstacle():
+    """Rule 10, the corridor: a pole 4 m away at −3.5° (sector 71, 4.01 m horizontally; σ 0.2, published at 3.61 m) and the background at
+    100 m in sectors 68, 69, 70, 0, 1 and 2. Without the corridor every one of them is clear (the pole's corner is
+    1.5° from its sector's centre, inside the edge margin). With 0.5 m, asin(0.5/3.61) = 7.96°: the first neighbour
+    on each side (edge 0° away) and the second (5° away) lose "clear", the third (10° away) keeps it. The same pole
+    at 30 m (0.97°) takes only the first neighbours; obstacle and unknown sectors are never changed. Shipped: 0.5 m."""
+    background = wall(100.0, [-21, -20, -19, -16, -15, -14, -11, -10, -9, -1, 0, 1, 4, 5, 6, 9, 10, 11])
+    pole = wall(4.0, [-3.5])
+    off = run(np.vstack([background, pole]), sigma=0.2, config=SectorConfig(clear_corridor_m=0.0))
+    assert off.state[71] == SectorState.OBSTACLE
+    assert [off.state[k] for k in (68, 69, 70, 0, 1, 2)] == [SectorState.CLEAR] * 6
+    on = SectorConfig(clear_corridor_m=0.5)
+    assert CFG.clear_corridor_m == 0.5
+    s = run(np.vstack([background, pole]), sigma=0.2, config=on)
+    assert s.state[71] == SectorState.OBSTACLE and s.distances_cm[71] == 361
+    assert [s.state[k] for k in (68, 69, 70, 0, 1, 2)] == [SectorState.CLEAR, *[SectorState.UNKNOWN] * 4, SectorState.CLEAR]
+    assert all(s.distances_cm[k] == UNKNOWN_CM for k in (69, 70, 0, 1))
+    far = run(np.vstack([background, wall(30.0, [-3.5])]), sigma=0.2, config=on)
+    assert [far.state[k] for k in (68, 69, 70, 0, 1, 2)] == [SectorState.CLEAR] * 2 + [SectorState.UNKNOWN] * 2 + [SectorState.CLEAR] * 2
+    with pytest.raises(ConfigError, match="clear_corridor_m"):
+        SectorConfig(clear_corridor_m=-1.0)
+
+
 def test_point_near_a_sector_edge_forbids_clear_across_it():
     """Rule 3, the edge margin: a tower's last corner 0.3° inside sector 2's edge (12.5°) and the background at
     100 m in sector 3 (13–17°). Off, sector 3 is clear beside the tower; with the shipped 1° it stays unknown, and
     so it does for an unconverged point there too; a corner 2° inside the edge forbids nothing; sector 1, across
-    the far edge of sector 2, keeps its own evidence of clear."""
+    the far edge of sector 2, keeps its own evidence of clear. (Rule 10, the corridor, off: it would take sectors 1
+    and 3 beside the tower at 30 m whatever the margin.)"""
     background = wall(100.0, [3.5, 5.0, 6.5, 13.0, 15.0, 17.0])
     tower = wall(30.0, [12.2])
-    on = SectorConfig(clear_edge_margin_deg=1.0)
+    on = SectorConfig(clear_edge_margin_deg=1.0, clear_corridor_m=0.0)
     assert CFG.clear_edge_margin_deg == 1.0  # as shipped
     pts = np.vstack([background, tower])
-    off = run(pts, sigma=1.0, config=SectorConfig(clear_edge_margin_deg=0.0))
+    off = run(pts, sigma=1.0, config=SectorConfig(clear_edge_margin_deg=0.0, clear_corridor_m=0.0))
     assert off.state[3] == SectorState.CLEAR and off.state[2] == SectorState.OBSTACLE
     s = run(pts, sigma=1.0, config=on)
     assert s.state[3] == SectorState.UNKNOWN and s.distances_cm[3] == UNKNOWN_CM
@@ -287,7 +339,7 @@ def test_rotation_rebins_obstacle_points_instead_of_smearing_them():
     assert r[2] == s.distances_cm[1] and r[1] == UNKNOWN_CM
     # a turn moves the clear sectors conservatively and keeps the obstacle where its points are
     far = wall(60.0, np.arange(-25.0, 25.5, 0.5))
-    s = run(np.concatenate([far, [[30.0, 3.0, 0.0]]]), sigma=0.5)
+    s = run(np.concatenate([far, [[30.0, 3.0, 0.0]]]), sigma=0.5, config=NO_CORRIDOR)
     assert s.state[1] == SectorState.OBSTACLE and s.state[0] == SectorState.CLEAR
     r = s.rotated(math.radians(1.0))
     assert r[1] == s.distances_cm[1]

@@ -171,6 +171,11 @@ def configs():
     yield "drop across the line of sight only", dataclasses.replace(base, remembered_drop_spread_deg=3.0, remembered_drop_across_only=True)
     yield "no surface fusion", dataclasses.replace(base, fuse_gate_k=0.0)
     yield "edge margin", dataclasses.replace(base, clear_edge_margin_deg=1.0, min_points_clear=1)
+    yield "clear along the line of sight", dataclasses.replace(base, clear_line_of_sight=True, min_points_clear=1)
+    yield "line of sight, degrees band", dataclasses.replace(base, clear_line_of_sight=True, band_mode="degrees")
+    yield "corridor", dataclasses.replace(base, clear_line_of_sight=True, clear_corridor_m=0.5, min_points_clear=1)
+    yield "wide corridor, no edge margin", dataclasses.replace(base, clear_line_of_sight=True, clear_corridor_m=3.0,
+                                                               clear_edge_margin_deg=0.0, min_points_clear=2)
     yield "fusion: wide gate, independent", dataclasses.replace(base, fuse_gate_k=5.0, fuse_correlation=0.0)
     yield "fusion: narrow gate, shared", dataclasses.replace(base, fuse_gate_k=0.5, fuse_correlation=1.0, min_points_obstacle=2)
 

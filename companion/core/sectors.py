@@ -27,8 +27,10 @@ Rules (docs/derivations/sectors.md)
   ``min_distance`` and 0, so a too-near obstacle is reported *at* ``min_distance``, never dropped);
 * "clear" (``max_distance + 1``) only for a sector *entirely* inside the field of view with at
   least ``min_points_clear`` converged in-band points ranged conservatively beyond
-  ``max_distance``, no point (converged or, by default, not) that may be nearer, and nothing else:
-  absence of features is not free space, so every other in-view sector is ``UINT16_MAX``;
+  ``max_distance`` (with ``clear_line_of_sight``, also points whose line of sight stays inside the
+  band out to ``max_distance``), no point (converged or, by default, not) that may be nearer, and nothing else:
+  absence of features is not free space, so every other in-view sector is ``UINT16_MAX``; with
+  ``clear_corridor_m`` a clear sector within asin(w / r) of an obstacle sector's edge turns unknown (rule 10);
 * 0 ("touching") only when the estimate itself is at or below ``touching_distance_m`` (off by
   default: ArduPilot ignores 0).
 
@@ -343,7 +345,13 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     sig_pub, est = sig, d_h
     if config.fuse_gate_k > 0:
         d_cons, sig_pub, est = _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, obs_pts & ~mem, config)
-    clr_pts = in_band & conv & ~near & ~mem  # "clear" only from what the camera sees now
+    clr_band = in_band
+    if config.clear_line_of_sight and config.band_mode == "metres":
+        # the line of sight to a point beyond max_distance is free; it proves the band free where it runs inside
+        # it, out to max_distance: |off|·max/d ≤ half height (docs/derivations/sectors.md, rule 3)
+        los = np.abs(off) * max_m <= lim * np.maximum(d_h, 1e-9)
+        clr_band = in_band | (los & usable & in_view[idx])
+    clr_pts = clr_band & conv & ~near & ~mem  # "clear" only from what the camera sees now
     veto_pts = in_band & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)
 
     n_clr = np.bincount(idx[clr_pts], minlength=SECTOR_COUNT)
@@ -440,6 +448,11 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
             sigma_m[capped] = sig[pt] * d_h[pt] / r_safe[pt]
             pick[capped] = -1
             inferred |= capped
+
+    if config.clear_corridor_m > 0:
+        # no "clear" beside a near obstacle (docs/derivations/sectors.md, rule 10): a clear bearing there is no way
+        # through for a vehicle, and PX4 steers into it
+        _corridor(state, dist, range_m, config.clear_corridor_m)
 
     # ---- forward window (DISTANCE_SENSOR) ------------------------------------------------------
     centres = np.arange(SECTOR_COUNT) * SECTOR_DEG
@@ -547,6 +560,25 @@ def _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, cand, config: SectorCon
     pts, ps = pts[upd], m_sec[upd]
     d_cons[pts], sig_pub[pts], est[pts] = value[ps], s_bar[ps], d_bar[ps]
     return d_cons, sig_pub, est
+
+
+def _corridor(state, dist, range_m, corridor_m: float) -> None:
+    """Rule 10 (docs/derivations/sectors.md), in place: every "clear" sector whose nearer edge lies within
+    μ = asin(``corridor_m`` / r) of an obstacle sector's edge (r its published range; the obstacle may stand anywhere
+    in its sector) becomes unknown: the j-th neighbour on each side when 5(j − 1) < μ, degrees."""
+    obs = np.flatnonzero(state == SectorState.OBSTACLE)
+    if not obs.size:
+        return
+    r = np.nan_to_num(range_m[obs], nan=0.0)
+    mu = np.degrees(np.arcsin(np.minimum(1.0, corridor_m / np.maximum(r, 1e-9))))
+    reach = np.minimum(np.ceil(mu / SECTOR_DEG), SECTOR_COUNT // 2).astype(np.int64)
+    veto = np.zeros(SECTOR_COUNT, bool)
+    for j in range(1, int(reach.max()) + 1):
+        veto[(obs[reach >= j] + j) % SECTOR_COUNT] = True
+        veto[(obs[reach >= j] - j) % SECTOR_COUNT] = True
+    drop = veto & (state == SectorState.CLEAR)
+    state[drop] = SectorState.UNKNOWN
+    dist[drop] = UNKNOWN_CM
 
 
 def _edge_vetoes(bearing, idx, pts, margin_deg: float) -> np.ndarray:

@@ -36,7 +36,8 @@ _VIEW_OFFSETS = np.radians(np.linspace(-SECTOR_DEG / 2, SECTOR_DEG / 2, _SAMPLES
 (_K_MIN_M, _K_MAX_M, _K_SIGMA_K, _K_BAND_METRES, _K_HALF_H, _K_HALF_ANGLE_RAD, _K_TAN_HALF_ANGLE, _K_N_OBS, _K_N_CLR,
  _K_VETO, _K_TOUCH, _K_SPREAD_K, _K_MAX_SPREAD_RAD, _K_DROP_SPREAD_RAD, _K_GAP, _K_REL_TOL, _K_NARROW_M, _K_NARROW_N,
  _K_VERT, _K_VERT_WIN, _K_VERT_GROUND, _K_ONE_SIDE, _K_MIN_EXTENT, _K_REACH, _K_CAP, _K_GROUND_MARGIN, _K_MIN_CM,
- _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_CAP_GATE, _K_DROP_ACROSS, _K_UCAP, _K_SIZE) = range(37)
+ _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_CAP_GATE, _K_DROP_ACROSS, _K_UCAP, _K_LOS,
+ _K_CORRIDOR, _K_SIZE) = range(39)
 
 
 def _kernel_config(config: SectorConfig) -> np.ndarray:
@@ -67,6 +68,8 @@ def _kernel_config(config: SectorConfig) -> np.ndarray:
     v[_K_EDGE] = c.clear_edge_margin_deg
     v[_K_CAP_GATE] = c.cap_gate_k
     v[_K_UCAP] = c.unconverged_cap_k
+    v[_K_LOS] = c.clear_line_of_sight and c.band_mode == "metres"
+    v[_K_CORRIDOR] = c.clear_corridor_m
     v.flags.writeable = False
     _KERNEL_CONFIGS[id(config)] = (config, v)  # the config is kept alive with its id: no reuse while cached
     if len(_KERNEL_CONFIGS) > 64:  # bounded: configs are few (one per process, a handful in tests)
@@ -145,6 +148,15 @@ def _across_edge(bearing, sector, half_deg):
     if off < -half_deg:
         return (sector - 1) % SECTOR_COUNT
     return -1
+
+
+@_jit.njit
+def _corridor_reach(range_m, corridor_m):
+    """How many neighbours on each side an obstacle sector at ``range_m`` keeps from "clear" (``sectors._corridor``
+    for one sector): the j-th when 5(j − 1) < asin(corridor / range), degrees; at most 36."""
+    r = range_m if range_m == range_m else 0.0  # NaN: the widest
+    mu = math.degrees(math.asin(min(1.0, corridor_m / max(r, 1e-9))))
+    return np.int64(min(math.ceil(mu / SECTOR_DEG), SECTOR_COUNT // 2))
 
 
 @_jit.njit
@@ -281,6 +293,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
 
     # ---- per sector: counts, n-th nearest obstacle point -----------------------------------------
     veto_on = cfg[_K_VETO] != 0
+    los_on = cfg[_K_LOS] != 0
     sig_pub, est = sig, d_h  # published σ and estimate of each point: its own unless fused
     if cfg[_K_FUSE_G] > 0:
         sig_pub, est = sig.copy(), d_h.copy()
@@ -308,6 +321,9 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
         elif in_band[i] and veto_on and near[i]:
             n_veto[idx[i]] += 1
             claims = True
+        elif (los_on and conv[i] and not near[i] and not mem[i] and usable[i] and in_view[idx[i]]
+              and abs(off_b[i]) * max_m <= lim[i] * max(d_h[i], 1e-9)):
+            n_clr[idx[i]] += 1  # its line of sight runs inside the band out to max_distance (rule 3)
         if claims and cfg[_K_EDGE] > 0:  # a surface goes on past its last corner: no "clear" just across an edge
             j = _across_edge(bearing[i], idx[i], edge_half)
             if j >= 0:
@@ -417,6 +433,20 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                 sigma_m[s] = sig[pt] * d_h[pt] / r_safe[pt]
                 pick[s] = -1
                 inferred[s] = True
+
+    if cfg[_K_CORRIDOR] > 0:
+        # no "clear" beside a near obstacle claim: the neighbours within asin(corridor / range) of its sector's edges
+        veto_c = np.zeros(SECTOR_COUNT, np.bool_)
+        for s in range(SECTOR_COUNT):
+            if state[s] == _S_OBSTACLE:
+                reach = _corridor_reach(range_m[s], cfg[_K_CORRIDOR])
+                for j in range(1, reach + 1):
+                    veto_c[(s + j) % SECTOR_COUNT] = True
+                    veto_c[(s - j) % SECTOR_COUNT] = True
+        for s in range(SECTOR_COUNT):
+            if veto_c[s] and state[s] == _S_CLEAR:
+                state[s] = _S_UNKNOWN
+                dist[s] = UNKNOWN_CM
 
     # ---- forward window (DISTANCE_SENSOR) ---------------------------------------------------------
     fwd_state = _S_UNKNOWN

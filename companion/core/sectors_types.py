@@ -62,7 +62,9 @@ class SectorConfig:
     min_points_obstacle: int = 1  # converged in-band points a sector needs to report an obstacle (the n-th nearest is reported)
     min_points_clear: int = 3  # converged in-band points beyond max_distance a sector needs to be "clear"
     unconverged_veto_clear: bool = True  # a valid but unconverged point that may lie within max_distance forbids "clear"
+    clear_line_of_sight: bool = True  # metres mode: a converged point beyond max_distance is also evidence of "clear" when its line of sight stays inside the band out to max_distance (|offset|·max_distance/d ≤ half height), not only when the point itself is in the band; off = in-band points only
     clear_edge_margin_deg: float = 1.0  # a point that claims or vetoes its sector within this of the sector's edge also forbids "clear" across that edge (a surface goes on past its last corner), degrees; 0 = off
+    clear_corridor_m: float = 0.5  # no "clear" in a sector whose nearer edge lies within asin(this / r) of an obstacle sector's edge (r its published range): a clear bearing beside a near obstacle is no way through for a vehicle this wide on each side, and PX4 steers into it, m; 0 = off
     touching_distance_m: float = 0.0  # estimate at or below this is sent as 0 (touching); 0 = never (ArduPilot discards 0)
     forward_half_width_deg: float = 2.5  # DISTANCE_SENSOR forward window: sectors centred within ± this (2.5 = sector 0 only)
     nearest_count: int = 5  # nearest obstacles (one per sector) kept for OBSTACLE_DISTANCE_3D
@@ -106,8 +108,10 @@ class SectorConfig:
             v = getattr(self, name)
             require(isinstance(v, int) and not isinstance(v, bool) and v >= 1, f"{name} must be an integer >= 1, got {v!r}")
         require(isinstance(self.unconverged_veto_clear, bool), "unconverged_veto_clear must be true or false")
+        require(isinstance(self.clear_line_of_sight, bool), f"clear_line_of_sight must be true or false, got {self.clear_line_of_sight!r}")
         require_finite("clear_edge_margin_deg", self.clear_edge_margin_deg, nonnegative=True)
         require(self.clear_edge_margin_deg < SECTOR_DEG / 2, f"clear_edge_margin_deg must be < {SECTOR_DEG / 2}")
+        require_finite("clear_corridor_m", self.clear_corridor_m, nonnegative=True)
         require_finite("touching_distance_m", self.touching_distance_m, nonnegative=True)
         require(self.touching_distance_m < self.min_distance_m, "touching_distance_m must be below min_distance_m")
         require_finite("forward_half_width_deg", self.forward_half_width_deg, nonnegative=True)
