@@ -115,11 +115,16 @@ def test_video_file_paced_like_a_live_camera(tmp_path):
     src.close()
 
 
-def test_video_file_of_the_wrong_size_is_rejected_frame_by_frame(tmp_path):
+def test_video_file_of_the_wrong_size_is_rejected_frame_by_frame(tmp_path, caplog):
+    """Before any good frame the size is a configuration error: said once (``size_error``), every frame counted, no
+    "frame rejected" warning for the ones a reader reads on before the caller stops."""
     path = write_video(tmp_path / "v.avi", 5, size=(W * 2, H * 2))
     src = OpenCVSource(str(path), W, H, CameraSourceConfig(file_pacing="fast"))
-    assert list(src) == []
+    with caplog.at_level("WARNING"):
+        assert list(src) == []
     assert src.status().rejected == {"wrong_size": 5}
+    assert "delivers" in src.size_error
+    assert not [r for r in caplog.records if "frame rejected" in r.getMessage()]
 
 
 def test_missing_or_undecodable_file_is_a_config_error(tmp_path):

@@ -201,15 +201,16 @@ class FrameSource(abc.ABC):
         too) and the caller stops; later (the camera changed mode in flight) each is rejected and
         logged at most every 10 s, like any bad frame."""
         with self._cv:
-            first = self._frames == 0 and self._size_error is None
-            if first:
+            never_good = self._frames == 0
+            if never_good and self._size_error is None:
                 self._size_error = (f"camera {self.name} delivers {width}×{height} frames but the [camera] table says "
                                     f"{self.width}×{self.height}: configure the camera's own resolution and intrinsics "
                                     "(--config, --camera-config or --calibration)")
                 self._events.append((_SEV_ERROR, f"Camera {width}x{height}, config {self.width}x{self.height}"))
-                self._rejected["wrong_size"] += 1
                 self._cv.notify_all()
-        if not first:
+            if never_good:  # the configuration error, reported once: a reader thread that runs on before the caller
+                self._rejected["wrong_size"] += 1  # stops only counts the frames (under load it logged one more)
+        if not never_good:
             self._reject("wrong_size", f"got {width}×{height}, configured {self.width}×{self.height}")
 
     def _accept(self, index: int, t: float, img: Any) -> Frame | None:
