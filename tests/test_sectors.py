@@ -142,15 +142,17 @@ def test_clear_from_lines_of_sight_that_stay_in_the_band():
     vetoed = run(np.vstack([high, [[20.0, 0.0, 0.0]]]), sigma=[1, 1, 1, 5.0], converged=[True] * 3 + [False], config=on)
     assert vetoed.state[0] == SectorState.UNKNOWN
     cone = dataclasses.replace(on, band_mode="degrees")
-    assert run(higher, sigma=1.0, config=cone).state[0] == run(higher, sigma=1.0, config=dataclasses.replace(cone, clear_line_of_sight=False)).state[0]
+    cone_off = dataclasses.replace(cone, clear_line_of_sight=False)
+    assert run(higher, sigma=1.0, config=cone).state[0] == run(higher, sigma=1.0, config=cone_off).state[0]
     with pytest.raises(ConfigError, match="clear_line_of_sight"):
         SectorConfig(clear_line_of_sight=1)
 
 
 def test_no_clear_within_the_corridor_of_a_near_obstacle():
-    """Rule 10, the corridor: a pole 4 m away at −3.5° (sector 71, 4.01 m horizontally; σ 0.2, published at 3.61 m) and the background at
-    100 m in sectors 68, 69, 70, 0, 1 and 2. Without the corridor every one of them is clear (the pole's corner is
-    1.5° from its sector's centre, inside the edge margin). With 0.5 m, asin(0.5/3.61) = 7.96°: the first neighbour
+    """Rule 10, the corridor: a pole 4 m ahead at −3.5° (sector 71, 4.01 m horizontally; σ 0.2, published at
+    3.61 m) and the background at 100 m in sectors 68, 69, 70, 0, 1 and 2. Without the corridor every one of them is
+    clear (the pole's corner is 1.5° from its sector's centre, inside the edge margin). With 0.5 m,
+    asin(0.5/3.61) = 7.96°: the first neighbour
     on each side (edge 0° away) and the second (5° away) lose "clear", the third (10° away) keeps it. The same pole
     at 30 m (0.97°) takes only the first neighbours; obstacle and unknown sectors are never changed. Shipped: 0.5 m."""
     background = wall(100.0, [-21, -20, -19, -16, -15, -14, -11, -10, -9, -1, 0, 1, 4, 5, 6, 9, 10, 11])
