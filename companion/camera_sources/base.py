@@ -200,6 +200,7 @@ class FrameSource(abc.ABC):
         configuration does not fit the camera: :attr:`size_error` says so once (a STATUSTEXT event
         too) and the caller stops; later (the camera changed mode in flight) each is rejected and
         logged at most every 10 s, like any bad frame."""
+        detail = f"got {width}×{height}, configured {self.width}×{self.height}"
         with self._cv:
             never_good = self._frames == 0
             if never_good and self._size_error is None:
@@ -210,8 +211,9 @@ class FrameSource(abc.ABC):
                 self._cv.notify_all()
             if never_good:  # the configuration error, reported once: a reader thread that runs on before the caller
                 self._rejected["wrong_size"] += 1  # stops only counts the frames (under load it logged one more)
+                self._error = f"wrong_size: {detail}"
         if not never_good:
-            self._reject("wrong_size", f"got {width}×{height}, configured {self.width}×{self.height}")
+            self._reject("wrong_size", detail)
 
     def _accept(self, index: int, t: float, img: Any) -> Frame | None:
         """Validate an image; returns the frame (counted) or None (rejected, counted)."""
