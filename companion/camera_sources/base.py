@@ -188,32 +188,33 @@ class FrameSource(abc.ABC):
         self._size_error: str | None = None
 
     # -- for subclasses --------------------------------------------------------------------------
-    def _reject(self, reason: str, detail: str = "") -> None:
+    def _reject(self, reason: str, detail: str = "", log_it: bool = True) -> None:
         with self._cv:
             self._rejected[reason] += 1
             if detail:
                 self._error = f"{reason}: {detail}"
-        self._rlog.warn("reject_" + reason, "camera %s: frame rejected (%s)%s", self.name, reason, f": {detail}" if detail else "")
+        if log_it:
+            self._rlog.warn("reject_" + reason, "camera %s: frame rejected (%s)%s", self.name, reason, f": {detail}" if detail else "")
 
     def _wrong_size(self, width: int, height: int) -> None:
         """Reject a frame of another size than configured.  If no good frame came before, the
         configuration does not fit the camera: :attr:`size_error` says so once (a STATUSTEXT event
         too) and the caller stops; later (the camera changed mode in flight) each is rejected and
         logged at most every 10 s, like any bad frame."""
-        detail = f"got {width}×{height}, configured {self.width}×{self.height}"
         with self._cv:
             never_good = self._frames == 0
-            if never_good and self._size_error is None:
-                self._size_error = (f"camera {self.name} delivers {width}×{height} frames but the [camera] table says "
-                                    f"{self.width}×{self.height}: configure the camera's own resolution and intrinsics "
-                                    "(--config, --camera-config or --calibration)")
-                self._events.append((_SEV_ERROR, f"Camera {width}x{height}, config {self.width}x{self.height}"))
-                self._cv.notify_all()
-            if never_good:  # the configuration error, reported once: a reader thread that runs on before the caller
-                self._rejected["wrong_size"] += 1  # stops only counts the frames (under load it logged one more)
-                self._error = f"wrong_size: {detail}"
-        if not never_good:
-            self._reject("wrong_size", detail)
+        # before any good frame the size error is said once (below): a reader thread that reads on before the caller
+        # stops only counts its frames (under load it logged one more); counted and its detail kept before the caller
+        # is woken, so what it reads is complete
+        self._reject("wrong_size", f"got {width}×{height}, configured {self.width}×{self.height}", log_it=not never_good)
+        if never_good:
+            with self._cv:
+                if self._size_error is None:
+                    self._size_error = (f"camera {self.name} delivers {width}×{height} frames but the [camera] table "
+                                        f"says {self.width}×{self.height}: configure the camera's own resolution and "
+                                        "intrinsics (--config, --camera-config or --calibration)")
+                    self._events.append((_SEV_ERROR, f"Camera {width}x{height}, config {self.width}x{self.height}"))
+                    self._cv.notify_all()
 
     def _accept(self, index: int, t: float, img: Any) -> Frame | None:
         """Validate an image; returns the frame (counted) or None (rejected, counted)."""

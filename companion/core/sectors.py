@@ -349,7 +349,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     if config.clear_line_of_sight and config.band_mode == "metres":
         # the line of sight to a point beyond max_distance is free; it proves the band free where it runs inside
         # it, out to max_distance: |off|·max/d ≤ half height (docs/derivations/sectors.md, rule 3)
-        los = np.abs(off) * max_m <= lim * np.maximum(d_h, 1e-9)
+        los = np.abs(off) * max_m <= lim * d_h
         clr_band = in_band | (los & usable & in_view[idx])
     clr_pts = clr_band & conv & ~near & ~mem  # "clear" only from what the camera sees now
     veto_pts = in_band & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)

@@ -322,7 +322,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
             n_veto[idx[i]] += 1
             claims = True
         elif (los_on and conv[i] and not near[i] and not mem[i] and usable[i] and in_view[idx[i]]
-              and abs(off_b[i]) * max_m <= lim[i] * max(d_h[i], 1e-9)):
+              and abs(off_b[i]) * max_m <= lim[i] * d_h[i]):
             n_clr[idx[i]] += 1  # its line of sight runs inside the band out to max_distance (rule 3)
         if claims and cfg[_K_EDGE] > 0:  # a surface goes on past its last corner: no "clear" just across an edge
             j = _across_edge(bearing[i], idx[i], edge_half)
