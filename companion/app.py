@@ -22,12 +22,18 @@ import threading
 import time
 from typing import Callable
 
+from companion.mavlink.dialect import mavlink  # first: MAVLink 2 + ardupilotmega
 from companion.camera_sources import Frame, FrameSource
 from companion.core.camera import CameraConfig
 from companion.pipeline import FrameResult, Pipeline, PipelineConfig
 from companion.reporter import Reporter
 
 log = logging.getLogger(__name__)
+
+
+def _autopilot_name(value: int) -> str:
+    e = mavlink.enums.get("MAV_AUTOPILOT", {}).get(int(value))
+    return e.name if e is not None else f"MAV_AUTOPILOT {int(value)}"
 
 
 # ---------------------------------------------------------------------- the live process ---------
@@ -88,6 +94,15 @@ class Companion:
         """Read what the autopilot (and the ground station) sent; the ground-station link speaks as the
         vehicle's system id once the autopilot's is known."""
         self.link.poll()
+        hb = self.link.vehicle_heartbeat
+        if hb is not None and hb.autopilot != self.reporter.vehicle_autopilot:
+            if self.reporter.vehicle_autopilot is None or self.counters["autopilot_type_changes"] < 5:
+                log.info("vehicle autopilot %s: OBSTACLE_DISTANCE %s", _autopilot_name(hb.autopilot),
+                         "folded into PX4's 10° bins" if hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
+                         and self.config.outputs.px4_bin_fold == "auto" else "as measured, 72 × 5°")
+            if self.reporter.vehicle_autopilot is not None:
+                self.counters["autopilot_type_changes"] += 1
+            self.reporter.vehicle_autopilot = int(hb.autopilot)
         if self.gcs is not None:
             self.gcs.poll()
             sid = self.link.system_id

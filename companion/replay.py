@@ -78,6 +78,7 @@ class TlogTelemetry:
     counters: dict[str, int]
     segments: list[tuple[float, float]]  # (record time where a boot segment starts, its boot→record offset)
     truncation: str | None = None  # the file was cut while being written: a warning naming it (TlogContents.truncation)
+    autopilot: int | None = None  # MAV_AUTOPILOT of the vehicle's HEARTBEAT (None without one)
 
     def offset_at(self, t: float) -> float:
         off = self.segments[0][1]
@@ -104,12 +105,13 @@ def read_telemetry_tlog(path: str | Path, telemetry_latency_s: float = 0.0, rese
     counters: collections.Counter[str] = collections.Counter(contents.counters)
     raw: list[tuple[float, int, int, str, object]] = []
     vehicle: int | None = None
+    autopilot: int | None = None
     for m in contents.messages:
         typ = m.get_type()
         src, comp = m.get_srcSystem(), m.get_srcComponent()
         if typ == "HEARTBEAT" and vehicle is None and comp == 1 and m.autopilot != mavlink.MAV_AUTOPILOT_INVALID \
                 and m.type not in _NOT_VEHICLE_TYPES:
-            vehicle = src
+            vehicle, autopilot = src, int(m.autopilot)
         if typ in _TELEMETRY:
             raw.append((float(m._timestamp), src, comp, typ, m))
     if not raw:
@@ -142,7 +144,7 @@ def read_telemetry_tlog(path: str | Path, telemetry_latency_s: float = 0.0, rese
         seg_min = min(seg_min, r.t - r.time_boot_ms * 1e-3)
     segments.append((seg_start, seg_min - telemetry_latency_s))
     counters["telemetry"] = len(recs)
-    return TlogTelemetry(recs, vehicle, dict(counters), segments, contents.truncation)
+    return TlogTelemetry(recs, vehicle, dict(counters), segments, contents.truncation, autopilot)
 
 
 # ---------------------------------------------------------------------- writing -----------------
@@ -234,6 +236,7 @@ def replay(tlog: str | Path, video: str | Path, frames_csv: str | Path, out: str
     pipe.landmark_sink = landmark_sink
     first_frame_t = float(source.t[0])
     rep = Reporter(config, pipeline, outputs=("autopilot",), start=first_frame_t, heartbeat=True, sector_sink=sector_sink)
+    rep.vehicle_autopilot = tel_log.autopilot  # the recorded vehicle's: a PX4 flight is replayed with PX4's folding
     trace = _Trace()
     recs = tel_log.records
     ri = 0

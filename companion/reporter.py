@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from companion.mavlink.dialect import UINT16_MAX, mavlink  # first: MAVLink 2 + ardupilotmega
-from companion.core.sectors import SECTOR_COUNT, SectorState
+from companion.core.sectors import SECTOR_COUNT, SectorState, fold_into_bins, forward_reading_consistent
 from companion.mavlink import messages as M
 from companion.pipeline import FrameResult, PipelineConfig
 
@@ -181,6 +181,14 @@ class Reporter:
         s = config.sectors
         self.min_cm, self.max_cm = s.min_distance_cm, s.max_distance_cm
         self._unknown = np.full(SECTOR_COUNT, UINT16_MAX, dtype=np.uint16)
+        #: MAV_AUTOPILOT of the vehicle's HEARTBEAT (None until known): with ``[outputs] px4_bin_fold =
+        #: "auto"`` a PX4 gets OBSTACLE_DISTANCE folded into its 10° bins (docs/derivations/sectors.md)
+        self.vehicle_autopilot: int | None = None
+
+    def fold_for_px4(self) -> bool:
+        """Whether OBSTACLE_DISTANCE to the autopilot is folded into PX4's 10° bins now."""
+        mode = self.config.outputs.px4_bin_fold
+        return mode == "on" or (mode == "auto" and self.vehicle_autopilot == mavlink.MAV_AUTOPILOT_PX4)
 
     # -- inputs -----------------------------------------------------------------------------------
     def _count_frame(self, t: float) -> None:
@@ -209,14 +217,25 @@ class Reporter:
         dyaw = 0.0
         if good and self.pcfg.rotate_sectors and math.isfinite(res.yaw):
             dyaw = math.remainder(yaw_now - res.yaw, 2 * math.pi)
+        fold = out == "autopilot" and self.fold_for_px4()
+        d = None
+        if good:
+            d = sec.rotated(dyaw) if dyaw else sec.distances_cm
+            if fold:
+                d, _ = fold_into_bins(d, self.max_cm)
         if self.schedule.due(out, "obstacle_distance", now):
             if good:
-                d = sec.rotated(dyaw) if dyaw else sec.distances_cm
                 time_usec = self._boot_ms(res.t_boot_capture) * 1000
                 msgs.append(M.obstacle_distance(d, self.min_cm, self.max_cm, time_usec, o.sensor_type))
+                if fold:
+                    self.counters["px4_folded_sent"] += 1
                 if self.sector_sink is not None:
                     try:  # diagnostics: never in the way of the message
-                        self.sector_sink(out, time_usec, d, sec.rotated_sources(dyaw, d) if dyaw else sec.sources())
+                        d0 = sec.rotated(dyaw) if dyaw else sec.distances_cm
+                        src = sec.rotated_sources(dyaw, d0) if dyaw else sec.sources()
+                        if fold:
+                            _, src = fold_into_bins(d0, self.max_cm, src)
+                        self.sector_sink(out, time_usec, d, src)
                     except Exception:
                         self.counters["sector_log_errors"] += 1
             else:
@@ -224,18 +243,34 @@ class Reporter:
                 self.counters["unknown_sent"] += 1
         if self.schedule.due(out, "distance_sensor", now):
             if good and abs(dyaw) < math.radians(2.5):
-                msgs.append(M.distance_sensor_from_sectors(sec, time_boot_ms, sensor_id=o.distance_sensor_id,
-                                                           sensor_type=o.sensor_type, zero_rel_sigma=o.quality_zero_rel_sigma))
+                m = M.distance_sensor_from_sectors(sec, time_boot_ms, sensor_id=o.distance_sensor_id,
+                                                   sensor_type=o.sensor_type, zero_rel_sigma=o.quality_zero_rel_sigma)
             else:  # unknown (or turned so far that the forward sector no longer holds what it saw)
-                msgs.append(M.distance_sensor("unknown", math.nan, math.nan, self.min_cm, self.max_cm, time_boot_ms,
-                                              sensor_id=o.distance_sensor_id, sensor_type=o.sensor_type,
-                                              horizontal_fov_rad=math.radians(5.0)))
+                m = M.distance_sensor("unknown", math.nan, math.nan, self.min_cm, self.max_cm, time_boot_ms,
+                                      sensor_id=o.distance_sensor_id, sensor_type=o.sensor_type,
+                                      horizontal_fov_rad=math.radians(5.0))
+            if out != "autopilot" or self._forward_consistent(m, d):
+                msgs.append(m)
+            else:  # it would undo what OBSTACLE_DISTANCE says ahead (docs/derivations/sectors.md)
+                self.counters["distance_sensor_withheld"] += 1
         if good and sec.nearest and self.schedule.due(out, "obstacle_3d", now):
             lo, hi = self.min_cm / 100.0, self.max_cm / 100.0
             for ob in sec.nearest:
                 x, y, z = _rot_z(ob.p_body, dyaw)
                 msgs.append(M.obstacle_distance_3d(x, y, z, ob.sector, lo, hi, time_boot_ms, o.sensor_type))
         return msgs
+
+    def _forward_consistent(self, m, d) -> bool:
+        """A forward DISTANCE_SENSOR goes to the autopilot only when it leaves the autopilot holding
+        what OBSTACLE_DISTANCE ``d`` says about the region it is merged into: never "unknown" (PX4
+        reads UINT16_MAX as free space), "clear" only with nothing ahead, an obstacle only when no
+        obstacle of ArduPilot's front face lies distinctly nearer (``[outputs] distance_sensor_face_rel_tol``;
+        docs/derivations/sectors.md, "The forward DISTANCE_SENSOR and the autopilots")."""
+        cm = int(m.current_distance)
+        if d is None or cm == UINT16_MAX:
+            return False
+        state = "clear" if cm > self.max_cm else "obstacle"
+        return forward_reading_consistent(state, cm, d, self.max_cm, self.config.outputs.distance_sensor_face_rel_tol)
 
     def _diagnostics(self, now: float, time_boot_ms: int) -> list:
         res = self._result

@@ -8,7 +8,8 @@ Two layers:
 
     * HEARTBEAT at 1 Hz from system ``[telemetry] system_id``, component 1
       (MAV_COMP_ID_AUTOPILOT1), with the scenario's MAV_TYPE and MAV_AUTOPILOT_ARDUPILOTMEGA
-      (built by :class:`flightsim.telemetry.TelemetryModel`);
+      (MAV_AUTOPILOT_PX4 when the simulated avoidance is PX4's; built by
+      :class:`flightsim.telemetry.TelemetryModel`);
     * nothing else until asked: COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL (511) for ATTITUDE,
       LOCAL_POSITION_NED, GLOBAL_POSITION_INT or SYSTEM_TIME is answered with COMMAND_ACK
       ACCEPTED and the stream runs at the requested interval (param2 µs; 0 = the scenario's

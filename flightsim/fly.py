@@ -94,6 +94,11 @@ def _mav_type(vehicle_kind: str) -> int:
     return mavlink.MAV_TYPE_FIXED_WING if vehicle_kind == "fixedwing" else mavlink.MAV_TYPE_QUADROTOR
 
 
+def _mav_autopilot(avoidance_model: str) -> int:
+    """The HEARTBEAT's MAV_AUTOPILOT: PX4 when the simulated avoidance is PX4's, ArduPilot otherwise."""
+    return mavlink.MAV_AUTOPILOT_PX4 if avoidance_model == "px4" else mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+
+
 def save_npz_deterministic(path: Path, arrays: dict[str, np.ndarray]) -> None:
     """``np.savez`` with fixed zip timestamps, so equal arrays give equal bytes."""
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
@@ -223,7 +228,7 @@ class Flight:
         self.sc = sc
         meta = sc.meta
         self.vehicle = make_vehicle(sc.vehicle)
-        self.tm = TelemetryModel(sc.telemetry, sc.telemetry_seed, _mav_type(sc.vehicle.kind))
+        self.tm = TelemetryModel(sc.telemetry, sc.telemetry_seed, _mav_type(sc.vehicle.kind), _mav_autopilot(sc.avoidance.model))
         self.origin = LocalNED(sc.vehicle.origin_lat_deg, sc.vehicle.origin_lon_deg, sc.vehicle.origin_alt_m)
         self.renderer = Renderer(sc.world, sc.camera, sc.render)
         self.cam = CameraModel(sc.camera)

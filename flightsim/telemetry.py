@@ -71,10 +71,11 @@ class TelemetryModel:
     for that state; message builders read the current error states.
     """
 
-    def __init__(self, config: TelemetryConfig, seed: int, mav_type: int):
+    def __init__(self, config: TelemetryConfig, seed: int, mav_type: int, autopilot: int = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA):
         self.config = config
         self.rng = np.random.default_rng(seed)
         self.mav_type = mav_type
+        self.autopilot = autopilot  # MAV_AUTOPILOT of the HEARTBEAT: PX4 when the simulated avoidance is PX4's
         self.gyro_bias = np.radians(self.rng.uniform(-config.gyro_bias_deg_s, config.gyro_bias_deg_s, 3))
         self.w_err = np.zeros(3)  # world-frame attitude error (rotation vector)
         self.gyro_noise = np.zeros(3)  # rate noise of the current step
@@ -146,7 +147,7 @@ class TelemetryModel:
     def heartbeat(self, armed: bool = True):
         base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0)
         return mavlink.MAVLink_heartbeat_message(
-            self.mav_type, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base, 0, mavlink.MAV_STATE_ACTIVE, 3
+            self.mav_type, self.autopilot, base, 0, mavlink.MAV_STATE_ACTIVE, 3
         )
 
     def attitude(self, state):

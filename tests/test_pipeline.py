@@ -244,7 +244,16 @@ def test_wall_ahead_gives_forward_ranges_with_correct_fields(rig):
                 b = math.radians(i * 5.0 if i < 36 else i * 5.0 - 360.0)
                 assert abs(b) < math.radians(80), (i, d[i])
                 assert d[i] / 100 <= truth / math.cos(b) * 1.05, (i, d[i], truth / math.cos(b))
-    # forward DISTANCE_SENSOR with its covariance
+    # the vehicle's HEARTBEAT says PX4: OBSTACLE_DISTANCE is folded into its 10° bins (every even element
+    # carries the nearest obstacle of its bin), and the log says so
+    rep = r.companion.reporter
+    assert rep.vehicle_autopilot == mavlink.MAV_AUTOPILOT_PX4 and rep.fold_for_px4() and rep.counters["px4_folded_sent"] > 0
+    for m in last:
+        d = np.asarray(m.distances).astype(np.int64)
+        for k in range(0, 72, 2):
+            nb = d[[(k - 1) % 72, k + 1]]
+            assert d[k] <= nb[nb <= m.max_distance].min(initial=UINT16_MAX), (k, d[k - 1:k + 2])
+    # forward DISTANCE_SENSOR with its covariance (sent when no obstacle of the front face lies distinctly nearer)
     dss = [m for t, m in v.received_t("DISTANCE_SENSOR") if t >= t_end - 0.5]
     assert dss
     for m in dss:
@@ -511,18 +520,21 @@ def _sectors_with_obstacle_at(bearing_deg: float, dist_m: float, config: Compani
 
 def test_reporter_rotates_sectors_by_the_yaw_change_since_exposure():
     cfg = small_config()
-    rep = Reporter(cfg, PipelineConfig(), start=9.0)
+    rep = Reporter(cfg, PipelineConfig(), outputs=("autopilot", "gcs"), start=9.0)
     sec = _sectors_with_obstacle_at(0.0, 10.0, cfg)
     assert sec.distances_cm[0] != UINT16_MAX
     res = _fake_result(sec, yaw=0.0)
     msgs = rep.on_result(res, 10.03, yaw_now=math.radians(10.0), last_frame_at=10.0)
-    od = [m for _, m in msgs if m.get_type() == "OBSTACLE_DISTANCE"]
+    od = [m for o, m in msgs if m.get_type() == "OBSTACLE_DISTANCE" and o == "autopilot"]
     assert len(od) == 1
     d = np.asarray(od[0].distances)
     # the vehicle turned 10° right: the obstacle is now 10° to the left (sector 70)
     assert d[70] != UINT16_MAX and d[0] == UINT16_MAX
-    ds = [m for _, m in msgs if m.get_type() == "DISTANCE_SENSOR"]
-    assert ds and ds[0].current_distance == UINT16_MAX  # the forward reading no longer points at what was seen
+    # the forward reading no longer points at what was seen: "unknown" to the ground station; the autopilot
+    # gets none (PX4 would read UINT16_MAX as free space, ArduPilot would wipe the obstacle at −10° from its front face)
+    ds = {o: m for o, m in msgs if m.get_type() == "DISTANCE_SENSOR"}
+    assert ds["gcs"].current_distance == UINT16_MAX and "autopilot" not in ds
+    assert rep.counters["distance_sensor_withheld"] == 1
 
 
 def test_reporter_never_publishes_an_old_result_as_valid():

@@ -58,6 +58,8 @@ from companion.core.frames import euler_zyx_to_R, euler_zyx_to_R_scalar, mount_r
 # the sector ring's constants and types, re-exported: every public name stays importable from here
 from companion.core.sectors_types import (  # noqa: F401
     _SAMPLES_PER_SECTOR,
+    ARDUPILOT_FACE_HALF_DEG,
+    PX4_BIN_DEG,
     SECTOR_COUNT,
     SECTOR_DEG,
     UNKNOWN_CM,
@@ -68,6 +70,8 @@ from companion.core.sectors_types import (  # noqa: F401
     Sectors,
     SectorSource,
     SectorState,
+    fold_into_bins,
+    forward_reading_consistent,
     rotate_sectors,
     sector_index,
     unknown_sectors,

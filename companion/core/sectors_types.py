@@ -348,3 +348,82 @@ def _combine_conservative(a: np.ndarray, b: np.ndarray, max_distance_cm: int) ->
     obs = a_obs | b_obs
     out[obs] = np.minimum(np.where(a_obs, a, UNKNOWN_CM), np.where(b_obs, b, UNKNOWN_CM))[obs]
     return out
+
+
+#: PX4's collision prevention keeps 36 bins of 10° and reads, for bin ``i``, the one
+#: OBSTACLE_DISTANCE element at ``ceil((10 i − angle_offset) / increment)``: with 5° sectors the even
+#: ones only (``CollisionPrevention::_addObstacleSensorData``; docs/derivations/sectors.md, "PX4's 10° bins").
+PX4_BIN_DEG = 10.0
+
+
+def fold_into_bins(distances, max_distance_cm: int, sources=None, bin_deg: float = PX4_BIN_DEG):
+    """Distances for a reader that samples one element per ``bin_deg`` bin (PX4: the even elements)
+    and treats it as the whole bin (docs/derivations/sectors.md, "PX4's 10° bins").
+
+    The element read for bin ``i`` (``k = i·bin_deg / 5°``) takes the nearest obstacle of the sectors
+    the bin overlaps, ``k − h … k + h`` with ``h = bin_deg / 10°`` (the odd sectors beside it lie half
+    inside it); where none of them holds an obstacle it keeps its own value (clear or unknown: a
+    neighbour without a claim is no evidence of an obstacle, and "clear" is only ever the sector's
+    own).  Elements no bin reads are unchanged, so a reader of all 72 (ArduPilot, a ground station)
+    sees each obstacle where it was plus, at most, its value one sector over.  Returns
+    ``(distances uint16, sources)`` with ``sources`` (the :class:`SectorSource` of each element,
+    optional) following the value each element now carries.
+    """
+    d = np.asarray(distances)
+    if d.ndim != 1 or d.size != SECTOR_COUNT:
+        raise InputError(f"distances must be a ({SECTOR_COUNT},) array, got shape {d.shape}")
+    step = bin_deg / SECTOR_DEG
+    if not (step >= 1 and abs(step - round(step)) < 1e-9 and SECTOR_COUNT % round(step) == 0):
+        raise InputError(f"bin_deg must be a multiple of {SECTOR_DEG:g}° that divides 360°, got {bin_deg!r}")
+    step = int(round(step))
+    d = d.astype(np.int64)
+    src = None if sources is None else np.asarray(sources).astype(np.int8)
+    if step == 1:
+        return d.astype(np.uint16), src
+    h = step // 2
+    read = np.arange(0, SECTOR_COUNT, step)  # the elements a bin reads
+    offs = np.arange(-h, h + 1)
+    cand = (read[:, None] + offs[None, :]) % SECTOR_COUNT  # (bins, 2h + 1) sectors each bin overlaps
+    vals = np.where(d[cand] <= max_distance_cm, d[cand], np.iinfo(np.int64).max)
+    j = np.argmin(vals, axis=1)  # ties: the lowest offset; the own sector wins over one beside it of equal value below
+    j = np.where(vals[np.arange(len(read)), h] == vals[np.arange(len(read)), j], h, j)
+    has = vals[np.arange(len(read)), j] <= max_distance_cm
+    take = cand[np.arange(len(read)), j]
+    out = d.copy()
+    out[read[has]] = d[take[has]]
+    if src is not None:
+        src = src.copy()
+        src[read[has]] = src[take[has]]
+    return out.astype(np.uint16), src
+
+
+#: ArduPilot's proximity boundary keeps 8 faces of 45°; a DISTANCE_SENSOR *replaces* its face's value
+#: and one outside [min, max] *resets* the face (``AP_Proximity_MAV::handle_distance_sensor_msg``).
+ARDUPILOT_FACE_HALF_DEG = 22.5
+
+
+def forward_reading_consistent(state: str, distance_cm: int, distances, max_distance_cm: int, rel_tol: float = 0.1,
+                               face_half_deg: float = ARDUPILOT_FACE_HALF_DEG) -> bool:
+    """Whether a forward DISTANCE_SENSOR reading (``state`` "obstacle" at ``distance_cm``, "clear" or
+    "unknown") leaves an autopilot holding what the OBSTACLE_DISTANCE ``distances`` already tell it
+    about the region the reading is merged into (docs/derivations/sectors.md, "The forward
+    DISTANCE_SENSOR and the autopilots"):
+
+    * ArduPilot writes it over its whole front face (±22.5°), into the face's low-pass filter: an
+      obstacle reading must not lie farther than the nearest obstacle of the sectors in that face by
+      more than ``rel_tol`` of that one (the same surface, its sectors' conservative values scatter;
+      a nearer pole or edge beside the axis withholds it); a reading outside [min, max] wipes the
+      face, so "clear" only when no sector there holds an obstacle;
+    * PX4 reads an out-of-range reading (UINT16_MAX, "clear") as free space out to max_distance:
+      "clear" only where sector 0 itself is clear, and "unknown" never.
+    """
+    d = np.asarray(distances).astype(np.int64)
+    bear = np.arange(SECTOR_COUNT) * SECTOR_DEG
+    off = np.abs((bear + 180.0) % 360.0 - 180.0)
+    face = d[off < face_half_deg]
+    face_obs = face[face <= max_distance_cm]
+    if state == "obstacle":
+        return bool(face_obs.size == 0 or int(distance_cm) <= (1.0 + rel_tol) * int(face_obs.min()))
+    if state == "clear":
+        return bool(face_obs.size == 0 and int(d[0]) == max_distance_cm + 1)
+    return False

@@ -58,7 +58,7 @@ class OutputConfig:
     """The ``[outputs]`` table: what is sent where, how often."""
 
     autopilot_obstacle_distance_hz: float = 15.0  # OBSTACLE_DISTANCE to the autopilot, Hz (10–20: both autopilots drop data older than 0.5 s)
-    autopilot_distance_sensor_hz: float = 15.0  # forward DISTANCE_SENSOR to the autopilot, Hz (0 = off)
+    autopilot_distance_sensor_hz: float = 15.0  # forward DISTANCE_SENSOR to the autopilot, Hz (0 = off); only when it agrees with OBSTACLE_DISTANCE about what lies ahead (Reporter._forward_consistent)
     autopilot_obstacle_3d_hz: float = 0.0  # OBSTACLE_DISTANCE_3D batches to the autopilot, Hz (0 = off: ArduPilot's 3-D messages reset the boundary OBSTACLE_DISTANCE fills)
     gcs_obstacle_distance_hz: float = 2.0  # OBSTACLE_DISTANCE to the ground-station output, Hz (a 57600-baud radio)
     gcs_distance_sensor_hz: float = 2.0  # forward DISTANCE_SENSOR to the ground station (QGroundControl's proximity radar), Hz
@@ -67,6 +67,8 @@ class OutputConfig:
     sensor_type: int = 4  # MAV_DISTANCE_SENSOR of the messages: 4 = UNKNOWN (MAVLink has no camera type)
     distance_sensor_id: int = 0  # DISTANCE_SENSOR "id" field (distinguishes it from other rangefinders)
     quality_zero_rel_sigma: float = 0.5  # DISTANCE_SENSOR signal_quality falls to its minimum when σ / range reaches this
+    distance_sensor_face_rel_tol: float = 0.1  # a forward DISTANCE_SENSOR obstacle goes to the autopilot only when it lies no farther than this fraction beyond the nearest obstacle OBSTACLE_DISTANCE reports within ±22.5° (ArduPilot's front face takes its value)
+    px4_bin_fold: str = "auto"  # OBSTACLE_DISTANCE to the autopilot: each element PX4 reads (one per 10° bin, the even ones) carries the nearest obstacle of the bin: "auto" = when the vehicle's HEARTBEAT says PX4, "on", "off"
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -77,6 +79,8 @@ class OutputConfig:
         require(isinstance(self.distance_sensor_id, int) and 0 <= self.distance_sensor_id <= 255,
                 f"distance_sensor_id must be a uint8, got {self.distance_sensor_id!r}")
         require_finite("quality_zero_rel_sigma", self.quality_zero_rel_sigma, positive=True)
+        require_finite("distance_sensor_face_rel_tol", self.distance_sensor_face_rel_tol, nonnegative=True)
+        require(self.px4_bin_fold in ("auto", "on", "off"), f"px4_bin_fold must be \"auto\", \"on\" or \"off\", got {self.px4_bin_fold!r}")
 
 
 # ---------------------------------------------------------------------- rate limiting ----------

@@ -36,8 +36,10 @@ class ArduPilotAvoidance(NoAvoidance):
     "clear" (max + 1) is no reading) goes to one of 8 faces of 45° centred on 0°, 45°, …; a face
     takes the minimum of a message's readings in it, low-pass filtered (``PRX_FILT``, reset after 1
     s without a write); faces without readings keep their value until ``face_timeout_s`` and
-    everything is dropped when no message came for ``stale_s``.  A DISTANCE_SENSOR is one reading
-    at its orientation.  Boundary (``Boundary_3D::update_boundary``): a point on each edge between
+    everything is dropped when no message came for ``stale_s``.  A DISTANCE_SENSOR
+    (``handle_distance_sensor_msg``) is one reading at its orientation that *replaces* its face's
+    value; one outside [min_distance, max_distance] (unknown, "clear") *resets* the face: whatever
+    OBSTACLE_DISTANCE put there is gone until the next message writes it (the filter keeps its state).  Boundary (``Boundary_3D::update_boundary``): a point on each edge between
     faces at the nearer valid face's filtered distance (≥ 0.6 m), a face without data bordering a
     valid one taking the valid one's distance ("cup"), else 100 m; each face's obstacle is the
     segment between its two edge points, used when it or a neighbour holds data.
@@ -81,6 +83,7 @@ class ArduPilotAvoidance(NoAvoidance):
         self.face_raw = np.full(n, np.nan)
         self.face_filt = np.full(n, np.nan)
         self.face_t = np.full(n, -math.inf)  # last write (arrival time)
+        self.face_valid = np.zeros(n, bool)  # False after a reset (``reset_face``) until the next write
         self.last_msg_t = -math.inf
         self._t_prev: float | None = None
         self._accel_mem: np.ndarray | None = None
@@ -102,6 +105,7 @@ class ArduPilotAvoidance(NoAvoidance):
             self.face_filt[f] += alpha * (d - self.face_filt[f])
         self.face_raw[f] = d
         self.face_t[f] = t
+        self.face_valid[f] = True
         self._faces_version += 1  # the boundary and the obstacles derived from the faces are stale
 
     def _handle(self, t: float, msg) -> None:
@@ -126,16 +130,20 @@ class ArduPilotAvoidance(NoAvoidance):
                 return
             d = int(msg.current_distance)
             self.last_msg_t = t
-            if d == 0 or d < msg.min_distance or d > msg.max_distance:
+            f = self._face_of(45.0 * msg.orientation)
+            if d < msg.min_distance or d > msg.max_distance:  # ``boundary.reset_face``
+                if self.face_valid[f]:
+                    self.face_valid[f] = False
+                    self._faces_version += 1
                 return
-            self._write_face(self._face_of(45.0 * msg.orientation), d / 100.0, t)
+            self._write_face(f, d / 100.0, t)
 
     def valid_faces(self, t: float) -> np.ndarray:
         """Faces holding data at ``t`` (face time-out, and nothing once the sensor went stale)."""
         self._apply_due(t)
         if t - self.last_msg_t > self.config.stale_s:
             return np.zeros(self.N_FACES, bool)
-        return np.isfinite(self.face_filt) & (t - self.face_t <= self.config.face_timeout_s)
+        return self.face_valid & np.isfinite(self.face_filt) & (t - self.face_t <= self.config.face_timeout_s)
 
     def _has_data(self, t: float) -> bool:
         return bool(np.any(self.valid_faces(t)))

@@ -25,7 +25,10 @@ class PX4Avoidance(NoAvoidance):
     increment)`` (no minimum over the 5° sectors in it); UINT16_MAX elements are skipped (the bin
     keeps its value until stale); any other value is stored, "clear" (≥ max_distance) as an
     obstacle at max_distance + 1; a bin older than ``stale_s`` holds no data.  A DISTANCE_SENSOR
-    fills the bin of its orientation.  ``d_keep = max(min_distance, CP_DIST)``.
+    (``_addDistanceSensorData``) fills the bins its horizontal field of view spans about its
+    orientation with ``min(current_distance, max_distance)``, discarded only at or below
+    min_distance: an out-of-range reading (UINT16_MAX, "clear") is data, free space out to
+    max_distance.  ``d_keep = max(min_distance, CP_DIST)``.
 
     Setpoint: no bin with data (or none fresh) → zero.  ``CP_GUIDE_ANG`` (``_adaptSetpointDirection``)
     may turn the setpoint to a bin within ±guide angle that scores better (cost CP_DIST·50·|k − i|
@@ -87,8 +90,15 @@ class PX4Avoidance(NoAvoidance):
                 return
             self.map_t = max(self.map_t, t)
             self.min_distance_cm = min(self.min_distance_cm, int(msg.min_distance))
-            i = int(round(45.0 * msg.orientation / self.BIN_DEG)) % self.N_BINS
-            self._enter(i, int(msg.current_distance), int(msg.max_distance), t)
+            d = min(int(msg.current_distance), int(msg.max_distance))
+            if d <= int(msg.min_distance):
+                return
+            yaw = _wrap360(45.0 * msg.orientation)
+            half = math.degrees(float(msg.horizontal_fov)) / 2.0
+            lo, hi = math.floor((yaw - half) / self.BIN_DEG), math.floor((yaw + half) / self.BIN_DEG)
+            lo, hi = lo + (lo < 0), hi + (hi < 0)  # PX4: floor above zero, ceil below
+            for i in range(lo, hi + 1):
+                self._enter(i % self.N_BINS, d, int(msg.max_distance), t)
 
     def bins(self, t: float) -> np.ndarray:
         """(36,) distance of each bin at ``t``, cm; UINT16_MAX without (fresh) data."""
