@@ -388,7 +388,8 @@ def cmd_run(args) -> int:
         companion.run(stop, duration=args.duration, lockstep=sim_clock is not None)
         if source.size_error:
             raise ConfigError(source.size_error)
-        log.info("stopped: %s; pipeline: %s", dict(companion.counters), dict(sorted(companion.pipeline.counters.items())))
+        log.info("stopped: %s; pipeline: %s; outputs: %s", dict(companion.counters), dict(sorted(companion.pipeline.counters.items())),
+                 dict(sorted(companion.reporter.counters.items())))
         if sector_log is not None:
             log.info("sector log %s: %d lines%s", sector_log.path, sector_log.lines, " (ended by a write error)" if sector_log.failed else "")
         if landmark_log is not None:

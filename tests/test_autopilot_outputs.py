@@ -55,6 +55,9 @@ def test_fold_gives_each_even_element_the_nearest_obstacle_of_its_10_degree_bin(
     # across the wrap: sector 71 (−5°) reaches element 0
     out, _ = fold_into_bins(ring(CLEAR, s71=700), MAX)
     assert out[0] == 700 and out[70] == 700
+    # an unknown element stays unknown: PX4 must still refuse the bin whose centre nobody ranged
+    out, _ = fold_into_bins(ring(UNK, s3=800, s4=CLEAR), MAX)
+    assert out[2] == UNK and out[4] == 800
 
 
 def test_fold_never_makes_anything_clear_or_unknown_that_was_an_obstacle():
@@ -67,13 +70,14 @@ def test_fold_never_makes_anything_clear_or_unknown_that_was_an_obstacle():
         assert np.array_equal(out[odd], d[odd])
         obs = d <= MAX
         assert np.all(out[obs] <= d[obs])  # an obstacle only gets nearer
-        # clear and unknown even elements change only to an obstacle of their bin
+        # a clear even element changes only to an obstacle of its bin; an unknown one never changes
         ev = np.arange(0, SECTOR_COUNT, 2)
         changed = ev[out[ev] != d[ev]]
         for k in changed:
             nb = d[[(k - 1) % 72, k, (k + 1) % 72]]
-            assert out[k] == nb[nb <= MAX].min()
+            assert d[k] != UNK and out[k] == nb[nb <= MAX].min()
         assert not np.any((out == CLEAR) & (d != CLEAR))
+        assert np.array_equal(out == UNK, d == UNK)
 
 
 def test_fold_sources_follow_the_value_and_bad_input_is_refused():
@@ -215,9 +219,11 @@ def test_random_scenes_leave_ardupilots_front_face_no_farther_than_the_companion
 
 # ---------------------------------------------------------------------- when to fold -----------------
 def test_the_reporter_folds_for_a_px4_only_and_the_key_overrides_it():
-    cfg = CompanionConfig()
-    sec = _sectors(_at(15.0, 6.0), cfg)
-    assert sec.distances_cm[3] < UNK and sec.distances_cm[2] == UNK  # claimed only in odd sector 3
+    base = CompanionConfig()  # without the corridor (rule 10), which on the quads already takes "clear" from beside it
+    cfg = dataclasses.replace(base, sectors=dataclasses.replace(base.sectors, clear_corridor_m=0.0))
+    far = [p for b in (5.0, 10.0, 20.0, 25.0) for p in _at(b, 60.0)]  # a far background seen clear around it
+    sec = _sectors(_at(15.0, 6.0) + far, cfg)
+    assert sec.distances_cm[3] < UNK and sec.distances_cm[2] == sec.distances_cm[4] == CLEAR  # claimed only in odd sector 3
 
     def sent(autopilot, mode):
         c = dataclasses.replace(cfg, outputs=dataclasses.replace(cfg.outputs, px4_bin_fold=mode))

@@ -360,14 +360,16 @@ def fold_into_bins(distances, max_distance_cm: int, sources=None, bin_deg: float
     """Distances for a reader that samples one element per ``bin_deg`` bin (PX4: the even elements)
     and treats it as the whole bin (docs/derivations/sectors.md, "PX4's 10° bins").
 
-    The element read for bin ``i`` (``k = i·bin_deg / 5°``) takes the nearest obstacle of the sectors
-    the bin overlaps, ``k − h … k + h`` with ``h = bin_deg / 10°`` (the odd sectors beside it lie half
-    inside it); where none of them holds an obstacle it keeps its own value (clear or unknown: a
-    neighbour without a claim is no evidence of an obstacle, and "clear" is only ever the sector's
-    own).  Elements no bin reads are unchanged, so a reader of all 72 (ArduPilot, a ground station)
-    sees each obstacle where it was plus, at most, its value one sector over.  Returns
-    ``(distances uint16, sources)`` with ``sources`` (the :class:`SectorSource` of each element,
-    optional) following the value each element now carries.
+    The element read for bin ``i`` (``k = i·bin_deg / 5°``), when it makes a claim (an obstacle or
+    clear), takes the nearest obstacle of the sectors the bin overlaps, ``k − h … k + h`` with
+    ``h = bin_deg / 10°`` (the odd sectors beside it lie half inside it); where none of them holds an
+    obstacle it keeps its own value ("clear" is only ever the sector's own).  An *unknown* element
+    stays unknown: PX4 refuses to move into a bin without data, and a range from beside it must not
+    lift that (the centre may be a texture-less wall nobody ranged).  Elements no bin reads are
+    unchanged, so a reader of all 72 (ArduPilot, a ground station) sees each obstacle where it was
+    plus, at most, its value one sector over.  Returns ``(distances uint16, sources)`` with
+    ``sources`` (the :class:`SectorSource` of each element, optional) following the value each
+    element now carries.
     """
     d = np.asarray(distances)
     if d.ndim != 1 or d.size != SECTOR_COUNT:
@@ -387,7 +389,7 @@ def fold_into_bins(distances, max_distance_cm: int, sources=None, bin_deg: float
     vals = np.where(d[cand] <= max_distance_cm, d[cand], np.iinfo(np.int64).max)
     j = np.argmin(vals, axis=1)  # ties: the lowest offset; the own sector wins over one beside it of equal value below
     j = np.where(vals[np.arange(len(read)), h] == vals[np.arange(len(read)), j], h, j)
-    has = vals[np.arange(len(read)), j] <= max_distance_cm
+    has = (vals[np.arange(len(read)), j] <= max_distance_cm) & (d[read] != UNKNOWN_CM)
     take = cand[np.arange(len(read)), j]
     out = d.copy()
     out[read[has]] = d[take[has]]

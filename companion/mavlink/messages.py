@@ -68,7 +68,7 @@ class OutputConfig:
     distance_sensor_id: int = 0  # DISTANCE_SENSOR "id" field (distinguishes it from other rangefinders)
     quality_zero_rel_sigma: float = 0.5  # DISTANCE_SENSOR signal_quality falls to its minimum when σ / range reaches this
     distance_sensor_face_rel_tol: float = 0.1  # a forward DISTANCE_SENSOR obstacle goes to the autopilot only when it lies no farther than this fraction beyond the nearest obstacle OBSTACLE_DISTANCE reports within ±22.5° (ArduPilot's front face takes its value)
-    px4_bin_fold: str = "auto"  # OBSTACLE_DISTANCE to the autopilot: each element PX4 reads (one per 10° bin, the even ones) carries the nearest obstacle of the bin: "auto" = when the vehicle's HEARTBEAT says PX4, "on", "off"
+    px4_bin_fold: str = "auto"  # OBSTACLE_DISTANCE to the autopilot: each element PX4 reads (one per 10° bin, the even ones) that makes a claim carries the nearest obstacle of the bin (unknown stays unknown): "auto" = when the vehicle's HEARTBEAT says PX4, "on", "off"
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
