@@ -160,7 +160,8 @@ class Reporter:
     def __init__(self, config, pipeline: PipelineConfig, outputs=("autopilot",), start: float = 0.0,
                  heartbeat: bool = False, sector_sink=None):
         self.config = config
-        #: called as ``sector_sink(output, time_usec, distances_cm, sources)`` for every OBSTACLE_DISTANCE built
+        #: called as ``sector_sink(output, time_usec, distances_cm, sources, forward)`` for every OBSTACLE_DISTANCE built
+        #: (``forward``: the forward DISTANCE_SENSOR's current_distance, covariance, signal_quality, sent or not)
         #: from a result (:class:`companion.sector_log.SectorLog`: where each sector's claim came from)
         self.sector_sink = sector_sink
         self.pcfg = pipeline
@@ -235,20 +236,15 @@ class Reporter:
                         src = sec.rotated_sources(dyaw, d0) if dyaw else sec.sources()
                         if fold:
                             _, src = fold_into_bins(d0, self.max_cm, src)
-                        self.sector_sink(out, time_usec, d, src)
+                        f = self._forward_message(sec, dyaw, time_boot_ms, good)
+                        self.sector_sink(out, time_usec, d, src, (f.current_distance, f.covariance, f.signal_quality))
                     except Exception:
                         self.counters["sector_log_errors"] += 1
             else:
                 msgs.append(M.obstacle_distance(self._unknown, self.min_cm, self.max_cm, 0, o.sensor_type))
                 self.counters["unknown_sent"] += 1
         if self.schedule.due(out, "distance_sensor", now):
-            if good and abs(dyaw) < math.radians(2.5):
-                m = M.distance_sensor_from_sectors(sec, time_boot_ms, sensor_id=o.distance_sensor_id,
-                                                   sensor_type=o.sensor_type, zero_rel_sigma=o.quality_zero_rel_sigma)
-            else:  # unknown (or turned so far that the forward sector no longer holds what it saw)
-                m = M.distance_sensor("unknown", math.nan, math.nan, self.min_cm, self.max_cm, time_boot_ms,
-                                      sensor_id=o.distance_sensor_id, sensor_type=o.sensor_type,
-                                      horizontal_fov_rad=math.radians(5.0))
+            m = self._forward_message(sec, dyaw, time_boot_ms, good)
             if out != "autopilot" or self._forward_consistent(m, d):
                 msgs.append(m)
             else:  # it would undo what OBSTACLE_DISTANCE says ahead (docs/derivations/sectors.md)
@@ -259,6 +255,17 @@ class Reporter:
                 x, y, z = _rot_z(ob.p_body, dyaw)
                 msgs.append(M.obstacle_distance_3d(x, y, z, ob.sector, lo, hi, time_boot_ms, o.sensor_type))
         return msgs
+
+    def _forward_message(self, sec, dyaw: float, time_boot_ms: int, good: bool):
+        """The forward DISTANCE_SENSOR of a result: unknown without one, or when the vehicle turned so far
+        since exposure (≥ 2.5°) that the forward sector no longer holds what it saw."""
+        o = self.config.outputs
+        if good and abs(dyaw) < math.radians(2.5):
+            return M.distance_sensor_from_sectors(sec, time_boot_ms, sensor_id=o.distance_sensor_id,
+                                                  sensor_type=o.sensor_type, zero_rel_sigma=o.quality_zero_rel_sigma)
+        return M.distance_sensor("unknown", math.nan, math.nan, self.min_cm, self.max_cm, time_boot_ms,
+                                 sensor_id=o.distance_sensor_id, sensor_type=o.sensor_type,
+                                 horizontal_fov_rad=math.radians(5.0))
 
     def _forward_consistent(self, m, d) -> bool:
         """A forward DISTANCE_SENSOR goes to the autopilot only when it leaves the autopilot holding

@@ -7,14 +7,17 @@ One JSON object per line.  The first line is a header::
 then one line per OBSTACLE_DISTANCE the companion built from a result, for the outputs logged
 (the autopilot's by default)::
 
-    {"out": "autopilot", "time_usec": 1234000, "d": [65535, 812, ...], "src": "000011133300..."}
+    {"out": "autopilot", "time_usec": 1234000, "d": [65535, 812, ...], "src": "000011133300...", "fwd": [812, 255, 71]}
 
 ``time_usec`` and ``d`` are the message's own fields (exposure on the autopilot's boot clock, the
 72 distances in cm, after the turn since exposure), so a reader finds the line of any
 OBSTACLE_DISTANCE in a tlog by those two; ``src`` holds one digit per sector, a
 :class:`~companion.core.sectors_types.SectorSource` (0 none, 1 live points, 2 live and remembered,
 3 remembered only, 4 inferred across sectors, 5 inferred from points above or below the band;
-docs/derivations/sectors.md, "Where a claim comes from").
+docs/derivations/sectors.md, "Where a claim comes from"); ``fwd`` is the forward DISTANCE_SENSOR computed
+from the same result (``current_distance`` cm, ``covariance`` cm², ``signal_quality``), whether it was sent
+to the autopilot or withheld (docs/derivations/sectors.md, "The forward DISTANCE_SENSOR and the
+autopilots"): a score of the forward range does not depend on which readings the autopilot was sent.
 
 About 0.4 kB a line: at 15 Hz some 20 MB an hour.  A write that fails (disk full, a vanished
 mount) is logged once and ends the log; the companion flies on.  I/O only: the sources themselves
@@ -45,12 +48,15 @@ class SectorLog(JsonlLog):
         super().__init__(path, {"sector_log": FORMAT_VERSION, "sectors": SECTOR_COUNT, "increment_deg": SECTOR_DEG,
                                 "sources": {str(int(s)): s.name.lower() for s in SectorSource}})
 
-    def __call__(self, out: str, time_usec: int, distances_cm, sources) -> None:
+    def __call__(self, out: str, time_usec: int, distances_cm, sources, forward=None) -> None:
         if not self.open or out not in self.outputs:
             return
         d = np.asarray(distances_cm).astype(np.int64).reshape(-1)
         src = np.asarray(sources).astype(np.int64).reshape(-1)
-        self.write({"out": out, "time_usec": int(time_usec), "d": d.tolist(), "src": "".join(str(int(v)) for v in src)})
+        rec = {"out": out, "time_usec": int(time_usec), "d": d.tolist(), "src": "".join(str(int(v)) for v in src)}
+        if forward is not None:
+            rec["fwd"] = [int(v) for v in forward]
+        self.write(rec)
 
 
 def read_sector_log(path, output: str = "autopilot") -> dict[tuple[int, bytes], np.ndarray]:
@@ -82,4 +88,31 @@ def read_sector_log(path, output: str = "autopilot") -> dict[tuple[int, bytes], 
     return out
 
 
-__all__ = ["FORMAT_VERSION", "SectorLog", "read_sector_log"]
+def read_sector_forward(path, output: str = "autopilot") -> dict[tuple[int, bytes], tuple[int, int, int]]:
+    """The forward readings of ``output``'s lines (those that carry ``fwd``), keyed like
+    :func:`read_sector_log` → ``(current_distance cm, covariance cm², signal_quality)``."""
+    out: dict[tuple[int, bytes], tuple[int, int, int]] = {}
+    with open(path, encoding="ascii", errors="replace") as fh:
+        head = fh.readline()
+        try:
+            h = json.loads(head)
+        except json.JSONDecodeError:
+            h = None
+        if not isinstance(h, dict) or h.get("sector_log") != FORMAT_VERSION:
+            raise InputError(f"{path}: not a sector log (version {FORMAT_VERSION} header expected)")
+        for line in fh:
+            try:
+                r = json.loads(line)
+                if r.get("out") != output or "fwd" not in r:
+                    continue
+                d = np.asarray(r["d"], np.int64)
+                cm, cov, q = (int(v) for v in r["fwd"])
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
+                continue
+            if d.shape != (SECTOR_COUNT,) or not (0 <= cm <= 65535 and 0 <= cov <= 255 and 0 <= q <= 100):
+                continue
+            out[(int(r["time_usec"]), d.astype(np.uint16).tobytes())] = (cm, cov, q)
+    return out
+
+
+__all__ = ["FORMAT_VERSION", "SectorLog", "read_sector_forward", "read_sector_log"]

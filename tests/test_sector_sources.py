@@ -18,7 +18,7 @@ from companion.errors import ConfigError, InputError
 from companion.io.config_files import CompanionConfig
 from companion.pipeline import FrameResult, PipelineConfig
 from companion.reporter import Reporter
-from companion.sector_log import SectorLog, read_sector_log
+from companion.sector_log import SectorLog, read_sector_forward, read_sector_log
 from flightsim.score.config import ScoreConfig
 from flightsim.score.evaluation import evaluate
 from flightsim.score.inputs import RangeMessages, SectorTruth
@@ -125,6 +125,19 @@ def test_the_log_holds_what_was_sent_to_the_autopilot_and_reads_back(tmp_path):
     key = (1_234_000, sec.distances_cm.astype(np.uint16).tobytes())
     assert np.array_equal(got[key], sec.sources())
     assert read_sector_log(path, output="gcs") == {}
+    assert read_sector_forward(path) == {}  # lines without a forward reading
+
+
+def test_the_log_keeps_the_forward_reading_and_reads_it_back(tmp_path):
+    sec = scene()
+    path = tmp_path / "sectors.jsonl"
+    sl = SectorLog(path)
+    sl("autopilot", 1_000, sec.distances_cm, sec.sources(), (1950, 255, 88))
+    sl("autopilot", 2_000, sec.distances_cm, sec.sources(), (1950, 300, 88))  # not a uint8 covariance: skipped
+    sl.close()
+    fwd = read_sector_forward(path)
+    assert fwd == {(1_000, sec.distances_cm.astype(np.uint16).tobytes()): (1950, 255, 88)}
+    assert len(read_sector_log(path)) == 2  # the sources read as before
 
 
 def test_a_file_that_is_not_a_sector_log_is_refused(tmp_path):
@@ -160,8 +173,10 @@ def test_the_reporter_logs_every_obstacle_distance_with_its_turned_sources():
     msgs = rep.on_result(res, 10.03, yaw_now=math.radians(10.0), last_frame_at=10.0)
     od = [m for _, m in msgs if m.get_type() == "OBSTACLE_DISTANCE"]
     assert len(od) == 1 and len(got) == 1
-    out, time_usec, d, src = got[0]
+    out, time_usec, d, src, fwd = got[0]
     assert out == "autopilot" and time_usec == od[0].time_usec == 10_000_000
+    # the forward reading of the same result, here withheld from the autopilot (turned 10°: unknown) but logged
+    assert fwd == (UINT16_MAX, 255, 1) and not [m for _, m in msgs if m.get_type() == "DISTANCE_SENSOR"]
     assert np.array_equal(np.asarray(d), np.asarray(od[0].distances))
     assert np.array_equal(src, sec.rotated_sources(math.radians(10.0)))
     assert np.array_equal(src != 0, np.asarray(od[0].distances) <= sec.max_distance_cm)
@@ -217,6 +232,15 @@ def test_the_score_splits_claims_by_source():
     assert iv["unattributed"]["ranges"] == 1 and iv["unattributed"]["valid"] == 1  # the message without a line
     assert sum(r["false_obstacles"] for v in (iv, oov) for r in v.values()) == s["cells"]["false_obstacles_clear_cells"]
     assert "Claims by source" in markdown(s, "t")
+    # forward readings from the log replace the DISTANCE_SENSORs received (here none reached the autopilot)
+    from flightsim.score.files import forward_from_sector_log
+
+    fwd = {(r[1], np.asarray(r[2]).astype(np.uint16).tobytes()): (1950, 255, 90) for r in rows[:4]}
+    msgs = forward_from_sector_log(RangeMessages.build(od=rows), fwd)
+    assert msgs.ds_t.tolist() == [r[0] for r in rows[:4]] and set(msgs.ds_distance_cm) == {1950}
+    assert msgs.counts["forward_from_sector_log"] == 4 and msgs.counts["distance_sensor_received"] == 0
+    ev = evaluate(msgs, truth, ScoreConfig(warmup_s=0.0))
+    assert np.allclose(ev.ds_published_m, 19.5) and np.allclose(ev.ds_truth_arrival, 20.0)
     # without a log the score has no split, and the rest is the same
     plain = summarize(evaluate(RangeMessages.build(od=rows), truth, ScoreConfig(warmup_s=0.0)))
     assert plain["claims_by_source"] is None and plain["cells"] == s["cells"]

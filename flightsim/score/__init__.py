@@ -23,7 +23,11 @@ imports the others and nothing imports it back; this package module re-exports n
 What is scored
 --------------
 Every OBSTACLE_DISTANCE (and forward DISTANCE_SENSOR) the companion sent is compared with the
-truth *of the moment it arrives*: the record stamp of the message in the ranges tlog (the time it
+truth *of the moment it arrives*.  The forward readings come from the companion's sector log when it
+carries them (``fwd`` on each line: the forward DISTANCE_SENSOR computed for that OBSTACLE_DISTANCE,
+stamped with its arrival), since the companion withholds from the autopilot a forward reading that
+disagrees with OBSTACLE_DISTANCE (docs/derivations/sectors.md); else from the DISTANCE_SENSORs
+received (``score.json`` ``inputs.forward_readings`` says which).  The arrival: the record stamp of the message in the ranges tlog (the time it
 left the companion in a replay, its arrival in SITL) picks the latest truth frame at or before
 that stamp (``truth.npz`` ``t_s``, the same recording clock), if that frame is at most
 ``truth_max_age_s`` old; messages without such a frame are counted, not scored.  The companion

@@ -25,7 +25,7 @@ from companion.io.atomic import StagedFiles, atomic_path
 from companion.io.config_files import read_toml
 from companion.io.inputs import check_input_file
 from companion.io.tlog import read_tlog
-from companion.sector_log import read_sector_log
+from companion.sector_log import read_sector_forward, read_sector_log
 from flightsim.score.config import N_SECTORS, ScoreConfig
 from flightsim.score.evaluation import evaluate
 from flightsim.score.inputs import RangeMessages, SectorTruth
@@ -150,6 +150,28 @@ def companion_score_params(companion_config) -> dict:
     return {"sigma_k": float(cfg.sectors.sigma_k), "quality_zero_rel_sigma": float(cfg.outputs.quality_zero_rel_sigma)}
 
 
+def forward_from_sector_log(msgs: RangeMessages, forward: dict) -> RangeMessages:
+    """``msgs`` with its forward readings taken from the companion's sector log instead of the
+    DISTANCE_SENSOR messages received: one reading per received OBSTACLE_DISTANCE whose log line
+    carries one (:func:`companion.sector_log.read_sector_forward`), stamped with that message's
+    arrival.  The companion sends the forward DISTANCE_SENSOR to the autopilot only when it agrees
+    with OBSTACLE_DISTANCE (docs/derivations/sectors.md, "The forward DISTANCE_SENSOR and the
+    autopilots"); a score of the forward range and its σ must not depend on that choice."""
+    rows = []
+    for i in range(len(msgs.od_t)):
+        f = forward.get((int(msgs.od_time_usec[i]), msgs.od_distances_cm[i].astype(np.uint16).tobytes()))
+        if f is not None:
+            cm, cov, q = f
+            rows.append((float(msgs.od_t[i]), cm, int(msgs.od_min_cm[i]), int(msgs.od_max_cm[i]), cov, q, 0))
+    counts = dict(msgs.counts)
+    counts["forward_from_sector_log"] = len(rows)
+    counts["distance_sensor_received"] = int(len(msgs.ds_t))
+    ds = RangeMessages.build(ds=rows)
+    return dataclasses.replace(msgs, ds_t=ds.ds_t, ds_distance_cm=ds.ds_distance_cm, ds_min_cm=ds.ds_min_cm,
+                               ds_max_cm=ds.ds_max_cm, ds_covariance=ds.ds_covariance, ds_quality=ds.ds_quality,
+                               ds_orientation=ds.ds_orientation, counts=counts)
+
+
 NEES_PLOT = "nees.png"
 #: the companion's sector log in a run directory (``companion run --sector-log``; :mod:`companion.sector_log`)
 SECTOR_LOG = "sectors.jsonl"
@@ -180,18 +202,23 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
         cfg = dataclasses.replace(cfg, **{k: (tuple(v) if k in ("range_bins_m", "detection_bins_m") else v) for k, v in over.items()})
     msgs = read_ranges_tlog(ranges_tlog, component_id)
     truth = read_truth_npz(truth_npz)
-    ev = evaluate(msgs, truth, cfg, namer=world_namer(world) if world is not None else None)
     log_path = Path(ranges_tlog).with_name(SECTOR_LOG) if sector_log is None else Path(sector_log)
-    lines = None
+    lines = forward = None
     if log_path.is_file():
         try:
             lines = read_sector_log(log_path)
+            forward = read_sector_forward(log_path)
         except (InputError, OSError) as e:  # the score stands without it
             log.warning("sector log %s not read: %s", log_path, e)
     elif sector_log is not None:
         raise InputError(f"sector log {sector_log}: no such file")
+    forward_source = "DISTANCE_SENSOR received"
+    if forward:
+        msgs = forward_from_sector_log(msgs, forward)
+        forward_source = "sector log (every forward reading computed, sent to the autopilot or withheld)"
+    ev = evaluate(msgs, truth, cfg, namer=world_namer(world) if world is not None else None)
     score = summarize(ev, lines)
-    score["inputs"] = {"ranges": str(ranges_tlog), "truth": str(truth_npz)}
+    score["inputs"] = {"ranges": str(ranges_tlog), "truth": str(truth_npz), "forward_readings": forward_source}
     if lines is not None:
         score["inputs"]["sector_log"] = str(log_path)
     traj = Path(truth_npz).with_name("trajectory.npz")
