@@ -219,25 +219,28 @@ class Reporter:
         if good and self.pcfg.rotate_sectors and math.isfinite(res.yaw):
             dyaw = math.remainder(yaw_now - res.yaw, 2 * math.pi)
         fold = out == "autopilot" and self.fold_for_px4()
-        d = None
-        if good:
-            d = sec.rotated(dyaw) if dyaw else sec.distances_cm
-            if fold:
-                d, _ = fold_into_bins(d, self.max_cm)
+        turned = sent = None  # the distances turned to now, and as sent (folded for a PX4): computed when needed
+
+        def published():
+            nonlocal turned, sent
+            if sent is None and good:
+                turned = sec.rotated(dyaw) if dyaw else sec.distances_cm
+                sent = fold_into_bins(turned, self.max_cm)[0] if fold else turned
+            return sent
+
         if self.schedule.due(out, "obstacle_distance", now):
             if good:
                 time_usec = self._boot_ms(res.t_boot_capture) * 1000
-                msgs.append(M.obstacle_distance(d, self.min_cm, self.max_cm, time_usec, o.sensor_type))
+                msgs.append(M.obstacle_distance(published(), self.min_cm, self.max_cm, time_usec, o.sensor_type))
                 if fold:
                     self.counters["px4_folded_sent"] += 1
                 if self.sector_sink is not None:
                     try:  # diagnostics: never in the way of the message
-                        d0 = sec.rotated(dyaw) if dyaw else sec.distances_cm
-                        src = sec.rotated_sources(dyaw, d0) if dyaw else sec.sources()
+                        src = sec.rotated_sources(dyaw, turned) if dyaw else sec.sources()
                         if fold:
-                            _, src = fold_into_bins(d0, self.max_cm, src)
+                            src = fold_into_bins(turned, self.max_cm, src)[1]
                         f = self._forward_message(sec, dyaw, time_boot_ms, good)
-                        self.sector_sink(out, time_usec, d, src, (f.current_distance, f.covariance, f.signal_quality))
+                        self.sector_sink(out, time_usec, sent, src, (f.current_distance, f.covariance, f.signal_quality))
                     except Exception:
                         self.counters["sector_log_errors"] += 1
             else:
@@ -245,7 +248,7 @@ class Reporter:
                 self.counters["unknown_sent"] += 1
         if self.schedule.due(out, "distance_sensor", now):
             m = self._forward_message(sec, dyaw, time_boot_ms, good)
-            if out != "autopilot" or self._forward_consistent(m, d):
+            if out != "autopilot" or self._forward_consistent(m, published()):
                 msgs.append(m)
             else:  # it would undo what OBSTACLE_DISTANCE says ahead (docs/derivations/sectors.md)
                 self.counters["distance_sensor_withheld"] += 1
