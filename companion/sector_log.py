@@ -59,12 +59,9 @@ class SectorLog(JsonlLog):
         self.write(rec)
 
 
-def read_sector_log(path, output: str = "autopilot") -> dict[tuple[int, bytes], np.ndarray]:
-    """The lines of ``output`` in a sector log, keyed by ``(time_usec, distances as uint16 bytes)``
-    → the (72,) int8 sources.  A line cut short (a companion killed mid-write) is skipped; a file
+def _records(path, output: str):
+    """The JSON objects of ``output``'s lines after a valid header (a line cut short is skipped); a file
     that is not a sector log raises :class:`~companion.errors.InputError`."""
-    out: dict[tuple[int, bytes], np.ndarray] = {}
-    top = max(SectorSource)
     with open(path, encoding="ascii", errors="replace") as fh:
         head = fh.readline()
         try:
@@ -76,15 +73,28 @@ def read_sector_log(path, output: str = "autopilot") -> dict[tuple[int, bytes], 
         for line in fh:
             try:
                 r = json.loads(line)
-                if r.get("out") != output:
-                    continue
-                d = np.asarray(r["d"], np.int64)
-                src = np.frombuffer(r["src"].encode("ascii"), np.uint8).astype(np.int8) - ord("0")
-            except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
+            except json.JSONDecodeError:
                 continue
-            if d.shape != (SECTOR_COUNT,) or src.shape != (SECTOR_COUNT,) or np.any((src < 0) | (src > top)):
-                continue
-            out[(int(r["time_usec"]), d.astype(np.uint16).tobytes())] = src
+            if isinstance(r, dict) and r.get("out") == output:
+                yield r
+
+
+def read_sector_log(path, output: str = "autopilot") -> dict[tuple[int, bytes], np.ndarray]:
+    """The lines of ``output`` in a sector log, keyed by ``(time_usec, distances as uint16 bytes)``
+    → the (72,) int8 sources.  A line cut short (a companion killed mid-write) is skipped; a file
+    that is not a sector log raises :class:`~companion.errors.InputError`."""
+    out: dict[tuple[int, bytes], np.ndarray] = {}
+    top = max(SectorSource)
+    for r in _records(path, output):
+        try:
+            d = np.asarray(r["d"], np.int64)
+            src = np.frombuffer(r["src"].encode("ascii"), np.uint8).astype(np.int8) - ord("0")
+            key = (int(r["time_usec"]), d.astype(np.uint16).tobytes())
+        except (KeyError, TypeError, ValueError, AttributeError):
+            continue
+        if d.shape != (SECTOR_COUNT,) or src.shape != (SECTOR_COUNT,) or np.any((src < 0) | (src > top)):
+            continue
+        out[key] = src
     return out
 
 
@@ -92,26 +102,16 @@ def read_sector_forward(path, output: str = "autopilot") -> dict[tuple[int, byte
     """The forward readings of ``output``'s lines (those that carry ``fwd``), keyed like
     :func:`read_sector_log` → ``(current_distance cm, covariance cm², signal_quality)``."""
     out: dict[tuple[int, bytes], tuple[int, int, int]] = {}
-    with open(path, encoding="ascii", errors="replace") as fh:
-        head = fh.readline()
+    for r in _records(path, output):
         try:
-            h = json.loads(head)
-        except json.JSONDecodeError:
-            h = None
-        if not isinstance(h, dict) or h.get("sector_log") != FORMAT_VERSION:
-            raise InputError(f"{path}: not a sector log (version {FORMAT_VERSION} header expected)")
-        for line in fh:
-            try:
-                r = json.loads(line)
-                if r.get("out") != output or "fwd" not in r:
-                    continue
-                d = np.asarray(r["d"], np.int64)
-                cm, cov, q = (int(v) for v in r["fwd"])
-            except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
-                continue
-            if d.shape != (SECTOR_COUNT,) or not (0 <= cm <= 65535 and 0 <= cov <= 255 and 0 <= q <= 100):
-                continue
-            out[(int(r["time_usec"]), d.astype(np.uint16).tobytes())] = (cm, cov, q)
+            d = np.asarray(r["d"], np.int64)
+            cm, cov, q = (int(v) for v in r["fwd"])
+            key = (int(r["time_usec"]), d.astype(np.uint16).tobytes())
+        except (KeyError, TypeError, ValueError, AttributeError):
+            continue
+        if d.shape != (SECTOR_COUNT,) or not (0 <= cm <= 65535 and 0 <= cov <= 255 and 0 <= q <= 100):
+            continue
+        out[key] = (cm, cov, q)
     return out
 
 
