@@ -19,6 +19,7 @@ import pytest
 
 from companion.mavlink.dialect import mavlink, mavutil  # first: MAVLink 2 + ardupilotmega
 from companion.errors import ConfigError
+from companion.sector_log import read_sector_forward
 from companion.simclock import SimClock
 from flightsim.autopilot import AutopilotLogic, UdpEndpoint
 from flightsim.cli import main as flightsim_main
@@ -72,7 +73,7 @@ def test_lockstep_loop_messages_arrive_and_decode(lockstep_runs):
         assert (out / name).is_file(), name
     rx = read_tlog(out / "received.tlog")
     kinds = {m.get_type() for m in rx}
-    assert {"HEARTBEAT", "OBSTACLE_DISTANCE", "DISTANCE_SENSOR", "TIMESYNC", "COMMAND_LONG"} <= kinds
+    assert {"HEARTBEAT", "OBSTACLE_DISTANCE", "TIMESYNC", "COMMAND_LONG"} <= kinds
     assert {(m.get_srcSystem(), m.get_srcComponent()) for m in rx} == {(1, 196)}
     hb = [m for m in rx if m.get_type() == "HEARTBEAT"]
     assert all(m.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER and m.autopilot == mavlink.MAV_AUTOPILOT_INVALID for m in hb)
@@ -83,15 +84,19 @@ def test_lockstep_loop_messages_arrive_and_decode(lockstep_runs):
         assert m.frame == mavlink.MAV_FRAME_BODY_FRD and m.min_distance > 0 and m.max_distance > m.min_distance
         assert 0 not in m.distances  # 0 is "touching", never a filler
     assert any(d != 65535 for m in od for d in m.distances), "no sector was ever claimed"
+    # the forward DISTANCE_SENSOR reaches the autopilot only when it agrees with OBSTACLE_DISTANCE, never "unknown";
+    # the sector log keeps every forward reading computed, which the score uses (docs/derivations/sectors.md)
     ds = [m for m in rx if m.get_type() == "DISTANCE_SENSOR"]
-    assert ds and all(m.orientation == mavlink.MAV_SENSOR_ROTATION_NONE for m in ds)
+    assert all(m.orientation == mavlink.MAV_SENSOR_ROTATION_NONE and m.current_distance != 65535 for m in ds)
+    fwd = read_sector_forward(out / "sectors.jsonl")
+    assert len(fwd) >= 0.9 * len(od) and len(fwd) > len(ds)
     assert s["checks"].get("obstacle_distance_bad_fields", 0) == 0
     # arrivals are on the truth clock: inside the flight (plus the companion's processing time)
     t_truth = np.load(out / "truth.npz")["t_s"]
     stamps = np.array([m._timestamp for m in rx])
     assert np.all(np.diff(stamps) >= 0)
     assert stamps[0] >= t_truth[0] and stamps[-1] <= t_truth[-1] + 0.2
-    # the lockstep clock: every DISTANCE_SENSOR time_boot_ms is where the simulator dated its arrival
+    # the lockstep clock: every DISTANCE_SENSOR and NAMED_VALUE_FLOAT time_boot_ms is where the simulator dated its arrival
     assert s["checks"].get("clock_mismatches", 0) == 0
 
 

@@ -17,7 +17,7 @@ round per frame (poll the link, process, publish, acknowledge), sending nothing 
 The simulator reads the companion's datagrams only at these acknowledgements and dates them
 where the companion's clock put them: ``max(delivery, companion busy until) + processing_ms`` for
 a processed frame (``+ 0`` for a frame dropped as stale); requests are handled at the first
-physics step at or after that instant.  Every DISTANCE_SENSOR's ``time_boot_ms`` is checked
+physics step at or after that instant.  Every DISTANCE_SENSOR's and NAMED_VALUE_FLOAT's ``time_boot_ms`` is checked
 against this model (``clock_mismatches`` in the summary).  While the companion works on a
 frame the simulator already runs the physics and renders the next frame (nothing in them depends
 on the companion) and builds the telemetry of those steps, in step order, as if no request came
@@ -200,13 +200,13 @@ class Run:
             self.checks["obstacle_distance_ok" if ok else "obstacle_distance_bad_fields"] += 1
             if any(d != 65535 for d in msg.distances):
                 self.checks["obstacle_distance_valid"] += 1
-        elif typ == "DISTANCE_SENSOR" and self.lockstep and msg.time_boot_ms > 0:
+        elif typ in ("DISTANCE_SENSOR", "NAMED_VALUE_FLOAT") and self.lockstep and msg.time_boot_ms > 0:
             expected_ms = self.boot_s(t) * 1000.0
             if abs(msg.time_boot_ms - expected_ms) > 1.5:
                 self.checks["clock_mismatches"] += 1
                 if self.checks["clock_mismatches"] <= 3:
-                    log.warning("DISTANCE_SENSOR stamped %d ms, lockstep model says %.1f ms (is the companion on "
-                                "--clock sim --sim-processing-ms %g?)", msg.time_boot_ms, expected_ms, self.cfg.processing_ms)
+                    log.warning("%s stamped %d ms, lockstep model says %.1f ms (is the companion on "
+                                "--clock sim --sim-processing-ms %g?)", typ, msg.time_boot_ms, expected_ms, self.cfg.processing_ms)
 
     def _handle_inbox(self, t: float) -> None:
         while self.inbox and self.inbox[0].t <= t + EPS_T:
