@@ -387,8 +387,8 @@ def fold_into_bins(distances, max_distance_cm: int, sources=None, bin_deg: float
     offs = np.arange(-h, h + 1)
     cand = (read[:, None] + offs[None, :]) % SECTOR_COUNT  # (bins, 2h + 1) sectors each bin overlaps
     vals = np.where(d[cand] <= max_distance_cm, d[cand], np.iinfo(np.int64).max)
-    j = np.argmin(vals, axis=1)  # ties: the lowest offset; the own sector wins over one beside it of equal value below
-    j = np.where(vals[np.arange(len(read)), h] == vals[np.arange(len(read)), j], h, j)
+    j = np.argmin(vals, axis=1)
+    j = np.where(vals[np.arange(len(read)), h] == vals[np.arange(len(read)), j], h, j)  # a tie goes to the own sector
     has = (vals[np.arange(len(read)), j] <= max_distance_cm) & (d[read] != UNKNOWN_CM)
     take = cand[np.arange(len(read)), j]
     out = d.copy()

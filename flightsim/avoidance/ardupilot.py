@@ -39,10 +39,11 @@ class ArduPilotAvoidance(NoAvoidance):
     everything is dropped when no message came for ``stale_s``.  A DISTANCE_SENSOR
     (``handle_distance_sensor_msg``) is one reading at its orientation that *replaces* its face's
     value; one outside [min_distance, max_distance] (unknown, "clear") *resets* the face: whatever
-    OBSTACLE_DISTANCE put there is gone until the next message writes it (the filter keeps its state).  Boundary (``Boundary_3D::update_boundary``): a point on each edge between
-    faces at the nearer valid face's filtered distance (≥ 0.6 m), a face without data bordering a
-    valid one taking the valid one's distance ("cup"), else 100 m; each face's obstacle is the
-    segment between its two edge points, used when it or a neighbour holds data.
+    OBSTACLE_DISTANCE put there is gone until the next message writes it (the filter keeps its
+    state).  Boundary (``Boundary_3D::update_boundary``): a point on each edge between faces at the
+    nearer valid face's filtered distance (≥ 0.6 m), a face without data bordering a valid one taking
+    the valid one's distance ("cup"), else 100 m; each face's obstacle is the segment between its two
+    edge points, used when it or a neighbour holds data.
 
     Velocity (``AC_Avoid::adjust_velocity_proximity`` in the body frame at the current yaw; the
     braking acceleration is the flight mode's clamped to 1 m/s² (``AC_AVOID_ACCEL_CMSS_MAX``) and
