@@ -95,14 +95,10 @@ class Companion:
         vehicle's system id once the autopilot's is known."""
         self.link.poll()
         hb = self.link.vehicle_heartbeat
-        if hb is not None and hb.autopilot != self.reporter.vehicle_autopilot:
-            if self.reporter.vehicle_autopilot is None or self.counters["autopilot_type_changes"] < 5:
-                log.info("vehicle autopilot %s: OBSTACLE_DISTANCE %s", _autopilot_name(hb.autopilot),
-                         "folded into PX4's 10° bins" if hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
-                         and self.config.outputs.px4_bin_fold == "auto" else "as measured, 72 × 5°")
-            if self.reporter.vehicle_autopilot is not None:
-                self.counters["autopilot_type_changes"] += 1
+        if hb is not None and hb.autopilot != self.reporter.vehicle_autopilot:  # the locked vehicle's: changes are rare
             self.reporter.vehicle_autopilot = int(hb.autopilot)
+            log.info("vehicle autopilot %s: OBSTACLE_DISTANCE %s", _autopilot_name(hb.autopilot),
+                     "folded into PX4's 10° bins" if self.reporter.fold_for_px4() else "as measured, 72 × 5°")
         if self.gcs is not None:
             self.gcs.poll()
             sid = self.link.system_id

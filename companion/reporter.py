@@ -219,7 +219,8 @@ class Reporter:
         if good and self.pcfg.rotate_sectors and math.isfinite(res.yaw):
             dyaw = math.remainder(yaw_now - res.yaw, 2 * math.pi)
         fold = out == "autopilot" and self.fold_for_px4()
-        turned = sent = None  # the distances turned to now, and as sent (folded for a PX4): computed when needed
+        # computed when first needed, once: the distances turned to now and as sent (folded for a PX4), the forward reading
+        turned = sent = forward = None
 
         def published():
             nonlocal turned, sent
@@ -227,6 +228,12 @@ class Reporter:
                 turned = sec.rotated(dyaw) if dyaw else sec.distances_cm
                 sent = fold_into_bins(turned, self.max_cm)[0] if fold else turned
             return sent
+
+        def forward_reading():
+            nonlocal forward
+            if forward is None:
+                forward = self._forward_message(sec, dyaw, time_boot_ms, good)
+            return forward
 
         if self.schedule.due(out, "obstacle_distance", now):
             if good:
@@ -239,7 +246,7 @@ class Reporter:
                         src = sec.rotated_sources(dyaw, turned) if dyaw else sec.sources()
                         if fold:
                             src = fold_into_bins(turned, self.max_cm, src)[1]
-                        f = self._forward_message(sec, dyaw, time_boot_ms, good)
+                        f = forward_reading()
                         self.sector_sink(out, time_usec, sent, src, (f.current_distance, f.covariance, f.signal_quality))
                     except Exception:
                         self.counters["sector_log_errors"] += 1
@@ -247,7 +254,7 @@ class Reporter:
                 msgs.append(M.obstacle_distance(self._unknown, self.min_cm, self.max_cm, 0, o.sensor_type))
                 self.counters["unknown_sent"] += 1
         if self.schedule.due(out, "distance_sensor", now):
-            m = self._forward_message(sec, dyaw, time_boot_ms, good)
+            m = forward_reading()
             if out != "autopilot" or self._forward_consistent(m, published()):
                 msgs.append(m)
             else:  # it would undo what OBSTACLE_DISTANCE says ahead (docs/derivations/sectors.md)

@@ -60,6 +60,7 @@ from companion.core.sectors_types import (  # noqa: F401
     _SAMPLES_PER_SECTOR,
     ARDUPILOT_FACE_HALF_DEG,
     PX4_BIN_DEG,
+    SECTOR_BEARING_DEG,
     SECTOR_COUNT,
     SECTOR_DEG,
     UNKNOWN_CM,
@@ -459,9 +460,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         _corridor(state, dist, range_m, config.clear_corridor_m)
 
     # ---- forward window (DISTANCE_SENSOR) ------------------------------------------------------
-    centres = np.arange(SECTOR_COUNT) * SECTOR_DEG
-    rel = (centres + 180.0) % 360.0 - 180.0
-    fwd = np.flatnonzero(np.abs(rel) <= config.forward_half_width_deg + 1e-9)
+    fwd = np.flatnonzero(np.abs(SECTOR_BEARING_DEG) <= config.forward_half_width_deg + 1e-9)
     fwd_obs = fwd[state[fwd] == SectorState.OBSTACLE]
     if fwd_obs.size:
         j = fwd_obs[np.argmin(range_m[fwd_obs])]

@@ -27,6 +27,9 @@ SECTOR_DEG = 5.0
 UNKNOWN_CM = 65535
 
 _SAMPLES_PER_SECTOR = 5  # bearings tested per sector for the field-of-view mask (edges + inside)
+#: each sector's centre bearing, degrees, signed (−180, 180]: right of forward positive
+SECTOR_BEARING_DEG = (np.arange(SECTOR_COUNT) * SECTOR_DEG + 180.0) % 360.0 - 180.0
+SECTOR_BEARING_DEG.flags.writeable = False
 
 
 class SectorState(enum.IntEnum):
@@ -420,9 +423,7 @@ def forward_reading_consistent(state: str, distance_cm: int, distances, max_dist
       "clear" only where sector 0 itself is clear, and "unknown" never.
     """
     d = np.asarray(distances).astype(np.int64)
-    bear = np.arange(SECTOR_COUNT) * SECTOR_DEG
-    off = np.abs((bear + 180.0) % 360.0 - 180.0)
-    face = d[off < face_half_deg]
+    face = d[np.abs(SECTOR_BEARING_DEG) < face_half_deg]
     face_obs = face[face <= max_distance_cm]
     if state == "obstacle":
         return bool(face_obs.size == 0 or int(distance_cm) <= (1.0 + rel_tol) * int(face_obs.min()))
