@@ -364,7 +364,7 @@ class Pipeline:
         if len(e.forget):  # converged but inconsistent: not a point the map should keep, forget what it left there
             omap.forget(e.forget)
         merged, superseded = omap.merged, omap.superseded
-        rej = omap.observe(t, e.entry_keys, e.p_world, e.P_world, live_keys=e.keys)
+        rej = omap.observe(t, e.entry_keys, e.p_world, e.P_world, live_keys=e.keys, p_world_cam=p_wc)
         self.counters["map_merged"] += omap.merged - merged  # new landmarks that landed on a remembered point ...
         self.counters["map_superseded"] += omap.superseded - superseded  # ... and disagreed with it: not fused
         for why, n in rej.items():

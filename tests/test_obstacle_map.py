@@ -486,6 +486,51 @@ def test_support_radius_grows_with_distance_when_asked():
         MapConfig(support_radius_rel=-0.1)
 
 
+def test_support_scales_with_the_range_a_point_was_entered_from():
+    """Two wall points 1.5 m apart ranged from 12 m support each other (0.15 × 12 m = 1.8 m); hovering 5 m
+    from them the distance now gives 0.75 m and they would go lone.  With ``support_radius_seen`` the
+    range they were entered from keeps the radius (``support_seen_ratio``, which bounds that range by a multiple
+    of the distance now); a point re-entered from nearer takes that range."""
+    wall = [[12.0, 0.0, -5.0], [12.0, 1.5, -5.0]]
+    cam_far, near = np.array([0.0, 0.75, -5.0]), np.array([7.0, 0.75, -5.0])
+    r_far = float(np.linalg.norm(np.array(wall[0]) - cam_far))
+    maps = {}
+    for ratio in (0.0, 1.5, 3.0):
+        m = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6, support_radius_rel=0.15, support_column_radius_m=0.0,
+                                  support_seen_ratio=ratio))
+        m.observe(0.0, [1, 2], wall, cov(2), live_keys=[], p_world_cam=cam_far)
+        np.testing.assert_allclose(m.r_seen, [r_far, r_far])
+        assert len(m.remembered(0.5, cam_far)) == 2  # from where they were ranged: supported either way
+        maps[ratio] = m
+    # 5.06 m away: 3 × 5.06 m ≥ 12 m keeps the whole range (1.8 m radius); 1.5 × 5.06 m = 7.6 m gives 1.14 m < 1.5 m
+    assert sorted(maps[3.0].remembered(0.5, near).keys.tolist()) == [1, 2]
+    assert len(maps[1.5].remembered(0.5, near)) == 0
+    assert len(maps[0.0].remembered(0.5, near)) == 0
+    # without the camera position the range is not known (0): the distance now decides, as before
+    m = ObstacleMap(MapConfig(min_support=2, support_radius_m=0.6, support_radius_rel=0.15, support_column_radius_m=0.0,
+                              support_seen_ratio=3.0))
+    m.observe(0.0, [1, 2], wall, cov(2), live_keys=[])
+    assert m.r_seen.tolist() == [0.0, 0.0] and len(m.remembered(0.5, near)) == 0
+    # re-entered from 4 m: that is the range now, and 0.15 × 4 m no longer reaches the neighbour
+    m = maps[3.0]
+    cam_close = np.array([8.0, 0.0, -5.0])
+    m.observe(1.0, [1], wall[:1], cov(1), live_keys=[], p_world_cam=cam_close)
+    assert m.r_seen[0] == pytest.approx(4.0) and m.r_seen[1] == pytest.approx(r_far)
+    assert m.keys[m.support(np.arange(2), near) >= 2].tolist() == [2]  # 2 still reaches 1 (its own radius), 1 not 2
+    # a refused entry (covariance not positive definite) leaves its row's range alone
+    bad = cov(1)
+    bad[0, 2, 2] = -1.0
+    m.observe(2.0, [2], [[12.0, 1.5, -5.0]], bad, live_keys=[], p_world_cam=cam_close)
+    assert m.r_seen[1] == pytest.approx(r_far)
+    # a new landmark that lands on a remembered point takes it over, with its own range
+    m.observe(3.0, [7], [[12.05, 1.5, -5.0]], cov(1), live_keys=[7], p_world_cam=np.array([2.0, 1.5, -5.0]))
+    row = int(np.flatnonzero(m.keys == 7)[0])
+    assert len(m) == 2 and m.r_seen[row] == pytest.approx(10.05)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ConfigError, match="support_seen_ratio"):
+            MapConfig(support_seen_ratio=bad)
+
+
 def test_a_thin_masts_stacked_points_support_each_other_in_a_column():
     """A 0.15 m mast leaves corners one above another, ~1 m apart at 3 m range: lone under a 0.6 m
     sphere, supported by a column 0.3 m wide and 1.2 m up and down; the same spacing across a

@@ -39,7 +39,7 @@ R_CAM_BODY = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 CAM = CameraModel(CameraConfig.from_fov(320, 240, 60.0))
 FLIGHTS = 12 if jit.ENABLED else 3
 FRAMES = 60 if jit.ENABLED else 25
-_FIELDS = ("keys", "p", "P", "t_seen", "o", "u", "live")
+_FIELDS = ObstacleMap._fields  # every per-point array, r_seen included
 
 
 def run_both(monkeypatch, fn, *objs):
@@ -150,7 +150,7 @@ def map_step(monkeypatch, m: ObstacleMap, t, out, tf, R_wc, p_wc, p_wb, key_base
         assert nk == nr
         assert_same_map(mk[0], mr[0], f"{what} forget")
         m = mr[0]
-    (rk, mk), (rr, mr) = run_both(monkeypatch, lambda mm: mm.observe(t, e.entry_keys, e.p_world, e.P_world, live_keys=e.keys), m)
+    (rk, mk), (rr, mr) = run_both(monkeypatch, lambda mm: mm.observe(t, e.entry_keys, e.p_world, e.P_world, live_keys=e.keys, p_world_cam=p_wc), m)
     assert rk == rr, f"{what} observe refusals"
     merged = np.flatnonzero((mr[0].o[: len(m)] > m.o) & ~np.isin(mr[0].keys[: len(m)], m.keys)) if len(m) else ()
     assert_same_map(mk[0], mr[0], f"{what} observe", merged)
@@ -179,7 +179,7 @@ def map_step(monkeypatch, m: ObstacleMap, t, out, tf, R_wc, p_wc, p_wb, key_base
     return m, vr, len(merged), len(remr)
 
 
-@pytest.mark.parametrize("variant", ["shipped", "far from the origin", "small cap, support off"])
+@pytest.mark.parametrize("variant", ["shipped", "far from the origin", "small cap, support off", "support from the range seen"])
 def test_kernels_equal_reference_on_seeded_flights(monkeypatch, variant):
     """Seeded flights: every step's decisions identical, numbers to rounding (module docstring)."""
     from companion.io.config_files import load_companion_config
@@ -190,6 +190,8 @@ def test_kernels_equal_reference_on_seeded_flights(monkeypatch, variant):
     origin = 0.0
     if variant == "far from the origin":
         origin = 1500.0  # |p|² ~ 5e6 m²: the float32 support test rounds at ~1 m², the kernel must round alike
+    elif variant == "support from the range seen":
+        cfg = dataclasses.replace(cfg, support_seen_ratio=2.0)
     elif variant == "small cap, support off":
         cfg = MapConfig(max_landmarks=60, min_support=1, max_age_s=2.0, radius_m=20.0, max_entry_nis_ratio=0.0)
     seen = {"found": 0, "missed": 0, "merged": 0, "remembered": 0, "evicted": 0, "absorbed": 0}
@@ -258,11 +260,11 @@ def test_support_matches_the_float32_reference_far_from_the_origin(monkeypatch):
     assert np.any(exact != ref)  # the float32 rounding matters here: the test discriminates
 
 
-def _support_bruteforce(p, rows, pv, radius_m, rel):
+def _support_bruteforce(p, rows, pv, radius_m, rel, r_floor):
     """Every pair, numpy, the float32 expansion with sgemm's fused q·p chain (products exact in float64)."""
     radius = np.full(rows.size, radius_m)
     if rel > 0:
-        radius = np.maximum(radius, rel * np.linalg.norm(p[rows] - pv, axis=1))
+        radius = np.maximum(radius, rel * np.maximum(np.linalg.norm(p[rows] - pv, axis=1), r_floor[rows]))
     P = p.astype(np.float32)
     q = P[rows]
     qq = np.sum(q * q, 1)
@@ -284,8 +286,11 @@ def test_support_slab_counts_every_pair(scale):
         p = np.concatenate([c + rng.normal(0, rng.uniform(0.05, 3.0), (80, 3)) for c in centres])
         rows = np.sort(rng.choice(len(p), 150, replace=False))
         pv = centres[0] + rng.normal(0, 10, 3)
-        for radius_m, rel in ((0.6, 0.15), (0.6, 0.0), (rng.uniform(0.01, 5.0), 0.0)):
-            np.testing.assert_array_equal(OMK._support_k(p, rows, pv, radius_m, rel), _support_bruteforce(p, rows, pv, radius_m, rel))
+        seen = rng.uniform(0.0, 40.0, len(p)) * (rng.random(len(p)) < 0.5)  # ranges when entered, half not known (0)
+        for radius_m, rel, r_floor in ((0.6, 0.15, np.zeros(len(p))), (0.6, 0.15, seen), (0.6, 0.0, seen),
+                                       (rng.uniform(0.01, 5.0), 0.0, np.zeros(len(p)))):
+            np.testing.assert_array_equal(OMK._support_k(p, rows, pv, radius_m, rel, r_floor),
+                                          _support_bruteforce(p, rows, pv, radius_m, rel, r_floor))
 
 
 @pytest.mark.parametrize("case", ["empty map", "nothing in", "one landmark", "bad inputs", "absorb", "duplicate keys", "no live",

@@ -110,6 +110,7 @@ class MapConfig:
     support_radius_rel: float = 0.15  # ... or this fraction of the point's distance from the vehicle, if larger (corners are spaced in pixels, so neighbours lie farther apart far away)
     support_column_radius_m: float = 0.3  # ... or, counted apart, the map points within this horizontally and support_column_half_height_m vertically (a thin mast or pole leaves its corners stacked one above another, farther apart than on a surface), m; 0 = off
     support_column_half_height_m: float = 1.2  # vertical reach of that column, m
+    support_seen_ratio: float = 0.0  # > 0: the relative radius scales with the larger of the point's distance now and its range when last entered, the latter at most this many times the distance now (corners are spaced in pixels where they were ranged: coming closer does not bring a surface's points closer together); 0 = the distance now alone
 
     def __post_init__(self) -> None:
         require(isinstance(self.enabled, bool), "enabled must be true or false")
@@ -121,7 +122,7 @@ class MapConfig:
                      "support_column_half_height_m"):
             require_finite(name, getattr(self, name), positive=True)
         for name in ("position_drift_mps", "position_drift_max_m", "heading_drift_deg_s", "image_margin_px", "support_radius_rel",
-                     "support_column_radius_m",
+                     "support_column_radius_m", "support_seen_ratio",
                      "max_entry_nis_ratio"):
             require_finite(name, getattr(self, name), nonnegative=True)
         require_finite("min_score", self.min_score)
@@ -166,7 +167,7 @@ class ObstacleMap:
     """The local obstacle map (module docstring).  Arrays sized by the points held, at most
     ``config.max_landmarks``; ``live`` marks points whose landmark the estimator still runs."""
 
-    _fields = ("keys", "p", "P", "t_seen", "o", "u", "live")
+    _fields = ("keys", "p", "P", "t_seen", "o", "u", "live", "r_seen")
 
     def __init__(self, config: MapConfig = MapConfig()):
         self.config = config
@@ -177,6 +178,7 @@ class ObstacleMap:
         self.o = np.zeros(0, np.int64)
         self.u = np.zeros(0, np.int64)
         self.live = np.zeros(0, bool)
+        self.r_seen = np.zeros(0)  # range from the camera when each point was last entered, m (0: not known)
         self.rejected: dict[str, int] = {REJECT_NOT_FINITE: 0, REJECT_NOT_PD: 0}
         self.evicted: dict[str, int] = {"score": 0, "radius": 0, "age": 0, "cap": 0, "retired": 0}
         self.merged = 0  # new landmarks that landed on a remembered point (counted as its re-observation)
@@ -210,13 +212,16 @@ class ObstacleMap:
         return self.keys[rows] == keys, rows
 
     # -- 2. landmarks in ---------------------------------------------------------------------------
-    def observe(self, t: float, keys, p_world, P_world, live_keys=None) -> dict[str, int]:
+    def observe(self, t: float, keys, p_world, P_world, live_keys=None, p_world_cam=None) -> dict[str, int]:
         """Converged landmarks observed at ``t`` enter the map or refresh their point.
 
         ``keys`` (M,), ``p_world`` (M, 3), ``P_world`` (M, 3, 3).  ``live_keys``: every landmark the
         estimator still runs (default ``keys``); their map points are not *remembered* (the live
-        estimate stands for them).  Landmarks with a non-finite point or a covariance that is not
-        symmetric positive definite are refused and counted by reason (returned), never raised on.
+        estimate stands for them).  ``p_world_cam`` (3,): the camera position they were ranged from;
+        each entered point keeps its range from it (``r_seen``, the support radius's scale,
+        docs/derivations/obstacle_map.md § Support); without it the range is not known (0).  Landmarks
+        with a non-finite point or a covariance that is not symmetric positive definite are refused
+        and counted by reason (returned), never raised on.
         """
         if not math.isfinite(t):
             raise InputError("observe: t must be finite")
@@ -224,8 +229,25 @@ class ObstacleMap:
         m = len(keys)
         p = np.asarray(p_world, float).reshape(m, 3)
         P = np.asarray(P_world, float).reshape(m, 3, 3)
-        if _jit.ENABLED:
-            return self._observe_kernel(t, keys, p, P, live_keys)
+        n_old, r_old = len(self.keys), self.r_seen
+        rej = self._observe_kernel(t, keys, p, P, live_keys) if _jit.ENABLED else self._observe_reference(t, keys, p, P, live_keys)
+        # rows keep their places and new ones are appended (both paths); every entry accepted now
+        # holds a row under its own key seen at t (refreshed, merged or new)
+        r_seen = np.zeros(len(self.keys))
+        r_seen[:n_old] = r_old[:n_old]
+        if p_world_cam is not None and m:
+            with np.errstate(invalid="ignore"):
+                r_in = np.linalg.norm(p - np.asarray(p_world_cam, float).reshape(3), axis=1)
+            held, rows = self._rows(keys)
+            now = held & np.isfinite(r_in)
+            now[now] = self.t_seen[rows[now]] == t
+            r_seen[rows[now]] = r_in[now]
+        self.r_seen = r_seen
+        return rej
+
+    def _observe_reference(self, t: float, keys: np.ndarray, p: np.ndarray, P: np.ndarray, live_keys) -> dict[str, int]:
+        """:meth:`observe`'s numpy reference (checks, rows, merges and entries; not ``r_seen``)."""
+        m = len(keys)
         rej = {REJECT_NOT_FINITE: 0, REJECT_NOT_PD: 0}
         finite = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
         rej[REJECT_NOT_FINITE] = int(np.count_nonzero(~finite))
@@ -487,7 +509,7 @@ class ObstacleMap:
             pv = np.zeros(3) if p_world_vehicle is None else np.asarray(p_world_vehicle, float).reshape(3)
             rel = c.support_radius_rel if p_world_vehicle is not None else 0.0
             rows = np.asarray(rows, np.int64)
-            sup = _support_k(self.p, rows, pv, c.support_radius_m, rel)
+            sup = _support_k(self.p, rows, pv, c.support_radius_m, rel, self._support_range_floor(p_world_vehicle))
             if c.support_column_radius_m > 0:
                 sup = np.maximum(sup, _column_support_k(self.p, rows, c.support_column_radius_m, c.support_column_half_height_m))
             return sup
@@ -501,13 +523,23 @@ class ObstacleMap:
             sup = np.maximum(sup, np.count_nonzero(inside, axis=1))  # the point itself is inside
         return sup
 
+    def _support_range_floor(self, p_world_vehicle) -> np.ndarray:
+        """(N,) the range the relative support radius scales with at least: each point's range when
+        last entered, at most ``support_seen_ratio`` × its distance now; zeros when that is 0 or
+        without a vehicle position (the distance now alone)."""
+        ratio = self.config.support_seen_ratio
+        if ratio <= 0 or p_world_vehicle is None or len(self.keys) == 0:
+            return np.zeros(len(self.keys))
+        dist = np.linalg.norm(self.p - np.asarray(p_world_vehicle, float).reshape(3), axis=1)
+        return np.minimum(self.r_seen, ratio * dist)
+
     def _sphere_support(self, rows: np.ndarray, p_world_vehicle=None) -> np.ndarray:
         """The sphere's count of :meth:`support` (numpy reference, float32 as the kernel)."""
         c = self.config
         radius = np.full(rows.size, c.support_radius_m)
         if p_world_vehicle is not None and c.support_radius_rel > 0:
             dist = np.linalg.norm(self.p[rows] - np.asarray(p_world_vehicle, float).reshape(3), axis=1)
-            radius = np.maximum(radius, c.support_radius_rel * dist)
+            radius = np.maximum(radius, c.support_radius_rel * np.maximum(dist, self._support_range_floor(p_world_vehicle)[rows]))
         q = self.p[rows].astype(np.float32)
         P = self.p.astype(np.float32)
         d2 = np.sum(q * q, 1)[:, None] + np.sum(P * P, 1)[None, :] - 2.0 * (q @ P.T)
@@ -524,7 +556,7 @@ class ObstacleMap:
         if _jit.ENABLED:
             c = self.config
             rows, s_r, s_t, dt = _remembered_k(self.p, self.P, self.t_seen, self.live, pv, float(t), c.min_support, c.support_radius_m,
-                                               c.support_radius_rel, c.position_drift_mps, c.position_drift_max_m,
+                                               c.support_radius_rel, self._support_range_floor(pv), c.position_drift_mps, c.position_drift_max_m,
                                                math.radians(c.heading_drift_deg_s), c.support_column_radius_m,
                                                c.support_column_half_height_m)
             return Remembered(self.keys[rows], self.p[rows], s_r, s_t, dt)
