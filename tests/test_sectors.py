@@ -484,6 +484,55 @@ def test_a_4m_cap_covers_a_remembered_mast_whose_band_points_fell_in_the_next_se
     assert cap4.range_m[6] == pytest.approx(cap25.range_m[6])  # its own sector as before
 
 
+def test_an_unconverged_point_just_outside_the_band_vetoes_clear():
+    """A thin pole 30 m ahead between far points of a hall (the closed-loop pole take-off, docs/BENCHMARKS.md,
+    "Clear in front of a thin pole"): its only tracked corner lies 1 m below the band and has not converged.
+    With ``unconverged_veto_margin_m`` it forbids "clear" in its sector; beyond the margin, converged, or
+    conservatively beyond max_distance it does not; it never creates an obstacle."""
+    cfg = sectors_optional_rules_off(clear_line_of_sight=False, clear_edge_margin_deg=0.0, unconverged_veto_margin_m=0.0)
+    assert CFG.unconverged_veto_margin_m == 2.5  # shipped
+    hall = wall(80.0, [-1.5, -0.5, 0.8, 1.7])  # in the band (z = 0), far beyond 40 m
+    pole = np.array([[30.0, 0.3, 2.5]])  # FRD: 2.5 m below the vehicle, 1 m below the ±1.5 m band
+    assert run(hall, sigma=1.0, config=cfg).state[0] == SectorState.CLEAR
+    assert run(np.vstack([hall, pole]), sigma=[1.0] * 4 + [8.0], converged=[True] * 4 + [False], config=cfg).state[0] \
+        == SectorState.CLEAR  # no margin: the band alone, as before
+    veto = dataclasses.replace(cfg, unconverged_veto_margin_m=2.5)
+    s = run(np.vstack([hall, pole]), sigma=[1.0] * 4 + [8.0], converged=[True] * 4 + [False], config=veto)
+    assert s.state[0] == SectorState.UNKNOWN and not np.any(s.state == SectorState.OBSTACLE)
+    above = pole * [1, 1, -1]  # 1 m above the band: the same
+    assert run(np.vstack([hall, above]), sigma=[1.0] * 4 + [8.0], converged=[True] * 4 + [False], config=veto).state[0] \
+        == SectorState.UNKNOWN
+    low = np.array([[30.0, 0.3, 4.5]])  # 3 m below the band: beyond the margin
+    assert run(np.vstack([hall, low]), sigma=[1.0] * 4 + [8.0], converged=[True] * 4 + [False], config=veto).state[0] \
+        == SectorState.CLEAR
+    far = np.array([[60.0, 0.3, 2.5]])  # 60 − 2·8 = 44 m conservatively: cannot lie within max_distance
+    assert run(np.vstack([hall, far]), sigma=[1.0] * 4 + [8.0], converged=[True] * 4 + [False], config=veto).state[0] \
+        == SectorState.CLEAR
+    conv = run(np.vstack([hall, pole]), sigma=[1.0] * 4 + [0.5], converged=True, config=veto)  # converged: not a veto
+    assert conv.state[0] == SectorState.CLEAR  # (the cap and vertical rules, off here, read converged points)
+    with pytest.raises(ConfigError, match="unconverged_veto_margin_m"):
+        dataclasses.replace(CFG, unconverged_veto_margin_m=-1.0)
+
+
+def test_veto_margin_only_ever_removes_clear_seeded():
+    """Seeded Monte Carlo: the veto margin turns only "clear" sectors into unknown ones; nothing else changes."""
+    base = sectors_optional_rules_off(unconverged_veto_margin_m=0.0)
+    on = dataclasses.replace(base, unconverged_veto_margin_m=2.5)
+    changed_any = 0
+    rng = np.random.default_rng(17)
+    for pts, sig, conv in random_scenes(17, max_height=6.0):
+        # and a far background in the band in every scene (three or more points per sector: "clear" to remove)
+        b = rng.uniform(-0.5, 0.5, 60)
+        far = np.stack([70.0 * np.cos(b), 70.0 * np.sin(b), rng.uniform(-1.0, 1.0, 60)], 1)
+        pts, sig, conv = np.vstack([pts, far]), np.concatenate([sig, np.full(60, 1.0)]), np.concatenate([conv, np.ones(60, bool)])
+        a = run(pts, sigma=sig, converged=conv, config=base)
+        v = run(pts, sigma=sig, converged=conv, config=on)
+        changed = v.distances_cm != a.distances_cm
+        assert np.all(a.state[changed] == SectorState.CLEAR) and np.all(v.state[changed] == SectorState.UNKNOWN)
+        changed_any += int(changed.sum())
+    assert changed_any > 0  # the scenes exercise it
+
+
 def test_cap_above_only_ever_lowers_a_claim_seeded():
     """Seeded Monte Carlo: with ``cap_above_m`` on, an unknown sector stays unknown, nothing becomes clear,
     an obstacle's range never grows, and every changed sector is an inferred obstacle."""

@@ -176,6 +176,8 @@ def configs():
     yield "corridor", dataclasses.replace(base, clear_line_of_sight=True, clear_corridor_m=0.5, min_points_clear=1)
     yield "wide corridor, no edge margin", dataclasses.replace(base, clear_line_of_sight=True, clear_corridor_m=3.0,
                                                                clear_edge_margin_deg=0.0, min_points_clear=2)
+    yield "veto beside the band", dataclasses.replace(base, unconverged_veto_margin_m=2.5, min_points_clear=1)
+    yield "veto beside a degrees band", dataclasses.replace(base, unconverged_veto_margin_m=1.0, band_mode="degrees")
     yield "fusion: wide gate, independent", dataclasses.replace(base, fuse_gate_k=5.0, fuse_correlation=0.0)
     yield "fusion: narrow gate, shared", dataclasses.replace(base, fuse_gate_k=0.5, fuse_correlation=1.0, min_points_obstacle=2)
 

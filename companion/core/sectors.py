@@ -357,7 +357,10 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         los = np.abs(off) * max_m <= lim * d_h
         clr_band = in_band | (los & usable & in_view[idx])
     clr_pts = clr_band & conv & ~near & ~mem  # "clear" only from what the camera sees now
-    veto_pts = in_band & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)
+    veto_zone = in_band
+    if config.unconverged_veto_margin_m > 0:  # just outside the band: a structure seen there may stand through it (rules 6–8)
+        veto_zone = in_band | (usable & (in_view[idx] | mem) & (np.abs(off) <= lim + config.unconverged_veto_margin_m))
+    veto_pts = veto_zone & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)
 
     n_clr = np.bincount(idx[clr_pts], minlength=SECTOR_COUNT)
     n_veto = np.bincount(idx[veto_pts], minlength=SECTOR_COUNT)
