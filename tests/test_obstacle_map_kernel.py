@@ -260,11 +260,12 @@ def test_support_matches_the_float32_reference_far_from_the_origin(monkeypatch):
     assert np.any(exact != ref)  # the float32 rounding matters here: the test discriminates
 
 
-def _support_bruteforce(p, rows, pv, radius_m, rel, r_floor):
+def _support_bruteforce(p, rows, pv, radius_m, rel, r_seen, seen_ratio):
     """Every pair, numpy, the float32 expansion with sgemm's fused q·p chain (products exact in float64)."""
     radius = np.full(rows.size, radius_m)
     if rel > 0:
-        radius = np.maximum(radius, rel * np.maximum(np.linalg.norm(p[rows] - pv, axis=1), r_floor[rows]))
+        d = np.linalg.norm(p[rows] - pv, axis=1)
+        radius = np.maximum(radius, rel * np.maximum(d, np.minimum(r_seen[rows], seen_ratio * d)))
     P = p.astype(np.float32)
     q = P[rows]
     qq = np.sum(q * q, 1)
@@ -287,10 +288,10 @@ def test_support_slab_counts_every_pair(scale):
         rows = np.sort(rng.choice(len(p), 150, replace=False))
         pv = centres[0] + rng.normal(0, 10, 3)
         seen = rng.uniform(0.0, 40.0, len(p)) * (rng.random(len(p)) < 0.5)  # ranges when entered, half not known (0)
-        for radius_m, rel, r_floor in ((0.6, 0.15, np.zeros(len(p))), (0.6, 0.15, seen), (0.6, 0.0, seen),
-                                       (rng.uniform(0.01, 5.0), 0.0, np.zeros(len(p)))):
-            np.testing.assert_array_equal(OMK._support_k(p, rows, pv, radius_m, rel, r_floor),
-                                          _support_bruteforce(p, rows, pv, radius_m, rel, r_floor))
+        for radius_m, rel, r_seen, ratio in ((0.6, 0.15, np.zeros(len(p)), 0.0), (0.6, 0.15, seen, 1000.0), (0.6, 0.15, seen, 2.0),
+                                             (0.6, 0.0, seen, 2.0), (rng.uniform(0.01, 5.0), 0.0, np.zeros(len(p)), 0.0)):
+            np.testing.assert_array_equal(OMK._support_k(p, rows, pv, radius_m, rel, r_seen, ratio),
+                                          _support_bruteforce(p, rows, pv, radius_m, rel, r_seen, ratio))
 
 
 @pytest.mark.parametrize("case", ["empty map", "nothing in", "one landmark", "bad inputs", "absorb", "duplicate keys", "no live",

@@ -509,7 +509,7 @@ class ObstacleMap:
             pv = np.zeros(3) if p_world_vehicle is None else np.asarray(p_world_vehicle, float).reshape(3)
             rel = c.support_radius_rel if p_world_vehicle is not None else 0.0
             rows = np.asarray(rows, np.int64)
-            sup = _support_k(self.p, rows, pv, c.support_radius_m, rel, self._support_range_floor(p_world_vehicle))
+            sup = _support_k(self.p, rows, pv, c.support_radius_m, rel, self.r_seen, c.support_seen_ratio)
             if c.support_column_radius_m > 0:
                 sup = np.maximum(sup, _column_support_k(self.p, rows, c.support_column_radius_m, c.support_column_half_height_m))
             return sup
@@ -523,23 +523,15 @@ class ObstacleMap:
             sup = np.maximum(sup, np.count_nonzero(inside, axis=1))  # the point itself is inside
         return sup
 
-    def _support_range_floor(self, p_world_vehicle) -> np.ndarray:
-        """(N,) the range the relative support radius scales with at least: each point's range when
-        last entered, at most ``support_seen_ratio`` × its distance now; zeros when that is 0 or
-        without a vehicle position (the distance now alone)."""
-        ratio = self.config.support_seen_ratio
-        if ratio <= 0 or p_world_vehicle is None or len(self.keys) == 0:
-            return np.zeros(len(self.keys))
-        dist = np.linalg.norm(self.p - np.asarray(p_world_vehicle, float).reshape(3), axis=1)
-        return np.minimum(self.r_seen, ratio * dist)
-
     def _sphere_support(self, rows: np.ndarray, p_world_vehicle=None) -> np.ndarray:
         """The sphere's count of :meth:`support` (numpy reference, float32 as the kernel)."""
         c = self.config
         radius = np.full(rows.size, c.support_radius_m)
         if p_world_vehicle is not None and c.support_radius_rel > 0:
             dist = np.linalg.norm(self.p[rows] - np.asarray(p_world_vehicle, float).reshape(3), axis=1)
-            radius = np.maximum(radius, c.support_radius_rel * np.maximum(dist, self._support_range_floor(p_world_vehicle)[rows]))
+            # the range the point was ranged from, bounded by support_seen_ratio × d (0: d alone)
+            seen = np.minimum(self.r_seen[rows], c.support_seen_ratio * dist)
+            radius = np.maximum(radius, c.support_radius_rel * np.maximum(dist, seen))
         q = self.p[rows].astype(np.float32)
         P = self.p.astype(np.float32)
         d2 = np.sum(q * q, 1)[:, None] + np.sum(P * P, 1)[None, :] - 2.0 * (q @ P.T)
@@ -556,7 +548,8 @@ class ObstacleMap:
         if _jit.ENABLED:
             c = self.config
             rows, s_r, s_t, dt = _remembered_k(self.p, self.P, self.t_seen, self.live, pv, float(t), c.min_support, c.support_radius_m,
-                                               c.support_radius_rel, self._support_range_floor(pv), c.position_drift_mps, c.position_drift_max_m,
+                                               c.support_radius_rel, self.r_seen, c.support_seen_ratio, c.position_drift_mps,
+                                               c.position_drift_max_m,
                                                math.radians(c.heading_drift_deg_s), c.support_column_radius_m,
                                                c.support_column_half_height_m)
             return Remembered(self.keys[rows], self.p[rows], s_r, s_t, dt)

@@ -247,7 +247,7 @@ def _prune_k(o, u, p, t_seen, pv, t, min_score, radius, max_age):
 
 
 @_jit.njit
-def _support_k(p, rows, pv, radius_m, rel, r_floor, stop_at=0):
+def _support_k(p, rows, pv, radius_m, rel, r_seen, seen_ratio, stop_at=0):
     """:meth:`ObstacleMap.support`: map points within the support radius of each row, by the
     reference's own float32 expansion E = |q|² + |p|² − 2 q·p, rounded as numpy rounds it: |q|² summed
     in order, q·p as BLAS's sgemm accumulates it on FMA hardware (x86-64 with FMA, ARMv8), a fused
@@ -258,8 +258,8 @@ def _support_k(p, rows, pv, radius_m, rel, r_floor, stop_at=0):
     9 u (|q|² + |p|²) of the exact squared distance of the float32 points (u = 2⁻²⁴: two or three
     roundings in each of |q|², |p|², q·p, their sum and difference), so a point farther along that
     axis than √(r² + 16 u (|q|² + max |p|²)) cannot pass; the counts are those of testing every pair.
-    ``r_floor`` (N,): the relative radius scales with at least this range per point (its range when
-    last entered; zeros: the distance from ``pv`` alone).
+    ``r_seen`` (N,), ``seen_ratio``: the relative radius scales with the larger of the distance d from
+    ``pv`` and min(r_seen, seen_ratio · d), each point's range when last entered (0: d alone).
     ``stop_at`` > 0: a count stops there (enough to decide ``count >= stop_at``)."""
     n = p.shape[0]
     X, Y, Z = np.empty(n), np.empty(n), np.empty(n)  # float32 coordinates, held exactly in float64
@@ -293,7 +293,8 @@ def _support_k(p, rows, pv, radius_m, rel, r_floor, stop_at=0):
         radius = radius_m
         if rel > 0:
             d0, d1, d2 = p[i, 0] - pv[0], p[i, 1] - pv[1], p[i, 2] - pv[2]
-            radius = max(radius, rel * max(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2), r_floor[i]))
+            d = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            radius = max(radius, rel * max(d, min(r_seen[i], seen_ratio * d)))
         lim = np.float32(radius * radius)
         q0, q1, q2 = X[i], Y[i], Z[i]
         f0, f1, f2 = np.float32(q0), np.float32(q1), np.float32(q2)
@@ -558,13 +559,13 @@ def _check_view_k(map_keys, p, P, t_seen, o, u, live, R, p_world_cam, fx, fy, cx
 
 
 @_jit.njit
-def _remembered_k(p, P, t_seen, live, pv, t, min_support, radius_m, rel, r_floor, drift_mps, drift_max, heading_rad_s,
+def _remembered_k(p, P, t_seen, live, pv, t, min_support, radius_m, rel, r_seen, seen_ratio, drift_mps, drift_max, heading_rad_s,
                   column_radius_m=0.0, column_half_height_m=0.0):
     """:meth:`ObstacleMap.remembered`: the rows not live with ``min_support`` map points around them,
     σ_r = √(uᵀPu + σ_drift²), σ_t = √((tr P − uᵀPu)/2 + σ_drift² + (r_h σ_ψ)²) and the time since seen."""
     rows = np.flatnonzero(~live)
     if min_support > 1 and rows.size:
-        sup = _support_k(p, rows, pv, radius_m, rel, r_floor, min_support)
+        sup = _support_k(p, rows, pv, radius_m, rel, r_seen, seen_ratio, min_support)
         if column_radius_m > 0:  # only the rows the sphere left short need the column's count
             short = np.flatnonzero(sup < min_support)
             if short.size:
@@ -674,6 +675,6 @@ def _warm_up() -> None:
     keys, p_m, P_m, t_seen, o, u, live = (a[keep] for a in m)
     keep, *_ = _prune_k(o, u, p_m, t_seen, p_wc, 0.1, -0.75, 60.0, 20.0)
     keys, p_m, P_m, t_seen, live = (a[keep] for a in (keys, p_m, P_m, t_seen, live))
-    _remembered_k(p_m, P_m, t_seen, live, p_wc, 0.2, 2, 0.6, 0.1, np.zeros(len(p_m)), 0.02, 1.5, math.radians(0.05), 0.3, 1.2)
+    _remembered_k(p_m, P_m, t_seen, live, p_wc, 0.2, 2, 0.6, 0.1, np.zeros(len(p_m)), 0.0, 0.02, 1.5, math.radians(0.05), 0.3, 1.2)
     _rows_of_k(keys, np.array([5]))
     _points_on_current_rays_k(np.array([1, 4]), p[:2], np.array([10.0, 10.0]), np.array([4]), np.array([[0.0, 0.0, 1.0]]), R_wc, p_wc)

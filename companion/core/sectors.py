@@ -337,7 +337,8 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     in_band &= usable
     bearing = np.arctan2(p_level[:, 1], p_level[:, 0])
     idx = sector_index(bearing)
-    in_band &= in_view[idx] | mem  # remembered points claim over 360° (docs/derivations/sectors.md)
+    seen = in_view[idx] | mem  # remembered points claim over 360° (docs/derivations/sectors.md)
+    in_band &= seen
 
     r_cons = np.maximum(r - config.sigma_k * np.where(usable, sig, 0.0), 0.0)
     d_cons = d_h * (r_cons / r_safe)  # conservative horizontal range
@@ -359,7 +360,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     clr_pts = clr_band & conv & ~near & ~mem  # "clear" only from what the camera sees now
     veto_zone = in_band
     if config.unconverged_veto_margin_m > 0:  # just outside the band: a structure seen there may stand through it (rules 6–8)
-        veto_zone = in_band | (usable & (in_view[idx] | mem) & (np.abs(off) <= lim + config.unconverged_veto_margin_m))
+        veto_zone = in_band | (usable & seen & (np.abs(off) <= lim + config.unconverged_veto_margin_m))
     veto_pts = veto_zone & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)
 
     n_clr = np.bincount(idx[clr_pts], minlength=SECTOR_COUNT)
@@ -408,7 +409,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         # a structure standing through the band (docs/derivations/sectors.md: inference only adds obstacles): converged
         # points just above and just below it in one sector at consistent ranges; the nearer one is claimed
         win = config.infer_vertical_window_m
-        span = usable & conv & near & (in_view[idx] | mem)
+        span = usable & conv & near & seen
         above, below = span & (off > lim) & (off <= lim + win), span & (off < -lim) & (off >= -lim - win)
         if ground_known:  # the ground itself is no evidence
             below &= height >= ground_height_m + config.infer_vertical_ground_margin_m
@@ -428,7 +429,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         # a surface just above the band limits what the band may claim (docs/derivations/sectors.md: only nearer, never
         # "clear"): a thin pole whose in-band points did not range (or ranged the background through
         # a patch straddling its edge) but whose upper part did
-        cap_pts = np.flatnonzero(usable & conv & near & (in_view[idx] | mem) & (off > lim) & (off <= lim + config.cap_above_m))
+        cap_pts = np.flatnonzero(usable & conv & near & seen & (off > lim) & (off <= lim + config.cap_above_m))
         if cap_pts.size:
             cap = SectorRanking(idx[cap_pts], d_cons[cap_pts], ids=cap_pts).nth(1)
             capped = (cap >= 0) & ((state == SectorState.CLEAR) | (state == SectorState.OBSTACLE))
