@@ -150,6 +150,7 @@ def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=DEFAULT_MOD
                 "avoidance": c["aggregate"]["avoidance"], "runs_ok": c["aggregate"]["runs_ok"], "runs": c["aggregate"]["runs"],
                 "detection_in_view": next((t["pooled"] for t in c["aggregate"]["targets"]
                                            if t["name"].startswith("detection (a range")), None),
+                "dangerous_clears": dangerous_clears(c),
             }
             if progress:
                 progress(name, model, res["campaigns"][f"{name}/{model}"])
@@ -158,6 +159,20 @@ def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=DEFAULT_MOD
     if with_no_companion:
         res["no_companion"] = no_companion(runs, workers, names)
     return res
+
+
+def dangerous_clears(campaign: dict) -> dict:
+    """What a closed-loop campaign's own scorer cells say about "clear" in front of an obstacle (DESIGN §6: the
+    failure a vehicle pays for): ``cells`` (scored obstacle cells claimed clear, pooled over the runs),
+    ``obstacle_cells``, ``rate`` and ``runs_with`` (runs with at least one), from the campaign's result
+    (``campaign.json``).  The flight's outcome can hide them: a pole claimed clear 25 m ahead is ranged a few
+    metres later and the run still stops short."""
+    cells = campaign["aggregate"]["cells"]
+    n, total = int(cells["dangerous_clears"]), int(cells["obstacle"])
+    runs = [r for r in campaign.get("runs", []) if r.get("status") == "ok"]
+    with_one = sum(1 for r in runs if ((r.get("key_figures") or {}).get("dangerous_clear") or 0) > 0)
+    return {"cells": n, "obstacle_cells": total, "rate": n / total if total else None, "runs_with": with_one,
+            "runs": len(runs)}
 
 
 def merge_results(parts: list[dict]) -> dict:
@@ -174,7 +189,10 @@ def merge_results(parts: list[dict]) -> dict:
 
 def rescore(res: dict) -> dict:
     """The outcomes of a finished run of :func:`run_all` scored again from each run's trajectory.npz with
-    the current :mod:`flightsim.outcome` (no flight is repeated), pooled again."""
+    the current :mod:`flightsim.outcome` (no flight is repeated), pooled again; the dangerous clears read again
+    from each campaign's ``campaign.json``."""
+    import json
+
     from flightsim.campaign import pool_outcomes
     from flightsim.outcome import evaluate_outcome, read_trajectory
     from flightsim.scenario import load_scenario
@@ -184,6 +202,9 @@ def rescore(res: dict) -> dict:
         outs = [evaluate_outcome(read_trajectory(t), world) for t in sorted(Path(c["dir"]).glob("runs/*/trajectory.npz"))]
         if outs:
             c["avoidance"] = pool_outcomes(outs)
+        camp = Path(c["dir"]) / "campaign.json"
+        if camp.is_file():  # results written before the column existed get it from the campaign's own record
+            c["dangerous_clears"] = dangerous_clears(json.loads(camp.read_text(encoding="utf-8")))
     return res
 
 
@@ -199,6 +220,12 @@ def _m(d, fmt="{:.2f}") -> str:
     return mean_std_text(d, fmt, with_max=False)
 
 
+def _dc(d) -> str:
+    if not d:
+        return "–"
+    return f"{d['cells']} / {d['obstacle_cells']} ({_pc(d['rate'])}); {d['runs_with']} of {d['runs']} runs"
+
+
 def markdown(res: dict) -> str:
     """The closed-loop section of docs/BENCHMARKS.md."""
     L = ["Command: `python -m bench avoidance --runs " + str(res["runs"]) + "` (in `make bench`); each cell is "
@@ -211,20 +238,23 @@ def markdown(res: dict) -> str:
          + ").  Outcome per run (flightsim/outcome.py): collision = the body (0.35 m sphere) "
          "touched an obstacle; stop clearance = body to the obstacle along the demanded direction where it first came to "
          "rest; false stop = slowed below half the demand for ≥ 0.5 s with nothing within 2 × margin + the model's "
-         "stopping distance; progress = share of the route flown.  Collision rate with a 95 % Wilson interval.", "",
+         "stopping distance; progress = share of the route flown.  Collision rate with a 95 % Wilson interval.  Dangerous "
+         "clears = the runs' scored obstacle cells (after the 2 s warm-up) claimed clear (max_distance + 1), pooled, and the "
+         "runs with one: no collision can hide them.", "",
          "| scenario | model | runs | collisions (95 % CI) | stopped short | stop clearance m | min clearance m | false stops | "
-         "progress | data while pushing | detection in view |",
-         "|---|---|---|---|---|---|---|---|---|---|---|"]
+         "progress | data while pushing | detection in view | dangerous clears |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for key, c in res["campaigns"].items():
         a = c["avoidance"]
         if not a:
-            L.append(f"| {c['scenario']} | {c['model']} | {c['runs_ok']} of {c['runs']} | – | – | – | – | – | – | – | – |")
+            L.append(f"| {c['scenario']} | {c['model']} | {c['runs_ok']} of {c['runs']} | – | – | – | – | – | – | – | – | "
+                     f"{_dc(c.get('dangerous_clears'))} |")
             continue
         ci = a["collision_ci95"]
         L.append(f"| {c['scenario']} | {c['model']} | {a['runs']} | {a['collisions']} ({_pc(a['collision_rate'])}; "
                  f"{_pc(ci[0])}–{_pc(ci[1])}) | {a['stopped_short']} | {_m(a['stop_clearance_m'])} | "
                  f"{_m(a['min_clearance_m'])} | {a['false_stops']} | {_m(a['progress'], '{:.0%}')} | "
-                 f"{_m(a['data_while_pushing'], '{:.0%}')} | {_pc(c['detection_in_view'])} |")
+                 f"{_m(a['data_while_pushing'], '{:.0%}')} | {_pc(c['detection_in_view'])} | {_dc(c.get('dangerous_clears'))} |")
     nc = res.get("no_companion") or {}
     if nc:
         L += ["", "The harness can fail: the same scenarios flown by `flightsim fly … --avoidance ardupilot` without the companion "

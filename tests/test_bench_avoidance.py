@@ -66,3 +66,42 @@ def test_results_of_a_bench_run_in_parts_merge_in_order():
     assert m == {"runs": 20, "campaigns": {"x/ardupilot": {"v": 1}, "y/px4": {"v": 3}}, "no_companion": {"x": {"c": 20}}}
     with pytest.raises(ValueError):
         A.merge_results([a, dict(b, runs=8)])
+
+
+def _campaign(dangerous_per_run, obstacle_cells=1000):
+    """A closed-loop campaign's result as flightsim campaign writes it, with these dangerous clear cells per run."""
+    runs = [{"seed": i + 1, "status": "ok", "key_figures": {"dangerous_clear": n / obstacle_cells}}
+            for i, n in enumerate(dangerous_per_run)] + [{"seed": 99, "status": "failed", "key_figures": None}]
+    return {"runs": runs, "aggregate": {"cells": {"dangerous_clears": sum(dangerous_per_run),
+                                                  "obstacle": obstacle_cells * len(dangerous_per_run)}}}
+
+
+def test_dangerous_clears_of_a_campaign_count_cells_and_runs():
+    d = A.dangerous_clears(_campaign([0, 3, 0, 10]))
+    assert d == {"cells": 13, "obstacle_cells": 4000, "rate": 13 / 4000, "runs_with": 2, "runs": 4}
+    assert A.dangerous_clears(_campaign([]))["rate"] is None
+
+
+def test_the_table_lists_dangerous_clears_and_a_dash_where_they_were_not_recorded():
+    av = {"runs": 4, "collisions": 0, "collision_rate": 0.0, "collision_ci95": [0.0, 0.49], "stopped_short": 4,
+          "stop_clearance_m": None, "min_clearance_m": None, "false_stops": 0, "progress": None, "data_while_pushing": None}
+    res = {"runs": 4, "no_companion": {}, "campaigns": {
+        "quad_avoid_pole/px4": {"scenario": "quad_avoid_pole", "model": "px4", "runs_ok": 4, "runs": 4, "avoidance": av,
+                                "detection_in_view": 0.9, "dangerous_clears": A.dangerous_clears(_campaign([0, 3, 0, 10]))},
+        "quad_avoid_wall_6/px4": {"scenario": "quad_avoid_wall_6", "model": "px4", "runs_ok": 4, "runs": 4, "avoidance": av,
+                                  "detection_in_view": 0.9}}}
+    rows = [line for line in A.markdown(res).splitlines() if line.startswith("| quad_avoid")]
+    assert rows[0].endswith("| 13 / 4000 (0.3 %); 2 of 4 runs |")
+    assert rows[1].endswith("| – |")
+    assert "dangerous clears |" in A.markdown(res)
+
+
+def test_rescore_reads_the_dangerous_clears_from_each_campaign(tmp_path):
+    import json
+
+    (tmp_path / "campaign.json").write_text(json.dumps(_campaign([1, 0])))
+    res = {"runs": 2, "no_companion": {}, "campaigns": {"quad_avoid_pole/px4": {
+        "scenario": "quad_avoid_pole", "model": "px4", "dir": str(tmp_path), "avoidance": None}}}
+    c = A.rescore(res)["campaigns"]["quad_avoid_pole/px4"]
+    assert c["dangerous_clears"]["cells"] == 1 and c["dangerous_clears"]["runs_with"] == 1
+    assert c["avoidance"] is None  # no trajectory to score again: the outcome stays as it was
