@@ -514,10 +514,42 @@ def test_an_unconverged_point_just_outside_the_band_vetoes_clear():
         dataclasses.replace(CFG, unconverged_veto_margin_m=-1.0)
 
 
-def test_veto_margin_only_ever_removes_clear_seeded():
-    """Seeded Monte Carlo: the veto margin turns only "clear" sectors into unknown ones; nothing else changes."""
-    base = sectors_optional_rules_off(unconverged_veto_margin_m=0.0)
-    on = dataclasses.replace(base, unconverged_veto_margin_m=2.5)
+def test_a_converged_point_just_outside_the_band_vetoes_clear():
+    """The closed-loop pole approach (docs/BENCHMARKS.md, "A ranged point beside the band"): the pole's in-band
+    corners ride its silhouette and are ranged at the hall's depth, so they count as evidence of "clear"; its own
+    corners just below and above the band are ranged right, at 30 m.  With ``converged_veto_margin_m`` such a point
+    forbids "clear"; beyond the margin, in the band (an obstacle), or conservatively beyond max_distance it does not;
+    it never creates or moves an obstacle."""
+    cfg = sectors_optional_rules_off(clear_line_of_sight=False, clear_edge_margin_deg=0.0, unconverged_veto_margin_m=0.0)
+    hall = wall(80.0, [-1.5, -0.5, 0.8, 1.7])  # in the band (z = 0), far beyond 40 m
+    pole = np.array([[30.0, 0.3, 2.8]])  # FRD: 2.8 m below the vehicle, 1.3 m below the ±1.5 m band, converged
+    both = dict(sigma=[1.0] * 4 + [1.0], converged=True)
+    assert run(np.vstack([hall, pole]), config=cfg, **both).state[0] == SectorState.CLEAR  # off: as before
+    veto = dataclasses.replace(cfg, converged_veto_margin_m=2.5)
+    s = run(np.vstack([hall, pole]), config=veto, **both)
+    assert s.state[0] == SectorState.UNKNOWN and not np.any(s.state == SectorState.OBSTACLE)
+    assert run(np.vstack([hall, pole * [1, 1, -1]]), config=veto, **both).state[0] == SectorState.UNKNOWN  # above
+    low = np.array([[30.0, 0.3, 4.5]])  # 3 m below the band: beyond the margin
+    assert run(np.vstack([hall, low]), config=veto, **both).state[0] == SectorState.CLEAR
+    far = np.array([[44.0, 0.3, 2.8]])  # 44 − 2·1 = 42 m conservatively: not within max_distance
+    assert run(np.vstack([hall, far]), config=veto, **both).state[0] == SectorState.CLEAR
+    unconv = run(np.vstack([hall, pole]), sigma=[1.0] * 4 + [8.0], converged=[True] * 4 + [False], config=veto)
+    assert unconv.state[0] == SectorState.CLEAR  # unconverged: the other margin's (off here)
+    ranged = np.array([[30.0, 0.3, 0.5]])  # in the band: an obstacle at 30 − 2 = 28 m, with or without the margin
+    a, v = run(np.vstack([hall, ranged]), config=cfg, **both), run(np.vstack([hall, ranged]), config=veto, **both)
+    assert a.state[0] == v.state[0] == SectorState.OBSTACLE and a.distances_cm[0] == v.distances_cm[0]
+    with pytest.raises(ConfigError, match="converged_veto_margin_m"):
+        dataclasses.replace(CFG, converged_veto_margin_m=-0.5)
+
+
+@pytest.mark.parametrize("margin", ["unconverged_veto_margin_m", "converged_veto_margin_m"])
+def test_veto_margin_only_ever_removes_clear_seeded(margin):
+    """Seeded Monte Carlo: either veto margin only takes "clear" away.  A changed sector was clear and is now
+    unknown, or it is now an obstacle inferred between two consistent obstacle sectors (a sector no longer
+    claimed clear is a gap the inference may fill: the corridor rule, applied after the inference, had turned
+    such a clear sector unknown before); no sector becomes clear and no obstacle sector changes."""
+    base = sectors_optional_rules_off(unconverged_veto_margin_m=0.0, converged_veto_margin_m=0.0)
+    on = dataclasses.replace(base, **{margin: 2.5})
     changed_any = 0
     rng = np.random.default_rng(17)
     for pts, sig, conv in random_scenes(17, max_height=6.0):
@@ -528,8 +560,10 @@ def test_veto_margin_only_ever_removes_clear_seeded():
         a = run(pts, sigma=sig, converged=conv, config=base)
         v = run(pts, sigma=sig, converged=conv, config=on)
         changed = v.distances_cm != a.distances_cm
-        assert np.all(a.state[changed] == SectorState.CLEAR) and np.all(v.state[changed] == SectorState.UNKNOWN)
-        changed_any += int(changed.sum())
+        assert not np.any(v.state[changed] == SectorState.CLEAR) and not np.any(a.state[changed] == SectorState.OBSTACLE)
+        assert np.all((v.state[changed] == SectorState.UNKNOWN) | v.inferred[changed])
+        assert np.all((a.state[changed] == SectorState.CLEAR) | v.inferred[changed])
+        changed_any += int(np.sum(changed & (a.state == SectorState.CLEAR)))
     assert changed_any > 0  # the scenes exercise it
 
 

@@ -178,6 +178,9 @@ def configs():
                                                                clear_edge_margin_deg=0.0, min_points_clear=2)
     yield "veto beside the band", dataclasses.replace(base, unconverged_veto_margin_m=2.5, min_points_clear=1)
     yield "veto beside a degrees band", dataclasses.replace(base, unconverged_veto_margin_m=1.0, band_mode="degrees")
+    yield "ranged veto beside the band", dataclasses.replace(base, converged_veto_margin_m=2.5, min_points_clear=1)
+    yield "ranged veto beside a degrees band, no other", dataclasses.replace(base, converged_veto_margin_m=1.0, band_mode="degrees",
+                                                                              unconverged_veto_clear=False)
     yield "fusion: wide gate, independent", dataclasses.replace(base, fuse_gate_k=5.0, fuse_correlation=0.0)
     yield "fusion: narrow gate, shared", dataclasses.replace(base, fuse_gate_k=0.5, fuse_correlation=1.0, min_points_obstacle=2)
 

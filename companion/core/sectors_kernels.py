@@ -37,7 +37,7 @@ _VIEW_OFFSETS = np.radians(np.linspace(-SECTOR_DEG / 2, SECTOR_DEG / 2, _SAMPLES
  _K_VETO, _K_TOUCH, _K_SPREAD_K, _K_MAX_SPREAD_RAD, _K_DROP_SPREAD_RAD, _K_GAP, _K_REL_TOL, _K_NARROW_M, _K_NARROW_N,
  _K_VERT, _K_VERT_WIN, _K_VERT_GROUND, _K_ONE_SIDE, _K_MIN_EXTENT, _K_REACH, _K_CAP, _K_GROUND_MARGIN, _K_MIN_CM,
  _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_CAP_GATE, _K_DROP_ACROSS, _K_UCAP, _K_LOS,
- _K_CORRIDOR, _K_VETO_MARGIN, _K_SIZE) = range(40)
+ _K_CORRIDOR, _K_VETO_MARGIN, _K_CVETO_MARGIN, _K_SIZE) = range(41)
 
 
 def _kernel_config(config: SectorConfig) -> np.ndarray:
@@ -69,6 +69,7 @@ def _kernel_config(config: SectorConfig) -> np.ndarray:
     v[_K_CAP_GATE] = c.cap_gate_k
     v[_K_UCAP] = c.unconverged_cap_k
     v[_K_VETO_MARGIN] = c.unconverged_veto_margin_m
+    v[_K_CVETO_MARGIN] = c.converged_veto_margin_m
     v[_K_LOS] = c.clear_line_of_sight and c.band_mode == "metres"
     v[_K_CORRIDOR] = c.clear_corridor_m
     v.flags.writeable = False
@@ -322,6 +323,10 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
         elif veto_on and near[i] and (in_band[i] or (  # unconverged (in band: the branch above took the converged)
                 not conv[i] and usable[i] and seen[i] and abs(off_b[i]) <= lim[i] + cfg[_K_VETO_MARGIN])):
             n_veto[idx[i]] += 1  # … or just outside the band: a structure seen there may stand through it
+            claims = True
+        elif (cfg[_K_CVETO_MARGIN] > 0 and conv[i] and near[i] and usable[i] and seen[i] and not in_band[i]
+              and abs(off_b[i]) <= lim[i] + cfg[_K_CVETO_MARGIN]):
+            n_veto[idx[i]] += 1  # converged just outside the band: the same, ranged
             claims = True
         elif (los_on and conv[i] and not near[i] and not mem[i] and usable[i] and in_view[idx[i]]
               and abs(off_b[i]) * max_m <= lim[i] * d_h[i]):

@@ -66,6 +66,7 @@ class SectorConfig:
     min_points_clear: int = 3  # converged in-band points beyond max_distance a sector needs to be "clear"
     unconverged_veto_clear: bool = True  # a valid but unconverged point that may lie within max_distance forbids "clear"
     unconverged_veto_margin_m: float = 2.5  # ... also when it lies up to this far above or below the band (a structure seen just outside the band, as the cap and vertical rules read it, may stand through it), m; 0 = in the band only
+    converged_veto_margin_m: float = 0.0  # a converged point that lies (conservatively) within max_distance up to this far above or below the band forbids "clear" in its sector (a pole seen just outside the band, whose own in-band corners ride its silhouette at the background's depth), m; 0 = off
     clear_line_of_sight: bool = True  # metres mode: a converged point beyond max_distance is also evidence of "clear" when its line of sight stays inside the band out to max_distance (|offset|·max_distance/d ≤ half height), not only when the point itself is in the band; off = in-band points only
     clear_edge_margin_deg: float = 1.0  # a point that claims or vetoes its sector within this of the sector's edge also forbids "clear" across that edge (a surface goes on past its last corner), degrees; 0 = off
     clear_corridor_m: float = 0.5  # no "clear" in a sector whose nearer edge lies within asin(this / r) of an obstacle sector's edge (r its published range): a clear bearing beside a near obstacle is no way through for a vehicle this wide on each side, and PX4 steers into it, m; 0 = off
@@ -114,6 +115,7 @@ class SectorConfig:
         require(isinstance(self.unconverged_veto_clear, bool), "unconverged_veto_clear must be true or false")
         require(isinstance(self.clear_line_of_sight, bool), f"clear_line_of_sight must be true or false, got {self.clear_line_of_sight!r}")
         require_finite("unconverged_veto_margin_m", self.unconverged_veto_margin_m, nonnegative=True)
+        require_finite("converged_veto_margin_m", self.converged_veto_margin_m, nonnegative=True)
         require_finite("clear_edge_margin_deg", self.clear_edge_margin_deg, nonnegative=True)
         require(self.clear_edge_margin_deg < SECTOR_DEG / 2, f"clear_edge_margin_deg must be < {SECTOR_DEG / 2}")
         require_finite("clear_corridor_m", self.clear_corridor_m, nonnegative=True)
