@@ -51,6 +51,7 @@ from companion.core.obstacle_map import ObstacleMap, live_view, map_entries, poi
 from companion.core.prediction import make_track_predictor
 from companion.core.priority import detection_priority, live_points_per_sector
 from companion.core.sectors import Sectors, compute_sectors
+from companion.core.sectors_confirm import confirm_clear
 from companion.core.tracks import DROP_REFERENCE, REFILL_NONE, REFILL_RUN, TrackManager
 from companion.errors import CompanionError
 from companion.telemetry import TelemetryBuffer
@@ -169,6 +170,8 @@ class Pipeline:
         self._t_prev: float | None = None
         self._cam_prev: tuple[np.ndarray, np.ndarray] | None = None
         self._out_prev: RangeOutput | None = None
+        self._clear_run: np.ndarray | None = None  # consecutive frames each sector was clear ([sectors] clear_confirm_frames)
+        self._clear_yaw = 0.0  # the vehicle's yaw at that count's frame, rad
         self._epoch += 1  # track ids restart with a new tracker: map keys carry the epoch
         self._key_base = self._epoch << 40
 
@@ -466,6 +469,11 @@ class Pipeline:
             remembered_tangential_sigma=None if rem is None else rem.tangential_sigma,
             ground_height_m=float(p_wb[2]),  # NED: the origin's level (take-off ground) relative to the vehicle
         )
+        if self.config.sectors.clear_confirm_frames > 1:  # "clear" only once it has lasted (sectors.md, rule 11)
+            yaw = math.atan2(R_wb[1, 0], R_wb[0, 0])
+            turned = math.remainder(yaw - self._clear_yaw, math.tau) if self._clear_run is not None else math.nan
+            sectors, self._clear_run = confirm_clear(sectors, self._clear_run, turned, self.config.sectors)
+            self._clear_yaw = yaw
         stage["sectors"] = time.thread_time() - c1
         if self.landmark_sink is not None:  # a diagnostic: after the stages, so their timings stay the ranging's own
             self._log_landmarks(t, R_wc, p_wc, out, p_world, tf)

@@ -67,6 +67,7 @@ class SectorConfig:
     unconverged_veto_clear: bool = True  # a valid but unconverged point that may lie within max_distance forbids "clear"
     unconverged_veto_margin_m: float = 2.5  # ... also when it lies up to this far above or below the band (a structure seen just outside the band, as the cap and vertical rules read it, may stand through it), m; 0 = in the band only
     converged_veto_margin_m: float = 0.0  # a converged point that lies (conservatively) within max_distance up to this far above or below the band forbids "clear" in its sector (a pole seen just outside the band, whose own in-band corners ride its silhouette at the background's depth), m; 0 = off
+    clear_confirm_frames: int = 1  # "clear" is published only once a sector has been clear in this many consecutive frames (counted over the world's bearings as the vehicle turns); before that it is sent as unknown; 1 = at once
     clear_line_of_sight: bool = True  # metres mode: a converged point beyond max_distance is also evidence of "clear" when its line of sight stays inside the band out to max_distance (|offset|·max_distance/d ≤ half height), not only when the point itself is in the band; off = in-band points only
     clear_edge_margin_deg: float = 1.0  # a point that claims or vetoes its sector within this of the sector's edge also forbids "clear" across that edge (a surface goes on past its last corner), degrees; 0 = off
     clear_corridor_m: float = 0.5  # no "clear" in a sector whose nearer edge lies within asin(this / r) of an obstacle sector's edge (r its published range): a clear bearing beside a near obstacle is no way through for a vehicle this wide on each side, and PX4 steers into it, m; 0 = off
@@ -109,7 +110,7 @@ class SectorConfig:
         require_finite("band_half_height_m", self.band_half_height_m, positive=True)
         require_finite("band_half_angle_deg", self.band_half_angle_deg, positive=True)
         require(self.band_half_angle_deg < 90, f"band_half_angle_deg must be < 90, got {self.band_half_angle_deg}")
-        for name in ("min_points_obstacle", "min_points_clear", "nearest_count"):
+        for name in ("min_points_obstacle", "min_points_clear", "nearest_count", "clear_confirm_frames"):
             v = getattr(self, name)
             require(isinstance(v, int) and not isinstance(v, bool) and v >= 1, f"{name} must be an integer >= 1, got {v!r}")
         require(isinstance(self.unconverged_veto_clear, bool), "unconverged_veto_clear must be true or false")
