@@ -489,7 +489,8 @@ def test_an_unconverged_point_just_outside_the_band_vetoes_clear():
     "Clear in front of a thin pole"): its only tracked corner lies 1 m below the band and has not converged.
     With ``unconverged_veto_margin_m`` it forbids "clear" in its sector; beyond the margin, converged, or
     conservatively beyond max_distance it does not; it never creates an obstacle."""
-    cfg = sectors_optional_rules_off(clear_line_of_sight=False, clear_edge_margin_deg=0.0, unconverged_veto_margin_m=0.0)
+    cfg = sectors_optional_rules_off(clear_line_of_sight=False, clear_edge_margin_deg=0.0, unconverged_veto_margin_m=0.0,
+                                     converged_veto_margin_m=0.0)
     assert CFG.unconverged_veto_margin_m == 2.5  # shipped
     hall = wall(80.0, [-1.5, -0.5, 0.8, 1.7])  # in the band (z = 0), far beyond 40 m
     pole = np.array([[30.0, 0.3, 2.5]])  # FRD: 2.5 m below the vehicle, 1 m below the ±1.5 m band
@@ -508,8 +509,8 @@ def test_an_unconverged_point_just_outside_the_band_vetoes_clear():
     far = np.array([[60.0, 0.3, 2.5]])  # 60 − 2·8 = 44 m conservatively: cannot lie within max_distance
     assert run(np.vstack([hall, far]), sigma=[1.0] * 4 + [8.0], converged=[True] * 4 + [False], config=veto).state[0] \
         == SectorState.CLEAR
-    conv = run(np.vstack([hall, pole]), sigma=[1.0] * 4 + [0.5], converged=True, config=veto)  # converged: not a veto
-    assert conv.state[0] == SectorState.CLEAR  # (the cap and vertical rules, off here, read converged points)
+    conv = run(np.vstack([hall, pole]), sigma=[1.0] * 4 + [0.5], converged=True, config=veto)  # converged: not this veto
+    assert conv.state[0] == SectorState.CLEAR  # (converged_veto_margin_m, off here, and the cap and vertical rules read it)
     with pytest.raises(ConfigError, match="unconverged_veto_margin_m"):
         dataclasses.replace(CFG, unconverged_veto_margin_m=-1.0)
 
@@ -519,8 +520,11 @@ def test_a_converged_point_just_outside_the_band_vetoes_clear():
     corners ride its silhouette and are ranged at the hall's depth, so they count as evidence of "clear"; its own
     corners just below and above the band are ranged right, at 30 m.  With ``converged_veto_margin_m`` such a point
     forbids "clear"; beyond the margin, in the band (an obstacle), or conservatively beyond max_distance it does not;
-    it never creates or moves an obstacle."""
-    cfg = sectors_optional_rules_off(clear_line_of_sight=False, clear_edge_margin_deg=0.0, unconverged_veto_margin_m=0.0)
+    it never creates or moves an obstacle.  Above the band within ``cap_above_m`` the cap (rule 8) makes the point an
+    obstacle instead, which the veto must not pre-empt."""
+    cfg = sectors_optional_rules_off(clear_line_of_sight=False, clear_edge_margin_deg=0.0, unconverged_veto_margin_m=0.0,
+                                     converged_veto_margin_m=0.0)
+    assert CFG.converged_veto_margin_m == 2.5  # shipped
     hall = wall(80.0, [-1.5, -0.5, 0.8, 1.7])  # in the band (z = 0), far beyond 40 m
     pole = np.array([[30.0, 0.3, 2.8]])  # FRD: 2.8 m below the vehicle, 1.3 m below the ±1.5 m band, converged
     both = dict(sigma=[1.0] * 4 + [1.0], converged=True)
@@ -538,6 +542,10 @@ def test_a_converged_point_just_outside_the_band_vetoes_clear():
     ranged = np.array([[30.0, 0.3, 0.5]])  # in the band: an obstacle at 30 − 2 = 28 m, with or without the margin
     a, v = run(np.vstack([hall, ranged]), config=cfg, **both), run(np.vstack([hall, ranged]), config=veto, **both)
     assert a.state[0] == v.state[0] == SectorState.OBSTACLE and a.distances_cm[0] == v.distances_cm[0]
+    capped = dataclasses.replace(veto, cap_above_m=2.5)  # above the band within the cap: rule 8's, an obstacle at it
+    s = run(np.vstack([hall, pole * [1, 1, -1]]), config=capped, **both)
+    assert s.state[0] == SectorState.OBSTACLE and s.inferred[0] and s.range_m[0] == pytest.approx(math.hypot(30.0, 0.3) - 2.0, abs=0.05)
+    assert run(np.vstack([hall, pole]), config=capped, **both).state[0] == SectorState.UNKNOWN  # below: the veto's
     with pytest.raises(ConfigError, match="converged_veto_margin_m"):
         dataclasses.replace(CFG, converged_veto_margin_m=-0.5)
 

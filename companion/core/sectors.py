@@ -362,8 +362,10 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     if config.unconverged_veto_margin_m > 0:  # just outside the band: a structure seen there may stand through it (rules 6–8)
         veto_zone = in_band | (usable & seen & (np.abs(off) <= lim + config.unconverged_veto_margin_m))
     veto_pts = veto_zone & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)
-    if config.converged_veto_margin_m > 0:  # a structure ranged just outside the band may stand through it too
-        veto_pts |= usable & seen & ~in_band & conv & near & (np.abs(off) <= lim + config.converged_veto_margin_m)
+    if config.converged_veto_margin_m > 0:  # a structure ranged just outside the band may stand through it too ...
+        capped = (off > lim) & (off <= lim + config.cap_above_m)  # ... except where rule 8 makes it an obstacle instead
+        veto_pts |= (usable & seen & ~in_band & conv & near & ~capped
+                     & (np.abs(off) <= lim + config.converged_veto_margin_m))
 
     n_clr = np.bincount(idx[clr_pts], minlength=SECTOR_COUNT)
     n_veto = np.bincount(idx[veto_pts], minlength=SECTOR_COUNT)

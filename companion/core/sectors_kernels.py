@@ -325,7 +325,8 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
             n_veto[idx[i]] += 1  # … or just outside the band: a structure seen there may stand through it
             claims = True
         elif (cfg[_K_CVETO_MARGIN] > 0 and conv[i] and near[i] and usable[i] and seen[i] and not in_band[i]
-              and abs(off_b[i]) <= lim[i] + cfg[_K_CVETO_MARGIN]):
+              and abs(off_b[i]) <= lim[i] + cfg[_K_CVETO_MARGIN]
+              and not (off_b[i] > lim[i] and off_b[i] <= lim[i] + cfg[_K_CAP])):  # (the cap makes that one an obstacle)
             n_veto[idx[i]] += 1  # converged just outside the band: the same, ranged
             claims = True
         elif (los_on and conv[i] and not near[i] and not mem[i] and usable[i] and in_view[idx[i]]
