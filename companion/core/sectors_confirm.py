@@ -25,22 +25,19 @@ import numpy as np
 from companion.core.sectors_types import (
     SECTOR_BEARING_DEG,
     SECTOR_COUNT,
-    SECTOR_DEG,
     UNKNOWN_CM,
     ForwardRange,
     SectorConfig,
     Sectors,
     SectorState,
+    sector_shift,
 )
 
 
 def _carried(run_prev: np.ndarray, yaw_change_rad: float) -> np.ndarray:
     """The previous frame's consecutive-clear counts as seen from the current body frame (Δψ = yaw now −
     yaw then, + = turned right): new sector i takes the smaller count of the old sectors it overlaps."""
-    shift = math.degrees(yaw_change_rad) / SECTOR_DEG
-    shift = (shift + SECTOR_COUNT / 2) % SECTOR_COUNT - SECTOR_COUNT / 2
-    lo = math.floor(shift)
-    frac = shift - lo
+    lo, frac = sector_shift(yaw_change_rad)
     a = np.roll(run_prev, -lo)  # new[i] = old[i + lo]
     if frac < 1e-6:
         return a

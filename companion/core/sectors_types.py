@@ -238,9 +238,7 @@ class Sectors:
             return np.zeros(SECTOR_COUNT, np.int8)
         d_new = np.asarray(self.rotated(yaw_change_rad) if rotated_cm is None else rotated_cm).astype(np.int64)
         src = self.sources()
-        shift = math.degrees(yaw_change_rad) / SECTOR_DEG
-        shift = (shift + SECTOR_COUNT / 2) % SECTOR_COUNT - SECTOR_COUNT / 2
-        lo = math.floor(shift)
+        lo, _ = sector_shift(yaw_change_rad)
         i = np.arange(SECTOR_COUNT)
         a, b = (i + lo) % SECTOR_COUNT, (i + lo + 1) % SECTOR_COUNT
         old = self.distances_cm.astype(np.int64)
@@ -316,6 +314,16 @@ def unknown_sectors(config: SectorConfig = SectorConfig()) -> np.ndarray:
     return np.full(SECTOR_COUNT, UNKNOWN_CM, dtype=np.uint16)
 
 
+def sector_shift(yaw_change_rad: float, n: int = SECTOR_COUNT, increment_deg: float = SECTOR_DEG) -> tuple[int, float]:
+    """(lo, frac) of a yaw change Δψ (+ = turned right): new sector ``i`` covers the bearings old sectors ``i + lo``
+    and ``i + lo + 1`` covered, the second by the fraction ``frac`` of a sector (Δψ / increment wrapped to
+    [−n/2, n/2) = lo + frac)."""
+    shift = math.degrees(yaw_change_rad) / increment_deg
+    shift = (shift + n / 2) % n - n / 2  # wrap to [-n/2, n/2)
+    lo = math.floor(shift)
+    return lo, shift - lo
+
+
 def rotate_sectors(distances, yaw_change_rad: float, max_distance_cm: int, increment_deg: float = SECTOR_DEG) -> np.ndarray:
     """Turn sector distances by the vehicle's yaw change since exposure (docs/derivations/sectors.md).
 
@@ -333,10 +341,7 @@ def rotate_sectors(distances, yaw_change_rad: float, max_distance_cm: int, incre
     if not math.isfinite(yaw_change_rad):
         return np.full(d.shape, UNKNOWN_CM, dtype=np.uint16)
     n = d.size
-    shift = math.degrees(yaw_change_rad) / increment_deg
-    shift = (shift + n / 2) % n - n / 2  # wrap to [-n/2, n/2)
-    lo = math.floor(shift)
-    frac = shift - lo
+    lo, frac = sector_shift(yaw_change_rad, n, increment_deg)
     a = np.roll(d, -lo)  # new[i] = old[i + lo]
     tol = 1e-6
     if frac < tol:
