@@ -362,9 +362,9 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     if config.unconverged_veto_margin_m > 0:  # just outside the band: a structure seen there may stand through it (rules 6–8)
         veto_zone = in_band | (usable & seen & (np.abs(off) <= lim + config.unconverged_veto_margin_m))
     veto_pts = veto_zone & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)
+    cap_zone = (off > lim) & (off <= lim + config.cap_above_m)  # just above the band: rule 8's (empty when it is off)
     if config.converged_veto_margin_m > 0:  # a structure ranged just outside the band may stand through it too ...
-        capped = (off > lim) & (off <= lim + config.cap_above_m)  # ... except where rule 8 makes it an obstacle instead
-        veto_pts |= (usable & seen & ~in_band & conv & near & ~capped
+        veto_pts |= (usable & seen & ~in_band & conv & near & ~cap_zone  # ... except where rule 8 makes it an obstacle
                      & (np.abs(off) <= lim + config.converged_veto_margin_m))
 
     n_clr = np.bincount(idx[clr_pts], minlength=SECTOR_COUNT)
@@ -433,7 +433,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         # a surface just above the band limits what the band may claim (docs/derivations/sectors.md: only nearer, never
         # "clear"): a thin pole whose in-band points did not range (or ranged the background through
         # a patch straddling its edge) but whose upper part did
-        cap_pts = np.flatnonzero(usable & conv & near & seen & (off > lim) & (off <= lim + config.cap_above_m))
+        cap_pts = np.flatnonzero(usable & conv & near & seen & cap_zone)
         if cap_pts.size:
             cap = SectorRanking(idx[cap_pts], d_cons[cap_pts], ids=cap_pts).nth(1)
             capped = (cap >= 0) & ((state == SectorState.CLEAR) | (state == SectorState.OBSTACLE))
