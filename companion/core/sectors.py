@@ -136,6 +136,11 @@ def sector_view_masks(hfov_rad: float, R_cam_body, *, roll_pitch_rad=None, fligh
     return inside.any(axis=1), inside.all(axis=1)
 
 
+def _margin_or_off(margin_m: float) -> float:
+    """A veto margin beside the band, −inf when it is 0 (off): then nothing outside the band is within it."""
+    return margin_m if margin_m > 0 else -math.inf
+
+
 def _flight_path_angle(config: SectorConfig, v_level) -> float:
     if v_level is None:
         return 0.0
@@ -358,14 +363,14 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         los = np.abs(off) * max_m <= lim * d_h
         clr_band = in_band | (los & usable & in_view[idx])
     clr_pts = clr_band & conv & ~near & ~mem  # "clear" only from what the camera sees now
-    veto_zone = in_band
-    if config.unconverged_veto_margin_m > 0:  # just outside the band: a structure seen there may stand through it (rules 6–8)
-        veto_zone = in_band | (usable & seen & (np.abs(off) <= lim + config.unconverged_veto_margin_m))
-    veto_pts = veto_zone & ~conv & near if config.unconverged_veto_clear else np.zeros(n, bool)
     cap_zone = (off > lim) & (off <= lim + config.cap_above_m)  # just above the band: rule 8's (empty when it is off)
-    if config.converged_veto_margin_m > 0:  # a structure ranged just outside the band may stand through it too ...
-        veto_pts |= (usable & seen & ~in_band & conv & near & ~cap_zone  # ... except where rule 8 makes it an obstacle
-                     & (np.abs(off) <= lim + config.converged_veto_margin_m))
+    # rule 3's veto: a point that may lie within max_distance, unconverged in the band, or just beside the band up to
+    # its kind's margin (a structure seen there may stand through it, as rules 6–8 read it), except a converged one in
+    # the cap's zone, which rule 8 claims as an obstacle instead; a margin of 0 is off
+    margin = np.where(conv, _margin_or_off(config.converged_veto_margin_m),
+                      _margin_or_off(config.unconverged_veto_margin_m if config.unconverged_veto_clear else 0.0))
+    beside = usable & seen & ~in_band & (np.abs(off) <= lim + margin) & ~(conv & cap_zone)
+    veto_pts = near & ((in_band & ~conv & config.unconverged_veto_clear) | beside)
 
     n_clr = np.bincount(idx[clr_pts], minlength=SECTOR_COUNT)
     n_veto = np.bincount(idx[veto_pts], minlength=SECTOR_COUNT)

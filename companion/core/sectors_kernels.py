@@ -308,6 +308,8 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     obs_pts = np.zeros(n, np.bool_)
     used = 0
     edge_half = SECTOR_DEG / 2 - cfg[_K_EDGE]  # a point beyond this from its sector's centre vetoes "clear" next door
+    margin_u = cfg[_K_VETO_MARGIN] if veto_on and cfg[_K_VETO_MARGIN] > 0 else -np.inf  # veto margins beside the band
+    margin_c = cfg[_K_CVETO_MARGIN] if cfg[_K_CVETO_MARGIN] > 0 else -np.inf  # (−inf: off)
     for i in range(n):
         claims = False  # claims or vetoes its own sector
         if in_band[i] and conv[i]:
@@ -320,14 +322,10 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                     n_mem[idx[i]] += 1
             elif not mem[i]:
                 n_clr[idx[i]] += 1
-        elif veto_on and near[i] and (in_band[i] or (  # unconverged (in band: the branch above took the converged)
-                not conv[i] and usable[i] and seen[i] and abs(off_b[i]) <= lim[i] + cfg[_K_VETO_MARGIN])):
-            n_veto[idx[i]] += 1  # … or just outside the band: a structure seen there may stand through it
-            claims = True
-        elif (cfg[_K_CVETO_MARGIN] > 0 and conv[i] and near[i] and usable[i] and seen[i] and not in_band[i]
-              and abs(off_b[i]) <= lim[i] + cfg[_K_CVETO_MARGIN]
-              and not (off_b[i] > lim[i] and off_b[i] <= lim[i] + cfg[_K_CAP])):  # (the cap makes that one an obstacle)
-            n_veto[idx[i]] += 1  # converged just outside the band: the same, ranged
+        elif near[i] and ((in_band[i] and veto_on) or (  # unconverged in the band (the branch above took the converged)
+                usable[i] and seen[i] and not in_band[i] and abs(off_b[i]) <= lim[i] + (margin_c if conv[i] else margin_u)
+                and not (conv[i] and off_b[i] > lim[i] and off_b[i] <= lim[i] + cfg[_K_CAP]))):
+            n_veto[idx[i]] += 1  # … or just beside it, up to its kind's margin, outside the cap's zone (rule 3)
             claims = True
         elif (los_on and conv[i] and not near[i] and not mem[i] and usable[i] and in_view[idx[i]]
               and abs(off_b[i]) * max_m <= lim[i] * d_h[i]):
