@@ -175,6 +175,20 @@ def _range_target_tables(res: dict) -> list[str]:
         lines += ["", "False obstacles beside an obstacle (the range of a true obstacle cell at most 2 sectors away, within "
                   "tolerance: a real obstacle claimed on a neighbouring bearing, not a phantom range), pooled:", "",
                   "| scenario | in view | out of view |", "|---|---|---|"] + fb_rows
+    rg_rows, rg_def = [], {}
+    for name, c in res["campaigns"].items():
+        rg = c.get("aggregate", {}).get("rangeable") or {}
+        if rg.get("obstacle_cells_in_view"):
+            rg_def = rg_def or rg
+            rg_rows.append(f"| {name} | {_pct(rg.get('share'))} ({rg['cells']} of {rg['obstacle_cells_in_view']}) | "
+                           f"{_pct(rg.get('rate'))} | {rg.get('not_rangeable_within_tolerance', 0)} |")
+    if rg_rows:
+        lines += ["", "The single camera's ceiling (diagnostic, `[score] rangeable_*`): the in-view obstacle cells whose point "
+                  f"the camera saw within {rg_def.get('window_s') or 0:g} s from a place with ≥ {rg_def.get('parallax_deg') or 0:g}° "
+                  f"parallax or ≥ {100 * (rg_def.get('scale') or 0):g} % change of distance — the only cells any monocular "
+                  "method can range (geometry only) — and the detection within tolerance among them, pooled:", "",
+                  "| scenario | rangeable of in-view obstacle cells | detection of the rangeable | within tolerance among the others (cells) |",
+                  "|---|---|---|---|"] + rg_rows
     bins = None
     rows = []
     for name, c in res["campaigns"].items():

@@ -352,6 +352,13 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
     rem = {k: sum(int((s.get("remembered") or {}).get(k) or 0) for s in scores)
            for k in ("cells", "within_tolerance", "ranges", "unknown", "dangerous_clears")}
     rem["rate"] = rem["within_tolerance"] / rem["cells"] if rem["cells"] else None
+    rng = {k: sum(int((s.get("rangeable") or {}).get(k) or 0) for s in scores)
+           for k in ("obstacle_cells_in_view", "cells", "within_tolerance", "unknown", "not_rangeable_within_tolerance")}
+    rng["share"] = rng["cells"] / rng["obstacle_cells_in_view"] if rng["obstacle_cells_in_view"] else None
+    rng["rate"] = rng["within_tolerance"] / rng["cells"] if rng["cells"] else None
+    first_rng = next((s["rangeable"] for s in scores if s.get("rangeable")), None)
+    if first_rng:
+        rng.update({k: first_rng.get(k) for k in ("window_s", "parallax_deg", "scale")})
     beside = {k: sum(int((s.get("false_obstacles_beside_obstacle") or {}).get(k) or 0) for s in scores)
               for k in ("in_view", "in_view_total", "out_of_view", "out_of_view_total")}
     by_source = pool_claims_by_source([s.get("claims_by_source") for s in scores])
@@ -362,7 +369,8 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
         "cells": cells, "pooled_rates": pooled, "per_run_rates": per_run, "targets": targets,
         "cells_in_view": cells_iv, "cells_out_of_view": cells_oov, "pooled_rates_in_view": pooled_of(cells_iv),
         "pooled_rates_out_of_view": pooled_of(cells_oov), "per_run_rates_in_view": per_run_in_view,
-        "detection_by_range": det_by_range, "remembered": rem, "false_obstacles_beside_obstacle": beside,
+        "detection_by_range": det_by_range, "remembered": rem, "rangeable": rng if first_rng else None,
+        "false_obstacles_beside_obstacle": beside,
         "claims_by_source": by_source,
         "warmup_messages_excluded": sum(int((s.get("warmup") or {}).get("messages_excluded") or 0) for s in scores),
         "range_error": range_error, "latency": latency, "nees": nees, "obstacles": obs_rows,
@@ -379,7 +387,9 @@ def run_key_figures(score: dict) -> dict:
         "messages_without_false_obstacle": r["messages_without_false_obstacle"],
         "targets_met": [t["met"] for t in score["targets"]],
         "detection_in_view": (score.get("rates_in_view") or {}).get("valid_range"),
-        "remembered": (score.get("remembered") or {}).get("rate"), "latency_p50_ms": score["latency"]["p50_ms"],
+        "remembered": (score.get("remembered") or {}).get("rate"),
+        "rangeable_share": (score.get("rangeable") or {}).get("share"),
+        "detection_rangeable": (score.get("rangeable") or {}).get("rate"), "latency_p50_ms": score["latency"]["p50_ms"],
         "latency_p99_ms": score["latency"]["p99_ms"], "nees_mean": score["nees"]["mean"], "nees_n": score["nees"]["n"],
         "nees_n_eff": score["nees"].get("n_eff"), "nees_band": score["nees"].get("band"),
         "nees_consistent": score["nees"].get("consistent"),

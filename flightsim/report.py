@@ -435,6 +435,13 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
     if rem:
         L += ["", f"Remembered obstacles out of view: {rem['cells']} cells, within tolerance {rem['within_tolerance']} "
               f"({_pc(rem['rate'])}), unknown {rem['unknown']}, dangerous clears {rem['dangerous_clears']}."]
+    rg = a.get("rangeable")
+    if rg and rg.get("obstacle_cells_in_view"):
+        L += ["", f"Rangeable in view (the single camera's ceiling: the cell's point seen within {rg.get('window_s', 0):g} s from a "
+              f"place with ≥ {rg.get('parallax_deg', 0):g}° parallax or ≥ {100 * (rg.get('scale') or 0):g} % change of distance; "
+              f"geometry only, a diagnostic): {rg['cells']} of {rg['obstacle_cells_in_view']} in-view obstacle cells "
+              f"({_pc(rg['share'])}); within tolerance {rg['within_tolerance']} of them ({_pc(rg['rate'])}), unknown "
+              f"{rg['unknown']}; within tolerance among the others: {rg['not_rangeable_within_tolerance']}."]
     cbs = a.get("claims_by_source")
     if cbs:
         L += [""] + claims_by_source_lines(cbs)

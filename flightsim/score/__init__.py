@@ -83,6 +83,15 @@ out-of-view obstacle cells), the share within tolerance, the share with any rang
 clear.  Warm-up: messages stamped within ``warmup_s`` of the first truth frame are not scored
 (cells, the forward DISTANCE_SENSOR and NEES); latency and the first claim include them.
 
+*Rangeable* cells (:func:`.evaluation.rangeable_cells`; a diagnostic, not a target): the in-view
+obstacle cells a single camera could have ranged at all, from how it moved.  The cell's point (its
+true distance on its centre bearing, at the vehicle's altitude) lay in an in-view sector in some
+truth frame at most ``rangeable_window_s`` earlier, from where its line of sight differs from the
+present one by at least ``rangeable_parallax_deg`` (bearing parallax) or its distance by at least
+the fraction ``rangeable_scale`` (looming).  A vehicle turning in place gains neither.  Occlusion
+and texture are not checked: it is the ceiling of any monocular method on that flight.  Reported
+are its share of the in-view obstacle cells and the detection within tolerance among them.
+
 Targets (thresholds in configs/score.toml): no false obstacle in clear sectors in
 ≥ 98 % of messages; dangerous clears ≤ 0.5 % of obstacle cells; false obstacles ≤ 1 % of clear
 cells; detection (within tolerance) ≥ 90 % of in-view obstacle cells and ≥ 95 % of those within

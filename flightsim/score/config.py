@@ -48,6 +48,9 @@ class ScoreConfig:
     target_detection: float = 0.90  # target: share of in-view obstacle cells with a range within tolerance (>=)
     target_detection_near: float = 0.95  # target: the same for in-view obstacle cells nearer than near_range_m (>=)
     target_remembered: float = 0.90  # target: share of remembered out-of-view obstacle cells within tolerance (>=)
+    rangeable_window_s: float = 10.0  # rangeable: the camera's views of the cell's point over at most this long before the message, s
+    rangeable_parallax_deg: float = 1.0  # ... rangeable when its line of sight from one of those views differs from today's by at least this (parallax), deg
+    rangeable_scale: float = 0.1  # ... or its distance from one of them differs from today's by at least this fraction (looming: image scale changed by it)
     beside_sectors: int = 2  # a false obstacle within this many sectors of an obstacle at its range is reported as "beside an obstacle" (diagnostic only)
     nees_confidence: float = 0.95  # two-sided probability of the NEES band
     nees_gap_s: float = 0.5  # forward NEES samples further apart than this start a new stretch (effective sample size), s
@@ -67,6 +70,10 @@ class ScoreConfig:
         require_finite("near_range_m", self.near_range_m, positive=True)
         require_finite("remember_window_s", self.remember_window_s, positive=True)
         require_finite("remember_max_travel_m", self.remember_max_travel_m, positive=True)
+        require_finite("rangeable_window_s", self.rangeable_window_s, positive=True)
+        require_finite("rangeable_parallax_deg", self.rangeable_parallax_deg, positive=True)
+        require(self.rangeable_parallax_deg < 90, f"rangeable_parallax_deg must be below 90, got {self.rangeable_parallax_deg}")
+        require_finite("rangeable_scale", self.rangeable_scale, positive=True)
         require(isinstance(self.beside_sectors, int) and not isinstance(self.beside_sectors, bool) and 0 <= self.beside_sectors <= 36,
                 f"beside_sectors must be an integer in 0..36, got {self.beside_sectors!r}")
         require_finite("truth_max_age_s", self.truth_max_age_s, positive=True)

@@ -62,6 +62,7 @@ class Evaluation:
     od_in_view: np.ndarray  # (N, 72) bool, the truth frame's sector is in the camera's view
     od_warmup: np.ndarray  # (N,) bool, stamped within warmup_s of the first truth frame (not scored)
     od_remember: np.ndarray  # (N, 72) bool, out-of-view obstacle cell of an obstacle seen recently nearby ("remembered")
+    od_rangeable: np.ndarray  # (N, 72) bool, in-view obstacle cell a single camera could have ranged (rangeable_cells)
     # DISTANCE_SENSOR (forward)
     ds_t: np.ndarray
     ds_frame: np.ndarray
@@ -89,6 +90,13 @@ def _classify_published(cm: np.ndarray, min_cm: np.ndarray, max_cm: np.ndarray) 
     rep[cm == max_cm + 1] = REP_CLEAR
     rep[(cm >= min_cm) & (cm <= max_cm)] = REP_RANGE
     return rep
+
+
+def sector_of(d_n: np.ndarray, d_e: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Sector index (0…71, body FRD from forward, clockwise) of the horizontal direction ``(d_n, d_e)``
+    (world NE) seen from a vehicle at heading ``yaw`` (rad): the nearest sector centre."""
+    rel_deg = np.degrees(np.arctan2(d_e, d_n) - yaw)
+    return np.mod(np.rint(rel_deg / SECTOR_DEG).astype(np.int64), N_SECTORS)
 
 
 def remembered_cells(truth: SectorTruth, labels: np.ndarray, view_f: np.ndarray, frame: np.ndarray, lab: np.ndarray,
@@ -150,9 +158,65 @@ def _point_seen(truth: SectorTruth, view_f: np.ndarray, j: np.ndarray, ii: np.nd
         f = np.maximum(f, 0)
         rel = pt[c, None, :] - p[f, :2]
         r = np.hypot(rel[..., 0], rel[..., 1])
-        sec = np.mod(np.rint((np.degrees(np.arctan2(rel[..., 1], rel[..., 0]) - np.degrees(yaw[f]))) / SECTOR_DEG).astype(np.int64), N_SECTORS)
+        sec = sector_of(rel[..., 0], rel[..., 1], yaw[f])
         moved = np.linalg.norm(p[j[c], None, :] - p[f], axis=2) < cfg.remember_max_travel_m
         out[c] = np.any(inwin & view_f[f, sec] & (r <= truth.sector_max_m) & moved, axis=1)
+    return out
+
+
+def rangeable_cells(truth: SectorTruth, view_f: np.ndarray, frame: np.ndarray, candidates: np.ndarray,
+                    config: ScoreConfig) -> np.ndarray:
+    """(N, 72) bool: the *rangeable* cells among ``candidates`` (in-view obstacle cells of the
+    messages): those a single camera could have ranged at all, given only how it moved — the
+    ceiling of any monocular method (diagnostic; definitions in :mod:`flightsim.score`).
+
+    The cell's point is the world point at its true distance on its centre bearing, at the
+    vehicle's altitude (the band's centre).  It is rangeable when, in some truth frame ``f`` at most
+    ``rangeable_window_s`` before the message's frame ``j`` (``frame``) and no later, the point lay
+    in an in-view sector within ``sector_max_m``, and either the lines of sight to it from the
+    vehicle at ``f`` and at ``j`` differ by at least ``rangeable_parallax_deg`` (the bearing
+    parallax of DESIGN.md §3's triangulation) or its distances from the two differ by at least the
+    fraction ``rangeable_scale`` (looming, DESIGN.md §7).  A vehicle turning in place sees neither:
+    a bearing and a scale that do not change carry no range.  Neither occlusion nor texture is
+    checked, and the camera is taken at the vehicle's centre: this is an upper bound.
+    """
+    cfg = config
+    n = len(frame)
+    out = np.zeros((n, N_SECTORS), bool)
+    nn, ii = np.nonzero(candidates & (frame >= 0)[:, None])
+    if nn.size == 0:
+        return out
+    j_all = frame[nn]
+    key, inv = np.unique(j_all * N_SECTORS + ii, return_inverse=True)
+    j, sec0 = key // N_SECTORS, key % N_SECTORS
+    p = np.asarray(truth.p_ned, float)
+    yaw = np.asarray(truth.yaw, float)
+    t = np.asarray(truth.t_s, float)
+    dist = np.asarray(truth.sector_m, float)[j, sec0]
+    b = yaw[j] + np.radians(sec0 * SECTOR_DEG)
+    pt = np.column_stack([p[j, 0] + dist * np.cos(b), p[j, 1] + dist * np.sin(b), p[j, 2]])  # (C, 3) world NED
+    los_j = pt - p[j]
+    r_j = np.linalg.norm(los_j, axis=1)
+    cos_min = math.cos(math.radians(cfg.rangeable_parallax_deg))
+    log_scale = math.log1p(cfg.rangeable_scale)
+    lo = np.searchsorted(t, t[j] - cfg.rangeable_window_s - 1e-9, side="left")
+    W = int(np.max(j - lo)) + 1
+    ok = np.zeros(len(j), bool)
+    for c0 in range(0, len(j), 1024):  # chunks of cells, vectorized over cells × frames of the window
+        c = slice(c0, c0 + 1024)
+        f = j[c, None] - np.arange(W)[None, :]  # (c, W) this frame and those before it
+        inwin = f >= lo[c, None]
+        f = np.maximum(f, 0)
+        los = pt[c, None, :] - p[f]  # (c, W, 3)
+        r = np.linalg.norm(los, axis=2)
+        r_h = np.hypot(los[..., 0], los[..., 1])
+        sec = sector_of(los[..., 0], los[..., 1], yaw[f])
+        seen = inwin & view_f[f, sec] & (r_h <= truth.sector_max_m)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cosang = np.einsum("cwk,ck->cw", los, los_j[c]) / (r * r_j[c, None])
+            loom = np.abs(np.log(r / r_j[c, None]))
+        ok[c] = np.any(seen & ((cosang <= cos_min) | (loom >= log_scale)), axis=1)
+    out[nn, ii] = ok[inv.reshape(-1)]
     return out
 
 
@@ -206,6 +270,7 @@ def evaluate(msgs: RangeMessages, truth: SectorTruth, config: ScoreConfig = Scor
     lab[scored] = labels[frame[scored]]
     lab[tcls != TRUTH_OBSTACLE] = -1
     remember = remembered_cells(truth, labels, view_f, frame, lab, (tcls == TRUTH_OBSTACLE) & ~view, cfg)
+    rangeable = rangeable_cells(truth, view_f, frame, (tcls == TRUTH_OBSTACLE) & view, cfg)
     # --- exposure and latency -----------------------------------------------------------------
     off = _boot_offset(msgs)
     cap_t = np.full(n, np.nan)
@@ -265,7 +330,7 @@ def evaluate(msgs: RangeMessages, truth: SectorTruth, config: ScoreConfig = Scor
         config=cfg, t0=float(truth.t_s[0]), frame_period_s=fp, sector_max_m=float(truth.sector_max_m),
         od_t=msgs.od_t, od_frame=frame, od_scored=scored, od_rep=rep, od_r=r, od_cm=cm, od_truth=T, od_tcls=tcls,
         od_max_m=max_m, od_label=lab, od_capture_t=cap_t, od_capture_frame=cap_f, od_latency_s=latency,
-        od_in_view=view, od_warmup=warm, od_remember=remember,
+        od_in_view=view, od_warmup=warm, od_remember=remember, od_rangeable=rangeable,
         ds_t=ds_t, ds_frame=ds_frame, ds_state=ds_state, ds_published_m=pub, ds_sigma_m=sig, ds_sigma_source=src,
         ds_estimate_m=est, ds_truth_arrival=t_arr, ds_truth_exposure=t_exp, ds_max_m=ds_max_m,
         obstacle_names=names, obstacle_centroids=centroids, boot_offset_s=off, capture_residual_s=resid,
@@ -298,6 +363,7 @@ class CellMasks:
     clear_any: np.ndarray  # clear truth, counted or not
     unknown_out_of_view: np.ndarray  # unknown in an out-of-view cell whose truth is known (neutral)
     remembered: np.ndarray  # out-of-view obstacle cells of an obstacle in view recently nearby (remembered_cells)
+    rangeable: np.ndarray  # in-view obstacle cells a single camera could have ranged (rangeable_cells)
 
 
 def cell_masks(ev: Evaluation) -> CellMasks:
@@ -332,4 +398,5 @@ def cell_masks(ev: Evaluation) -> CellMasks:
         in_view=view, obstacle_any=obstacle_any, clear_any=clear_any,
         unknown_out_of_view=(obstacle_any | clear_any) & ~view & (rep == REP_UNKNOWN),
         remembered=ev.od_remember & obstacle_any,
+        rangeable=ev.od_rangeable & obstacle & view,
     )

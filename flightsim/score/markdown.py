@@ -105,6 +105,13 @@ def markdown(score: dict, title: str = "Score") -> str:
         L += [f"Remembered obstacles out of view (in view within {rem['window_s']:g} s, vehicle moved < {rem['max_travel_m']:g} m): "
               f"{rem['cells']} cells, within tolerance {rem['within_tolerance']} ({_pc(rem['rate'])}), ranges {rem['ranges']}, "
               f"unknown {rem['unknown']}, dangerous clears {rem['dangerous_clears']}.", ""]
+    rg = s.get("rangeable")
+    if rg and rg.get("obstacle_cells_in_view"):
+        L += [f"Rangeable in view (the single camera's ceiling: the cell's point seen within {rg.get('window_s', 0):g} s from a "
+              f"place with ≥ {rg.get('parallax_deg', 0):g}° parallax or ≥ {100 * (rg.get('scale') or 0):g} % change of distance; "
+              f"geometry only, a diagnostic): {rg['cells']} of {rg['obstacle_cells_in_view']} in-view obstacle cells "
+              f"({_pc(rg['share'])}); within tolerance {rg['within_tolerance']} of them ({_pc(rg['rate'])}), unknown "
+              f"{rg['unknown']}; within tolerance among the others: {rg['not_rangeable_within_tolerance']}.", ""]
     fb = s.get("false_obstacles_beside_obstacle")
     if fb and (fb["in_view_total"] or fb["out_of_view_total"]):
         L += [f"False obstacles beside an obstacle (the range of a true obstacle cell within {fb['sectors']} sectors, within "

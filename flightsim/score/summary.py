@@ -261,6 +261,16 @@ def summarize(ev: Evaluation, sector_log: dict | None = None) -> dict:
         "dangerous_clears": int((m.remembered & (ev.od_rep == REP_CLEAR)).sum()),
         "window_s": cfg.remember_window_s, "max_travel_m": cfg.remember_max_travel_m,
     }
+    iv_obs = m.obstacle & m.in_view
+    n_rg, v_rg = int(m.rangeable.sum()), int((m.rangeable & m.valid).sum())
+    n_iv = int(iv_obs.sum())
+    rangeable = {
+        "obstacle_cells_in_view": n_iv, "cells": n_rg, "share": _rate(n_rg, n_iv),
+        "within_tolerance": v_rg, "rate": _rate(v_rg, n_rg),
+        "unknown": int((m.rangeable & (ev.od_rep == REP_UNKNOWN)).sum()),
+        "not_rangeable_within_tolerance": int((iv_obs & ~m.rangeable & m.valid).sum()),
+        "window_s": cfg.rangeable_window_s, "parallax_deg": cfg.rangeable_parallax_deg, "scale": cfg.rangeable_scale,
+    }
     beside = false_obstacles_beside(ev, m, cfg.beside_sectors)
     false_beside = {
         "sectors": cfg.beside_sectors,
@@ -349,6 +359,10 @@ def summarize(ev: Evaluation, sector_log: dict | None = None) -> dict:
             "remembered": f"out-of-view obstacle cells whose obstacle (grouped by position) occupied an in-view cell "
                           f"within the last {cfg.remember_window_s:g} s, the vehicle having moved < {cfg.remember_max_travel_m:g} m "
                           "since the latest such frame; unknown there counts as not reported",
+            "rangeable": f"in-view obstacle cells whose world point the camera saw within the last {cfg.rangeable_window_s:g} s "
+                         f"from a place whose line of sight to it differs from the present one by >= {cfg.rangeable_parallax_deg:g}° "
+                         f"or whose distance to it differs by >= {100 * cfg.rangeable_scale:g} %: the cells any single camera could "
+                         "have ranged (geometry only: no occlusion, no texture; a diagnostic, not a target)",
             "warmup": f"messages stamped within {cfg.warmup_s:g} s of the first truth frame are not scored (latency and "
                       "first claim include them)",
             "nees": "(estimate − truth at exposure)² / σ² of each forward DISTANCE_SENSOR range with a known σ; its mean "
@@ -383,6 +397,7 @@ def summarize(ev: Evaluation, sector_log: dict | None = None) -> dict:
         "rates_out_of_view": rates_oov,
         "detection_by_range": det_tables,
         "remembered": remembered,
+        "rangeable": rangeable,
         "false_obstacles_beside_obstacle": false_beside,
         "claims_by_source": None if sector_log is None else claims_by_source(ev, m, message_sources(ev, sector_log), beside),
         "targets": targets,
@@ -469,6 +484,7 @@ def series_arrays(ev: Evaluation) -> dict[str, np.ndarray]:
         "od_t": ev.od_t, "od_scored": ev.od_scored, "od_rep": ev.od_rep, "od_cm": ev.od_cm.astype(np.int32), "od_truth": ev.od_truth.astype(np.float32),
         "od_tcls": ev.od_tcls, "od_label": ev.od_label.astype(np.int16), "od_max_m": ev.od_max_m,
         "od_latency_s": ev.od_latency_s, "od_in_view": ev.od_in_view, "od_remember": ev.od_remember,
+        "od_rangeable": ev.od_rangeable,
         "od_warmup": ev.od_warmup, "det_true_m": ev.od_truth[m.detection], "det_published_m": ev.od_r[m.detection],
         "ds_t": ev.ds_t, "ds_state": ev.ds_state, "ds_published_m": ev.ds_published_m, "ds_sigma_m": ev.ds_sigma_m,
         "ds_estimate_m": ev.ds_estimate_m, "ds_truth_arrival": ev.ds_truth_arrival, "ds_truth_exposure": ev.ds_truth_exposure,
