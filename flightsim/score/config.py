@@ -48,7 +48,7 @@ class ScoreConfig:
     target_detection: float = 0.90  # target: share of in-view obstacle cells with a range within tolerance (>=)
     target_detection_near: float = 0.95  # target: the same for in-view obstacle cells nearer than near_range_m (>=)
     target_remembered: float = 0.90  # target: share of remembered out-of-view obstacle cells within tolerance (>=)
-    rangeable_window_s: float = 10.0  # rangeable: the camera's views of the cell's point over at most this long before the message, s
+    rangeable_window_s: float = 20.0  # rangeable: the camera's views of the cell's point over at most this long before the message, s
     rangeable_parallax_deg: float = 1.0  # ... rangeable when its line of sight from one of those views differs from today's by at least this (parallax), deg
     rangeable_scale: float = 0.1  # ... or its distance from one of them differs from today's by at least this fraction (looming: image scale changed by it)
     beside_sectors: int = 2  # a false obstacle within this many sectors of an obstacle at its range is reported as "beside an obstacle" (diagnostic only)
