@@ -180,15 +180,20 @@ def _range_target_tables(res: dict) -> list[str]:
         rg = c.get("aggregate", {}).get("rangeable") or {}
         if rg.get("obstacle_cells_in_view"):
             rg_def = rg_def or rg
+            rem = c.get("aggregate", {}).get("remembered") or {}
+            rem_txt = ("–" if not rem.get("rangeable_cells") else
+                       f"{_pct(rem.get('rangeable_rate'))} ({rem['rangeable_cells']} of {rem.get('cells', 0)} rangeable)")
             rg_rows.append(f"| {name} | {_pct(rg.get('share'))} ({rg['cells']} of {rg['obstacle_cells_in_view']}) | "
-                           f"{_pct(rg.get('rate'))} | {rg.get('not_rangeable_within_tolerance', 0)} |")
+                           f"{_pct(rg.get('rate'))} | {rg.get('not_rangeable_within_tolerance', 0)} | {rem_txt} |")
     if rg_rows:
         lines += ["", "The single camera's ceiling (diagnostic, `[score] rangeable_*`): the in-view obstacle cells whose point "
                   f"the camera saw within {rg_def.get('window_s') or 0:g} s from a place with ≥ {rg_def.get('parallax_deg') or 0:g}° "
                   f"parallax or ≥ {100 * (rg_def.get('scale') or 0):g} % change of distance — the only cells any monocular "
-                  "method can range (geometry only) — and the detection within tolerance among them, pooled:", "",
-                  "| scenario | rangeable of in-view obstacle cells | detection of the rangeable | within tolerance among the others (cells) |",
-                  "|---|---|---|---|"] + rg_rows
+                  "method can range (geometry only) — and the detection within tolerance among them; out of view, the remembered "
+                  "cells whose point was rangeable when last in view, and the share of them within tolerance; pooled:", "",
+                  "| scenario | rangeable of in-view obstacle cells | detection of the rangeable | within tolerance among the others (cells) "
+                  "| remembered within tolerance, of the rangeable |",
+                  "|---|---|---|---|---|"] + rg_rows
     bins = None
     rows = []
     for name, c in res["campaigns"].items():

@@ -350,8 +350,10 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
                         "valid_of_claimed": row["valid"] / row["claimed"] if row["claimed"] else None})
         det_by_range[view] = rows
     rem = {k: sum(int((s.get("remembered") or {}).get(k) or 0) for s in scores)
-           for k in ("cells", "within_tolerance", "ranges", "unknown", "dangerous_clears")}
+           for k in ("cells", "within_tolerance", "ranges", "unknown", "dangerous_clears", "rangeable_cells",
+                     "rangeable_within_tolerance")}
     rem["rate"] = rem["within_tolerance"] / rem["cells"] if rem["cells"] else None
+    rem["rangeable_rate"] = rem["rangeable_within_tolerance"] / rem["rangeable_cells"] if rem["rangeable_cells"] else None
     rng = {k: sum(int((s.get("rangeable") or {}).get(k) or 0) for s in scores)
            for k in ("obstacle_cells_in_view", "cells", "within_tolerance", "unknown", "not_rangeable_within_tolerance")}
     rng["share"] = rng["cells"] / rng["obstacle_cells_in_view"] if rng["obstacle_cells_in_view"] else None

@@ -153,3 +153,22 @@ def test_rangeable_config_is_validated():
                 dict(rangeable_scale=float("nan"))):
         with pytest.raises(Exception, match="rangeable"):
             ScoreConfig(**bad)
+
+
+def test_remembered_cells_are_rangeable_only_if_their_point_was_when_last_seen():
+    # facing east at the obstacle 20 m away, then turned to face west (the obstacle behind, remembered)
+    F0, F1 = 10, 5
+    yaw = np.r_[np.full(F0, math.pi / 2), np.full(F1, -math.pi / 2)]
+    rows_of = lambda truth: [od(t + 0.02, {}) for t in truth.t_s]  # nothing published: only the cells' sets matter
+    still = truth_of(np.zeros((F0 + F1, 3)), yaw, (0.0, 20.0))
+    s = summarize(evaluate(RangeMessages.build(od=rows_of(still)), still, NOWARM))
+    assert s["remembered"]["cells"] == F1 and s["remembered"]["rangeable_cells"] == 0  # seen from one place only
+    # the same, but sliding 1 m north while facing it: 2.9° of parallax before the turn
+    p = np.zeros((F0 + F1, 3))
+    p[:F0, 0] = np.arange(F0) / (F0 - 1)
+    p[F0:, 0] = 1.0
+    slid = truth_of(p, yaw, (0.0, 20.0))
+    s = summarize(evaluate(RangeMessages.build(od=rows_of(slid)), slid, NOWARM))
+    assert s["remembered"]["cells"] == F1 and s["remembered"]["rangeable_cells"] == F1
+    assert s["remembered"]["rangeable_within_tolerance"] == 0 and s["remembered"]["rangeable_rate"] == 0.0
+    assert "of them rangeable when last in view 5" in markdown(s)

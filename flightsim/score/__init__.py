@@ -90,7 +90,9 @@ truth frame at most ``rangeable_window_s`` earlier, from where its line of sight
 present one by at least ``rangeable_parallax_deg`` (bearing parallax) or its distance by at least
 the fraction ``rangeable_scale`` (looming).  A vehicle turning in place gains neither.  Occlusion
 and texture are not checked: it is the ceiling of any monocular method on that flight.  Reported
-are its share of the in-view obstacle cells and the detection within tolerance among them.
+are its share of the in-view obstacle cells and the detection within tolerance among them, and
+among the remembered cells those whose point was rangeable in the frame it was last in view (what
+a map can only remember if it could range it then) with their share within tolerance.
 
 Targets (thresholds in configs/score.toml): no false obstacle in clear sectors in
 ≥ 98 % of messages; dangerous clears ≤ 0.5 % of obstacle cells; false obstacles ≤ 1 % of clear

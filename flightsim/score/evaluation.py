@@ -62,7 +62,7 @@ class Evaluation:
     od_in_view: np.ndarray  # (N, 72) bool, the truth frame's sector is in the camera's view
     od_warmup: np.ndarray  # (N,) bool, stamped within warmup_s of the first truth frame (not scored)
     od_remember: np.ndarray  # (N, 72) bool, out-of-view obstacle cell of an obstacle seen recently nearby ("remembered")
-    od_rangeable: np.ndarray  # (N, 72) bool, in-view obstacle cell a single camera could have ranged (rangeable_cells)
+    od_rangeable: np.ndarray  # (N, 72) bool, in-view or remembered obstacle cell a single camera could have ranged (rangeable_cells)
     # DISTANCE_SENSOR (forward)
     ds_t: np.ndarray
     ds_frame: np.ndarray
@@ -99,23 +99,36 @@ def sector_of(d_n: np.ndarray, d_e: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     return np.mod(np.rint(rel_deg / SECTOR_DEG).astype(np.int64), N_SECTORS)
 
 
+def cell_points(truth: SectorTruth, j: np.ndarray, ii: np.ndarray) -> np.ndarray:
+    """(C, 3) world NED point behind each cell (truth frame ``j``, sector ``ii``): at the cell's true
+    distance on its centre bearing, at the vehicle's altitude (the band's centre)."""
+    p = np.asarray(truth.p_ned, float)
+    b = np.asarray(truth.yaw, float)[j] + np.radians(ii * SECTOR_DEG)
+    dist = np.asarray(truth.sector_m, float)[j, ii]
+    return np.column_stack([p[j, 0] + dist * np.cos(b), p[j, 1] + dist * np.sin(b), p[j, 2]])
+
+
 def remembered_cells(truth: SectorTruth, labels: np.ndarray, view_f: np.ndarray, frame: np.ndarray, lab: np.ndarray,
-                     candidates: np.ndarray, config: ScoreConfig) -> np.ndarray:
-    """(N, 72) bool: the *remembered* cells among ``candidates`` (out-of-view obstacle cells of the
-    messages; the coverage targets, docs/derivations/obstacle_map.md).
+                     candidates: np.ndarray, config: ScoreConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The *remembered* cells among ``candidates`` (out-of-view obstacle cells of the messages; the
+    coverage targets, docs/derivations/obstacle_map.md): ``(remembered (N, 72) bool, seen (N, 72)
+    int)``, ``seen`` the truth frame in which the cell was last in view (−1 elsewhere).
 
     Rule (per obstacle, by the grouping of :func:`group_obstacles`): the cell's obstacle ``k``
     (``lab``) occupied an in-view finite truth cell in some truth frame at most
     ``remember_window_s`` before the message's truth frame (``frame``), and the vehicle moved less
     than ``remember_max_travel_m`` (3-D) from its position in the *latest* such frame.  One group
     may be large (a long wall): a part of it that never was in view counts when another part was.
+    With ``remember_point`` the cell's own point must have been in view (:func:`_point_seen`), and
+    ``seen`` is that frame; without, ``seen`` is the obstacle's.
     """
     cfg = config
     n = len(frame)
     out = np.zeros((n, N_SECTORS), bool)
+    seen_at = np.full((n, N_SECTORS), -1, np.int64)
     K = int(labels.max()) + 1 if labels.size else 0
     if K == 0 or n == 0 or not np.any(candidates):
-        return out
+        return out, seen_at
     F = len(truth.t_s)
     seen = np.zeros((F, K), bool)
     ff, ss = np.nonzero((labels >= 0) & view_f)
@@ -127,82 +140,71 @@ def remembered_cells(truth: SectorTruth, labels: np.ndarray, view_f: np.ndarray,
     lsj = np.maximum(ls, 0)
     ok = (ls >= 0) & (truth.t_s[j] - truth.t_s[lsj] <= cfg.remember_window_s + 1e-9)
     ok &= np.linalg.norm(np.asarray(truth.p_ned, float)[j] - np.asarray(truth.p_ned, float)[lsj], axis=1) < cfg.remember_max_travel_m
+    nn, ii, j, ref = nn[ok], ii[ok], j[ok], lsj[ok]
     if cfg.remember_point:
-        nn, ii, j = nn[ok], ii[ok], j[ok]
-        ok = _point_seen(truth, view_f, j, ii, cfg)
-    out[nn[ok], ii[ok]] = True
-    return out
+        ref = _point_seen(truth, view_f, j, cell_points(truth, j, ii), cfg)
+        nn, ii, ref = nn[ref >= 0], ii[ref >= 0], ref[ref >= 0]
+    out[nn, ii] = True
+    seen_at[nn, ii] = ref
+    return out, seen_at
 
 
-def _point_seen(truth: SectorTruth, view_f: np.ndarray, j: np.ndarray, ii: np.ndarray, cfg: ScoreConfig) -> np.ndarray:
-    """(len(j),) bool: the world point behind cell (truth frame ``j``, sector ``ii``) — at the cell's true
-    distance on its centre bearing — lay in an in-view sector within ``sector_max_m`` of the vehicle in a
-    truth frame at most ``remember_window_s`` earlier, from which the vehicle has moved less than
-    ``remember_max_travel_m``.  A long wall counts only where its own part was in view (occlusion by
-    other obstacles is not checked)."""
-    out = np.zeros(len(j), bool)
+def _window(truth: SectorTruth, j: np.ndarray, window_s: float) -> tuple[np.ndarray, int]:
+    """First truth frame within ``window_s`` before each frame ``j``, and the widest window in frames."""
+    t = np.asarray(truth.t_s, float)
+    lo = np.searchsorted(t, t[j] - window_s - 1e-9, side="left")
+    return lo, int(np.max(j - lo)) + 1
+
+
+def _point_seen(truth: SectorTruth, view_f: np.ndarray, j: np.ndarray, pt: np.ndarray, cfg: ScoreConfig) -> np.ndarray:
+    """(len(j),) int: the latest truth frame at most ``remember_window_s`` before (or at) frame ``j`` in
+    which the world point ``pt`` (C, 3) lay in an in-view sector within ``sector_max_m`` of the vehicle,
+    from where the vehicle has since moved less than ``remember_max_travel_m``; −1 if none.  A long wall
+    counts only where its own part was in view (occlusion by other obstacles is not checked)."""
+    out = np.full(len(j), -1, np.int64)
     if len(j) == 0:
         return out
     p = np.asarray(truth.p_ned, float)
     yaw = np.asarray(truth.yaw, float)
-    b = yaw[j] + np.radians(ii * SECTOR_DEG)
-    dist = np.asarray(truth.sector_m, float)[j, ii]
-    pt = p[j, :2] + dist[:, None] * np.stack([np.cos(b), np.sin(b)], 1)  # (C, 2)
-    t = np.asarray(truth.t_s, float)
-    lo = np.searchsorted(t, t[j] - cfg.remember_window_s - 1e-9, side="left")
-    W = int(np.max(j - lo)) + 1
+    lo, W = _window(truth, j, cfg.remember_window_s)
     for c0 in range(0, len(j), 2048):  # chunks of cells, vectorized over cells × frames of the window
         c = slice(c0, c0 + 2048)
         f = j[c, None] - np.arange(W)[None, :]  # (c, W) frames back from the cell's own
         inwin = f >= lo[c, None]
         f = np.maximum(f, 0)
-        rel = pt[c, None, :] - p[f, :2]
+        rel = pt[c, None, :2] - p[f, :2]
         r = np.hypot(rel[..., 0], rel[..., 1])
         sec = sector_of(rel[..., 0], rel[..., 1], yaw[f])
         moved = np.linalg.norm(p[j[c], None, :] - p[f], axis=2) < cfg.remember_max_travel_m
-        out[c] = np.any(inwin & view_f[f, sec] & (r <= truth.sector_max_m) & moved, axis=1)
+        hit = inwin & view_f[f, sec] & (r <= truth.sector_max_m) & moved
+        first = np.argmax(hit, axis=1)  # the latest such frame (f runs backwards)
+        out[c] = np.where(hit.any(axis=1), f[np.arange(len(first)), first], -1)
     return out
 
 
-def rangeable_cells(truth: SectorTruth, view_f: np.ndarray, frame: np.ndarray, candidates: np.ndarray,
-                    config: ScoreConfig) -> np.ndarray:
-    """(N, 72) bool: the *rangeable* cells among ``candidates`` (in-view obstacle cells of the
-    messages): those a single camera could have ranged at all, given only how it moved — the
-    ceiling of any monocular method (diagnostic; definitions in :mod:`flightsim.score`).
+def points_rangeable(truth: SectorTruth, view_f: np.ndarray, pt: np.ndarray, j: np.ndarray, config: ScoreConfig) -> np.ndarray:
+    """(C,) bool: could a single camera have ranged the world point ``pt`` (C, 3) by truth frame ``j``?
 
-    The cell's point is the world point at its true distance on its centre bearing, at the
-    vehicle's altitude (the band's centre).  It is rangeable when, in some truth frame ``f`` at most
-    ``rangeable_window_s`` before the message's frame ``j`` (``frame``) and no later, the point lay
-    in an in-view sector within ``sector_max_m``, and either the lines of sight to it from the
-    vehicle at ``f`` and at ``j`` differ by at least ``rangeable_parallax_deg`` (the bearing
+    Yes when, in some truth frame ``f`` at most ``rangeable_window_s`` before ``j`` and no later, the
+    point lay in an in-view sector within ``sector_max_m``, and either the lines of sight to it from
+    the vehicle at ``f`` and at ``j`` differ by at least ``rangeable_parallax_deg`` (the bearing
     parallax of DESIGN.md §3's triangulation) or its distances from the two differ by at least the
-    fraction ``rangeable_scale`` (looming, DESIGN.md §7).  A vehicle turning in place sees neither:
+    fraction ``rangeable_scale`` (looming, DESIGN.md §7).  A vehicle turning in place gains neither:
     a bearing and a scale that do not change carry no range.  Neither occlusion nor texture is
-    checked, and the camera is taken at the vehicle's centre: this is an upper bound.
+    checked, and the camera is taken at the vehicle's centre: an upper bound for any monocular method.
     """
     cfg = config
-    n = len(frame)
-    out = np.zeros((n, N_SECTORS), bool)
-    nn, ii = np.nonzero(candidates & (frame >= 0)[:, None])
-    if nn.size == 0:
-        return out
-    j_all = frame[nn]
-    key, inv = np.unique(j_all * N_SECTORS + ii, return_inverse=True)
-    j, sec0 = key // N_SECTORS, key % N_SECTORS
+    ok = np.zeros(len(j), bool)
+    if len(j) == 0:
+        return ok
     p = np.asarray(truth.p_ned, float)
     yaw = np.asarray(truth.yaw, float)
-    t = np.asarray(truth.t_s, float)
-    dist = np.asarray(truth.sector_m, float)[j, sec0]
-    b = yaw[j] + np.radians(sec0 * SECTOR_DEG)
-    pt = np.column_stack([p[j, 0] + dist * np.cos(b), p[j, 1] + dist * np.sin(b), p[j, 2]])  # (C, 3) world NED
     los_j = pt - p[j]
     r_j = np.linalg.norm(los_j, axis=1)
     cos_min = math.cos(math.radians(cfg.rangeable_parallax_deg))
     log_scale = math.log1p(cfg.rangeable_scale)
-    lo = np.searchsorted(t, t[j] - cfg.rangeable_window_s - 1e-9, side="left")
-    W = int(np.max(j - lo)) + 1
-    ok = np.zeros(len(j), bool)
-    for c0 in range(0, len(j), 1024):  # chunks of cells, vectorized over cells × frames of the window
+    lo, W = _window(truth, j, cfg.rangeable_window_s)
+    for c0 in range(0, len(j), 1024):  # chunks of points, vectorized over points × frames of the window
         c = slice(c0, c0 + 1024)
         f = j[c, None] - np.arange(W)[None, :]  # (c, W) this frame and those before it
         inwin = f >= lo[c, None]
@@ -210,13 +212,32 @@ def rangeable_cells(truth: SectorTruth, view_f: np.ndarray, frame: np.ndarray, c
         los = pt[c, None, :] - p[f]  # (c, W, 3)
         r = np.linalg.norm(los, axis=2)
         r_h = np.hypot(los[..., 0], los[..., 1])
-        sec = sector_of(los[..., 0], los[..., 1], yaw[f])
-        seen = inwin & view_f[f, sec] & (r_h <= truth.sector_max_m)
+        seen = inwin & view_f[f, sector_of(los[..., 0], los[..., 1], yaw[f])] & (r_h <= truth.sector_max_m)
         with np.errstate(invalid="ignore", divide="ignore"):
             cosang = np.einsum("cwk,ck->cw", los, los_j[c]) / (r * r_j[c, None])
             loom = np.abs(np.log(r / r_j[c, None]))
         ok[c] = np.any(seen & ((cosang <= cos_min) | (loom >= log_scale)), axis=1)
-    out[nn, ii] = ok[inv.reshape(-1)]
+    return ok
+
+
+def rangeable_cells(truth: SectorTruth, view_f: np.ndarray, frame: np.ndarray, candidates: np.ndarray,
+                    config: ScoreConfig, ref: np.ndarray | None = None) -> np.ndarray:
+    """(N, 72) bool: the *rangeable* cells among ``candidates``: cells whose point
+    (:func:`cell_points`, at the message's truth frame ``frame``) a single camera could have ranged
+    (:func:`points_rangeable`) by the frame ``ref`` (N, 72) — the message's own for cells in view
+    (default), the one in which the point was last seen for remembered cells.  A diagnostic: the
+    ceiling of any monocular method (definitions in :mod:`flightsim.score`)."""
+    n = len(frame)
+    out = np.zeros((n, N_SECTORS), bool)
+    if ref is None:
+        ref = np.broadcast_to(frame[:, None], (n, N_SECTORS))
+    nn, ii = np.nonzero(candidates & (frame >= 0)[:, None] & (ref >= 0))
+    if nn.size == 0:
+        return out
+    j, jr = frame[nn], ref[nn, ii]
+    key, inv = np.unique(np.stack([j, ii, jr], 1), axis=0, return_inverse=True)  # one test per distinct cell
+    pt = cell_points(truth, key[:, 0], key[:, 1])
+    out[nn, ii] = points_rangeable(truth, view_f, pt, key[:, 2], config)[inv.reshape(-1)]
     return out
 
 
@@ -269,8 +290,9 @@ def evaluate(msgs: RangeMessages, truth: SectorTruth, config: ScoreConfig = Scor
     lab = np.full((n, N_SECTORS), -1, np.int64)
     lab[scored] = labels[frame[scored]]
     lab[tcls != TRUTH_OBSTACLE] = -1
-    remember = remembered_cells(truth, labels, view_f, frame, lab, (tcls == TRUTH_OBSTACLE) & ~view, cfg)
+    remember, seen_at = remembered_cells(truth, labels, view_f, frame, lab, (tcls == TRUTH_OBSTACLE) & ~view, cfg)
     rangeable = rangeable_cells(truth, view_f, frame, (tcls == TRUTH_OBSTACLE) & view, cfg)
+    rangeable |= rangeable_cells(truth, view_f, frame, remember, cfg, ref=seen_at)
     # --- exposure and latency -----------------------------------------------------------------
     off = _boot_offset(msgs)
     cap_t = np.full(n, np.nan)
@@ -364,6 +386,7 @@ class CellMasks:
     unknown_out_of_view: np.ndarray  # unknown in an out-of-view cell whose truth is known (neutral)
     remembered: np.ndarray  # out-of-view obstacle cells of an obstacle in view recently nearby (remembered_cells)
     rangeable: np.ndarray  # in-view obstacle cells a single camera could have ranged (rangeable_cells)
+    remembered_rangeable: np.ndarray  # remembered cells whose point was rangeable when last in view
 
 
 def cell_masks(ev: Evaluation) -> CellMasks:
@@ -399,4 +422,5 @@ def cell_masks(ev: Evaluation) -> CellMasks:
         unknown_out_of_view=(obstacle_any | clear_any) & ~view & (rep == REP_UNKNOWN),
         remembered=ev.od_remember & obstacle_any,
         rangeable=ev.od_rangeable & obstacle & view,
+        remembered_rangeable=ev.od_rangeable & ev.od_remember & obstacle_any,
     )

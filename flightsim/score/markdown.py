@@ -12,6 +12,14 @@ def _f(v, fmt: str = "{:.2f}", none: str = "–") -> str:
     return none if v is None else fmt.format(v)
 
 
+def remembered_rangeable_text(rem: dict) -> str:
+    """The remembered cells whose point was rangeable when last in view (the single camera's ceiling)."""
+    if rem.get("rangeable_cells") is None:
+        return ""
+    return (f"; of them rangeable when last in view {rem['rangeable_cells']}, within tolerance "
+            f"{rem['rangeable_within_tolerance']} ({_pc(rem.get('rangeable_rate'))})")
+
+
 def _pc(v, digits: int = 1) -> str:
     return "–" if v is None else f"{100 * v:.{digits}f} %"
 
@@ -104,7 +112,7 @@ def markdown(score: dict, title: str = "Score") -> str:
     if rem:
         L += [f"Remembered obstacles out of view (in view within {rem['window_s']:g} s, vehicle moved < {rem['max_travel_m']:g} m): "
               f"{rem['cells']} cells, within tolerance {rem['within_tolerance']} ({_pc(rem['rate'])}), ranges {rem['ranges']}, "
-              f"unknown {rem['unknown']}, dangerous clears {rem['dangerous_clears']}.", ""]
+              f"unknown {rem['unknown']}, dangerous clears {rem['dangerous_clears']}" + remembered_rangeable_text(rem) + ".", ""]
     rg = s.get("rangeable")
     if rg and rg.get("obstacle_cells_in_view"):
         L += [f"Rangeable in view (the single camera's ceiling: the cell's point seen within {rg.get('window_s', 0):g} s from a "

@@ -259,6 +259,9 @@ def summarize(ev: Evaluation, sector_log: dict | None = None) -> dict:
         "ranges": int((m.remembered & (ev.od_rep == REP_RANGE)).sum()),
         "unknown": int((m.remembered & (ev.od_rep == REP_UNKNOWN)).sum()),
         "dangerous_clears": int((m.remembered & (ev.od_rep == REP_CLEAR)).sum()),
+        "rangeable_cells": int(m.remembered_rangeable.sum()),
+        "rangeable_within_tolerance": int((m.remembered_rangeable & m.valid).sum()),
+        "rangeable_rate": _rate(int((m.remembered_rangeable & m.valid).sum()), int(m.remembered_rangeable.sum())),
         "window_s": cfg.remember_window_s, "max_travel_m": cfg.remember_max_travel_m,
     }
     iv_obs = m.obstacle & m.in_view
