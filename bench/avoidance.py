@@ -59,13 +59,40 @@ def base_file(scenario: str) -> Path:
     return SCEN / f"{VARIANTS.get(scenario, (scenario,))[0]}.toml"
 
 
-def scenario_file(scenario: str, model: str, out: Path) -> tuple[Path, str]:
+def _scale_camera(text: str, camera: tuple[int, int], src: Path) -> str:
+    """The scenario's ``[camera]`` at ``camera`` = (width, height) pixels: the same field of view
+    (fx, fy, cx, cy scaled with the width; the aspect ratio must stay)."""
+    def value(key: str) -> float:
+        m = re.search(rf"^{key} = ([0-9.]+)", text, flags=re.M)
+        if m is None:
+            raise ValueError(f"{src}: no {key} line to scale the camera")
+        return float(m.group(1))
+
+    w0, h0 = value("width"), value("height")
+    w, h = camera
+    if abs(w / w0 - h / h0) > 1e-9:
+        raise ValueError(f"--camera {w}x{h}: keep the scenario's aspect ratio ({w0:g}x{h0:g})")
+    k = w / w0
+    new = {"width": f"{w:d}", "height": f"{h:d}", "fx": f"{value('fx') * k:.2f}", "fy": f"{value('fy') * k:.2f}",
+           "cx": f"{(value('cx') + 0.5) * k - 0.5:.2f}", "cy": f"{(value('cy') + 0.5) * k - 0.5:.2f}"}
+    for key, v in new.items():
+        text = re.sub(rf"^{key} = [0-9.]+", f"{key} = {v}", text, count=1, flags=re.M)
+    return text
+
+
+def camera_tag(camera: tuple[int, int] | None) -> str:
+    """The suffix of a campaign flown at another resolution than its scenario's (``""`` for the scenario's own)."""
+    return "" if camera is None else f"_{camera[0]}x{camera[1]}"
+
+
+def scenario_file(scenario: str, model: str, out: Path, camera: tuple[int, int] | None = None) -> tuple[Path, str]:
     """The scenario TOML and the ``--avoidance`` model of a campaign.  A speed variant
-    (:data:`VARIANTS`) and ``px4_go_no_data`` (the scenario with ``cp_go_no_data = true``) are
-    written to ``out`` from the scenario file they change (world path made absolute, the name
-    and the commanded speed replaced)."""
+    (:data:`VARIANTS`), ``px4_go_no_data`` (the scenario with ``cp_go_no_data = true``) and another
+    camera resolution (``camera`` = (width, height), the same field of view) are written to ``out``
+    from the scenario file they change (world path made absolute, the name, the commanded speed and
+    the camera replaced)."""
     src = base_file(scenario)
-    if model != "px4_go_no_data" and scenario not in VARIANTS:
+    if model != "px4_go_no_data" and scenario not in VARIANTS and camera is None:
         return src, model
     from flightsim.scenario import set_path_key
 
@@ -79,6 +106,10 @@ def scenario_file(scenario: str, model: str, out: Path) -> tuple[Path, str]:
         if n != 1 or m != 1:
             raise ValueError(f"{src}: no speed_mps / name line to write the variant {scenario}")
     tag = scenario
+    if camera is not None:
+        text = _scale_camera(text, camera, src)
+        text, _ = re.subn(r'^name = "[^"]*"', f'name = "{scenario}{camera_tag(camera)}"', text, count=1, flags=re.M)
+        tag += camera_tag(camera)
     if model == "px4_go_no_data":
         text = re.sub(r"^(cp_dist_m = .*)$", r"\1\ncp_go_no_data = true                # CP_GO_NO_DATA = 1: directions never covered do not stall",
                       text, count=1, flags=re.M)
@@ -125,11 +156,12 @@ def no_companion(runs: int = 20, workers: int = 2, scenarios=None) -> dict:
 
 
 def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=DEFAULT_MODELS, progress=None,
-            variant_models=("ardupilot",), checkpoint=None, with_no_companion: bool = True) -> dict:
+            variant_models=("ardupilot",), checkpoint=None, with_no_companion: bool = True,
+            camera: tuple[int, int] | None = None) -> dict:
     """The campaigns of ``scenarios`` × ``models`` with ``runs`` seeds each (speed variants only with the
-    models also in ``variant_models``), then the flights without the companion; returns their results.
-    ``checkpoint(res)`` is called after each campaign with the results so far (a long bench cut short
-    keeps what it finished)."""
+    models also in ``variant_models``; every scenario at ``camera`` = (width, height) when given), then the
+    flights without the companion; returns their results.  ``checkpoint(res)`` is called after each
+    campaign with the results so far (a long bench cut short keeps what it finished)."""
     from flightsim.campaign import run_campaign
 
     names = list(SCENARIOS) if scenarios is None else list(scenarios)
@@ -141,22 +173,22 @@ def run_all(runs: int = 20, workers: int = 2, scenarios=None, models=DEFAULT_MOD
         for name in names:
             if name in VARIANTS and model not in variant_models:
                 continue
-            out = OUT / f"{name}_{model}"
-            path, av = scenario_file(name, model, OUT / "scenarios")
+            out = OUT / f"{name}_{model}{camera_tag(camera)}"
+            path, av = scenario_file(name, model, OUT / "scenarios", camera)
             t0 = time.perf_counter()
             c = run_campaign(path, out, runs=runs, workers=workers, mode="sitl", avoidance=av)
-            res["campaigns"][f"{name}/{model}"] = {
-                "scenario": name, "model": model, "wall_s": round(time.perf_counter() - t0, 1), "dir": str(out),
+            res["campaigns"][f"{name}{camera_tag(camera)}/{model}"] = {
+                "scenario": name + camera_tag(camera), "model": model, "wall_s": round(time.perf_counter() - t0, 1), "dir": str(out),
                 "avoidance": c["aggregate"]["avoidance"], "runs_ok": c["aggregate"]["runs_ok"], "runs": c["aggregate"]["runs"],
                 "detection_in_view": next((t["pooled"] for t in c["aggregate"]["targets"]
                                            if t["name"].startswith("detection (a range")), None),
                 "dangerous_clears": dangerous_clears(c),
             }
             if progress:
-                progress(name, model, res["campaigns"][f"{name}/{model}"])
+                progress(name + camera_tag(camera), model, res["campaigns"][f"{name}{camera_tag(camera)}/{model}"])
             if checkpoint:
                 checkpoint(res)
-    if with_no_companion:
+    if with_no_companion and camera is None:  # the flights without the companion do not depend on its camera
         res["no_companion"] = no_companion(runs, workers, names)
     return res
 
@@ -282,6 +314,9 @@ def main(argv=None) -> int:
                     help="models the 3 and 6 m/s variants of the pole and the corner are flown with (default ardupilot)")
     ap.add_argument("--no-companion-flights", choices=("on", "off"), default="on",
                     help="also fly each scenario without the companion (the harness must show a collision; default on)")
+    ap.add_argument("--camera", metavar="WxH", default=None,
+                    help="fly every scenario at this camera resolution, the same field of view (e.g. 640x480; default the "
+                         "scenario's own, 320x240); campaigns go to out/bench/avoidance/<scenario>_<model>_WxH")
     ap.add_argument("--json-out", metavar="FILE", default=None,
                     help="where the results go (default out/bench/avoidance/avoidance.json; written after each campaign)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of the table")
@@ -298,14 +333,26 @@ def main(argv=None) -> int:
     names = [n.strip() for n in args.scenarios.split(",") if n.strip()] if args.scenarios else None
     models = tuple(m.strip() for m in args.models.split(",") if m.strip() and m.strip() != "none")  # none: only the no-companion flights
     variant_models = tuple(m.strip() for m in args.variant_models.split(",") if m.strip())
-    json_out = Path(args.json_out) if args.json_out else OUT / "avoidance.json"
+    camera = None
+    if args.camera:
+        m = re.fullmatch(r"([0-9]+)x([0-9]+)", args.camera.strip())
+        if m is None or int(m.group(1)) < 16 or int(m.group(2)) < 16:
+            ap.error(f"--camera takes WIDTHxHEIGHT in pixels (e.g. 640x480), got {args.camera!r}")
+        camera = (int(m.group(1)), int(m.group(2)))
+    json_out = Path(args.json_out) if args.json_out else OUT / f"avoidance{camera_tag(camera)}.json"
 
     def checkpoint(r: dict) -> None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(r, default=str, indent=1), encoding="utf-8")
 
+    try:
+        if camera is not None:  # the aspect ratio is checked before any flight
+            for n in names or SCENARIOS:
+                _scale_camera(base_file(n).read_text(encoding="utf-8"), camera, base_file(n))
+    except ValueError as e:
+        ap.error(str(e))
     res = run_all(args.runs, args.workers, names, models, variant_models=variant_models, checkpoint=checkpoint,
-                  with_no_companion=args.no_companion_flights == "on",
+                  with_no_companion=args.no_companion_flights == "on", camera=camera,
                   progress=lambda n, m, c: print(f"{n} {m}: {c['avoidance'] and c['avoidance']['collisions']} collisions "
                                                  f"in {c['runs_ok']} runs ({c['wall_s']:.0f} s)", flush=True))
     checkpoint(res)

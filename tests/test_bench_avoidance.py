@@ -105,3 +105,26 @@ def test_rescore_reads_the_dangerous_clears_from_each_campaign(tmp_path):
     c = A.rescore(res)["campaigns"]["quad_avoid_pole/px4"]
     assert c["dangerous_clears"]["cells"] == 1 and c["dangerous_clears"]["runs_with"] == 1
     assert c["avoidance"] is None  # no trajectory to score again: the outcome stays as it was
+
+
+@pytest.mark.parametrize("name", ["quad_avoid_wall_6", "quad_avoid_pole_3"])
+def test_a_camera_variant_keeps_the_field_of_view_and_changes_nothing_else(tmp_path, name):
+    path, model = A.scenario_file(name, "px4", tmp_path, (640, 480))
+    assert model == "px4" and path.name == f"{name}_640x480.toml"
+    sc, base = load_scenario(path), load_scenario(A.scenario_file(name, "px4", tmp_path / "base")[0])
+    assert (sc.camera.width, sc.camera.height) == (640, 480) and (base.camera.width, base.camera.height) == (320, 240)
+    # the same field of view and principal point (pixel centres: (c + 0.5) scales with the image)
+    assert sc.camera.fx == pytest.approx(2 * base.camera.fx) and sc.camera.fy == pytest.approx(2 * base.camera.fy)
+    assert sc.camera.cx + 0.5 == pytest.approx(2 * (base.camera.cx + 0.5))
+    assert sc.camera.cy + 0.5 == pytest.approx(2 * (base.camera.cy + 0.5))
+    assert sc.vehicle.route.speed_mps == base.vehicle.route.speed_mps and sc.avoidance == base.avoidance
+    assert sc.meta.name == f"{name}_640x480"
+    assert A.camera_tag((640, 480)) == "_640x480" and A.camera_tag(None) == ""
+
+
+def test_a_camera_of_another_aspect_ratio_is_refused_before_any_flight(capsys):
+    with pytest.raises(SystemExit) as e:
+        A.main(["--camera", "640x360", "--scenarios", "quad_avoid_wall_3", "--runs", "1"])
+    assert e.value.code == 2 and "aspect ratio" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        A.main(["--camera", "640", "--runs", "1"])
