@@ -10,6 +10,8 @@ Subcommands:
   hostile   soak and fuzz: a long lockstep SITL hover under hostile MAVLink traffic and telemetry blackouts
             (bench/hostile.py; not part of `all`: the real run is 30 simulated minutes)
   too_near  the too-near cells of finished SITL campaigns split by cause (bench/too_near.py; reads campaigns, flies nothing)
+  motion_split  detection in view of finished SITL campaigns by what the vehicle did — turning in place, hovering,
+            moving — and true range, with the single camera's ceiling (bench/motion_split.py; flies nothing)
   looming_truth  the tracker's scale changes on rendered flights against the true depth ratio: is the looming σ honest,
             are a track's errors independent (bench/looming_truth.py)
   landmark_truth  each converged landmark's range against the truth on a SITL flight with a landmark log: is its σ
@@ -123,7 +125,7 @@ def cmd_timing(args) -> dict:
 
 #: subcommands that are modules with their own argparse (``python -m bench NAME …`` = ``python -m bench.NAME …``)
 OWN_COMMAND_LINE = ("hostile", "compute", "position_states", "telemetry_ablation", "too_near", "looming_truth",
-                    "landmark_truth")
+                    "landmark_truth", "motion_split")
 
 
 def main(argv=None) -> int:
@@ -207,6 +209,9 @@ def main(argv=None) -> int:
     sub.add_parser("too_near", help="the too-near cells of finished SITL campaigns split by cause (beside an obstacle, "
                                     "the k·σ offset, short) and the forward sector republished with other k (options: "
                                     "python -m bench too_near --help)", add_help=False)
+    sub.add_parser("motion_split", help="detection in view of finished SITL campaigns by the vehicle's motion (turning in "
+                                        "place, hovering, moving) and true range (options: python -m bench motion_split --help)",
+                   add_help=False)
     sub.add_parser("looming_truth", help="the tracker's scale changes on rendered flights against the truth: the looming "
                                          "noise model checked (options: python -m bench looming_truth --help)", add_help=False)
     sub.add_parser("landmark_truth", help="each converged landmark's range and σ against the truth on a SITL flight "
