@@ -22,12 +22,12 @@ Reads each run's ``score_series.npz`` and ``truth.npz``; nothing is flown.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from bench.report import print_campaign_readings
 from flightsim.score.config import REP_CLEAR, REP_RANGE, REP_UNKNOWN, TRUTH_OBSTACLE, ScoreConfig
 from flightsim.score.inputs import SectorTruth
 
@@ -138,13 +138,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if not (np.isfinite(args.turn_dps) and args.turn_dps > 0 and np.isfinite(args.hover_mps) and args.hover_mps > 0):
         ap.error("--turn-dps and --hover-mps must be positive numbers")
-    try:
-        results = [analyse(Path(c), turn_dps=args.turn_dps, hover_mps=args.hover_mps) for c in args.campaigns]
-    except (FileNotFoundError, KeyError, ValueError) as e:
-        print(f"bench.motion_split: {e}", file=sys.stderr)
-        return 2
-    print(json.dumps(results, indent=1) if args.json else markdown(results), end="")
-    return 0
+    return print_campaign_readings("bench.motion_split", lambda c: analyse(c, turn_dps=args.turn_dps, hover_mps=args.hover_mps),
+                                   args.campaigns, args.json, markdown)
 
 
 if __name__ == "__main__":

@@ -310,3 +310,20 @@ def merge_document(existing: str, generated: str) -> str:
     if not existing.strip():
         return generated.rstrip("\n") + "\n"
     return _merge_level(existing, generated, 2)
+
+
+def print_campaign_readings(prog: str, read, campaigns, as_json: bool, markdown) -> int:
+    """The thin end of the commands that read finished campaigns (``bench.too_near``,
+    ``bench.motion_split``): ``read(Path)`` each campaign directory, print the JSON or the
+    ``markdown(results)``; a campaign that cannot be read is reported on stderr with exit code 2."""
+    import json
+    import sys
+    from pathlib import Path
+
+    try:
+        results = [read(Path(c)) for c in campaigns]
+    except (FileNotFoundError, KeyError, ValueError) as e:
+        print(f"{prog}: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps(results, indent=1) if as_json else markdown(results), end="")
+    return 0

@@ -26,12 +26,12 @@ nothing is flown.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from bench.report import print_campaign_readings
 from flightsim.score.config import REP_RANGE, ScoreConfig
 from flightsim.score.summary import matches_neighbour
 
@@ -153,13 +153,7 @@ def main(argv=None) -> int:
                     help="the k the campaigns were published with ([sectors] sigma_k; default 2)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of the tables")
     args = ap.parse_args(argv)
-    try:
-        results = [analyse(Path(c), args.sigma_k) for c in args.campaigns]
-    except (FileNotFoundError, KeyError, ValueError) as e:
-        print(f"bench.too_near: {e}", file=sys.stderr)
-        return 2
-    print(json.dumps(results, indent=1) if args.json else markdown(results), end="")
-    return 0
+    return print_campaign_readings("bench.too_near", lambda c: analyse(c, args.sigma_k), args.campaigns, args.json, markdown)
 
 
 if __name__ == "__main__":
