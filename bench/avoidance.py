@@ -60,24 +60,14 @@ def base_file(scenario: str) -> Path:
 
 
 def _scale_camera(text: str, camera: tuple[int, int], src: Path) -> str:
-    """The scenario's ``[camera]`` at ``camera`` = (width, height) pixels: the same field of view
-    (fx, fy, cx, cy scaled with the width; the aspect ratio must stay)."""
-    def value(key: str) -> float:
-        m = re.search(rf"^{key} = ([0-9.]+)", text, flags=re.M)
-        if m is None:
-            raise ValueError(f"{src}: no {key} line to scale the camera")
-        return float(m.group(1))
+    """The scenario's ``[camera]`` at ``camera`` = (width, height) with the same field of view
+    (:func:`flightsim.scenario.scale_camera_text`); a ``ValueError`` if the aspect ratio changes."""
+    from flightsim.scenario import scale_camera_text
 
-    w0, h0 = value("width"), value("height")
-    w, h = camera
-    if abs(w / w0 - h / h0) > 1e-9:
-        raise ValueError(f"--camera {w}x{h}: keep the scenario's aspect ratio ({w0:g}x{h0:g})")
-    k = w / w0
-    new = {"width": f"{w:d}", "height": f"{h:d}", "fx": f"{value('fx') * k:.2f}", "fy": f"{value('fy') * k:.2f}",
-           "cx": f"{(value('cx') + 0.5) * k - 0.5:.2f}", "cy": f"{(value('cy') + 0.5) * k - 0.5:.2f}"}
-    for key, v in new.items():
-        text = re.sub(rf"^{key} = [0-9.]+", f"{key} = {v}", text, count=1, flags=re.M)
-    return text
+    try:
+        return scale_camera_text(text, camera, str(src))
+    except Exception as e:  # ConfigError, as the ValueError this bench reports
+        raise ValueError(str(e)) from e
 
 
 def camera_tag(camera: tuple[int, int] | None) -> str:
@@ -335,10 +325,12 @@ def main(argv=None) -> int:
     variant_models = tuple(m.strip() for m in args.variant_models.split(",") if m.strip())
     camera = None
     if args.camera:
-        m = re.fullmatch(r"([0-9]+)x([0-9]+)", args.camera.strip())
-        if m is None or int(m.group(1)) < 16 or int(m.group(2)) < 16:
-            ap.error(f"--camera takes WIDTHxHEIGHT in pixels (e.g. 640x480), got {args.camera!r}")
-        camera = (int(m.group(1)), int(m.group(2)))
+        from flightsim.scenario import parse_camera_size
+
+        try:
+            camera = parse_camera_size(args.camera)
+        except Exception as e:
+            ap.error(f"--camera: {e}")
     json_out = Path(args.json_out) if args.json_out else OUT / f"avoidance{camera_tag(camera)}.json"
 
     def checkpoint(r: dict) -> None:

@@ -661,13 +661,18 @@ def campaign_from_args(args) -> int:
 
     times = parse_times(args.times)
     cfg = load_score_config(args.score_config)
+    scenario = args.scenario
+    if getattr(args, "camera", None):
+        from flightsim.scenario import parse_camera_size, scenario_at_camera
+
+        scenario = str(scenario_at_camera(args.scenario, parse_camera_size(args.camera), args.out))
     from companion.io.progress import ProgressBar
 
     with ProgressBar("campaign", total=args.runs, transient=False, elapsed=True) as bar:
         def tick(done: int, total: int, failed: int) -> None:
             bar.update(done, total, "campaign" + (f" ({failed} failed)" if failed else ""))
 
-        c = run_campaign(args.scenario, args.out, runs=args.runs, workers=args.workers, mode=args.mode, seed0=args.seed0,
+        c = run_campaign(scenario, args.out, runs=args.runs, workers=args.workers, mode=args.mode, seed0=args.seed0,
                          companion_config=args.companion_config, score_config=cfg,
                          fixed_processing_ms=args.fixed_processing_ms, keep_video=args.keep_video, obstacle=args.obstacle,
                          times=times, progress=tick, avoidance=args.avoidance, backend=args.backend, address=args.address,

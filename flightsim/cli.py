@@ -416,6 +416,9 @@ def main(argv=None) -> int:
     p.add_argument("--landmark-log", action="store_true",
                    help="each run also writes the companion's landmark log, landmarks.jsonl (per frame, every landmark's "
                         "point, range, σ and flags; ~15 MB a minute); python -m bench landmark_truth reads them")
+    p.add_argument("--camera", metavar="WxH", default=None,
+                   help="fly the scenario with its camera at this resolution and the same field of view (e.g. 640x480; "
+                        "the aspect ratio must stay): the scenario is written to DIR/<scenario>_WxH.toml and flown from there")
     p.add_argument("--keep-video", action="store_true", help="keep each run's video.avi (default: deleted after scoring; "
                                                              "the seed reproduces it)")
     args = ap.parse_args(argv)

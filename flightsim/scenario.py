@@ -198,6 +198,65 @@ def set_path_key(text: str, key: str, value: str) -> tuple[str, str | None]:
     return text[: m.start()] + f'{m.group(1)}"{value}"' + text[m.end():], m.group(2)
 
 
+def parse_camera_size(text: str) -> tuple[int, int]:
+    """``"640x480"`` → (640, 480); a clear :class:`ConfigError` for anything else."""
+    import re
+
+    m = re.fullmatch(r"\s*([0-9]+)\s*[xX]\s*([0-9]+)\s*", str(text))
+    if m is None or int(m.group(1)) < 16 or int(m.group(2)) < 16:
+        raise ConfigError(f"a camera size is WIDTHxHEIGHT in pixels, at least 16x16 (e.g. 640x480), got {text!r}")
+    return int(m.group(1)), int(m.group(2))
+
+
+def scale_camera_text(text: str, camera: tuple[int, int], where: str = "scenario") -> str:
+    """Scenario TOML text with its ``[camera]`` at ``camera`` = (width, height) pixels and the same
+    field of view: fx, fy scaled with the width, the principal point with the pixel centres
+    (``(c + 0.5)·k − 0.5``).  The aspect ratio must stay (:class:`ConfigError` otherwise)."""
+    import re
+
+    def value(key: str) -> float:
+        m = re.search(rf"^{key} = ([0-9.]+)", text, flags=re.M)
+        if m is None:
+            raise ConfigError(f"{where}: no [camera] {key} line to scale")
+        return float(m.group(1))
+
+    w0, h0 = value("width"), value("height")
+    w, h = camera
+    if abs(w / w0 - h / h0) > 1e-9:
+        raise ConfigError(f"{where}: a camera of {w}x{h} changes the aspect ratio of {w0:g}x{h0:g}; keep it")
+    k = w / w0
+    new = {"width": f"{w:d}", "height": f"{h:d}", "fx": f"{value('fx') * k:.2f}", "fy": f"{value('fy') * k:.2f}",
+           "cx": f"{(value('cx') + 0.5) * k - 0.5:.2f}", "cy": f"{(value('cy') + 0.5) * k - 0.5:.2f}"}
+    for key, v in new.items():
+        text = re.sub(rf"^{key} = [0-9.]+", f"{key} = {v}", text, count=1, flags=re.M)
+    return text
+
+
+def scenario_at_camera(path: str | os.PathLike, camera: tuple[int, int], out_dir: str | os.PathLike) -> Path:
+    """A copy of the scenario at ``camera`` = (width, height) with the same field of view
+    (:func:`scale_camera_text`), written as ``out_dir/<stem>_WxH.toml``: its ``world`` and
+    ``companion_config`` made absolute and its name suffixed ``_WxH``.  Loaded once to check it."""
+    import re
+
+    src = Path(path)
+    text = src.read_text(encoding="utf-8")
+    for key in ("world", "companion_config"):
+        value = set_path_key(text, key, "")[1]
+        if value:
+            text, _ = set_path_key(text, key, (src.parent / value).resolve().as_posix())
+    text = scale_camera_text(text, camera, str(src))
+    tag = f"_{camera[0]}x{camera[1]}"
+    text, n = re.subn(r'^(name\s*=\s*)"([^"]*)"', lambda m: f'{m.group(1)}"{m.group(2)}{tag}"', text, count=1, flags=re.M)
+    if n != 1:
+        raise ConfigError(f"{src}: no [scenario] name line to suffix")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    dst = out / f"{src.stem}{tag}.toml"
+    dst.write_text(text, encoding="utf-8")
+    load_scenario(dst)
+    return dst
+
+
 def load_scenario(path: str | os.PathLike, seed: int | None = None, avoidance: str | None = None) -> Scenario:
     """Read, validate and pre-flight-check a scenario; ``seed`` overrides ``[scenario] seed``,
     ``avoidance`` the ``[avoidance] model``."""
