@@ -162,8 +162,15 @@ def _range_target_tables(res: dict) -> list[str]:
         for o in a.get("obstacles", []):
             m = (o.get("time_to_first_valid_s") or {}).get("mean")
             never = o.get("runs_never_valid", 0)
+            unrangeable = o.get("runs_never_rangeable", 0)
+            mr = (o.get("time_to_first_valid_after_rangeable_s") or {}).get("mean")
             if m is not None or never:
-                ttfv.append(f"{o['name']} {'–' if m is None else f'{m:.2f}'}" + (f" ({never} runs never)" if never else ""))
+                note = [f"{never} runs never"] if never else []
+                if unrangeable:
+                    note.append(f"never rangeable in {unrangeable}")
+                if mr is not None and m is not None and abs(mr - m) >= 0.005:
+                    note.append(f"{mr:.2f} once rangeable")
+                ttfv.append(f"{o['name']} {'–' if m is None else f'{m:.2f}'}" + (f" ({'; '.join(note)})" if note else ""))
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {'; '.join(ttfv) or '–'} |")
     fb_rows = []
     for name, c in res["campaigns"].items():

@@ -319,7 +319,8 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
     for s in scores:
         for o in s["obstacles"]:
             d = obstacles.setdefault(o["name"], {"name": o["name"], "runs_in_range": 0, "runs_valid": 0, "ttfv": [],
-                                                 "detected_fraction": [], "in_range_at_s": []})
+                                                 "detected_fraction": [], "in_range_at_s": [], "runs_rangeable": 0,
+                                                 "ttfv_rangeable": []})
             if o["in_range_at_s"] is not None:
                 d["runs_in_range"] += 1
                 d["in_range_at_s"].append(o["in_range_at_s"])
@@ -327,11 +328,17 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
                 if o["time_to_first_valid_s"] is not None:
                     d["runs_valid"] += 1
                     d["ttfv"].append(o["time_to_first_valid_s"])
+                if o.get("first_rangeable_at_s") is not None:
+                    d["runs_rangeable"] += 1
+                    if o.get("time_to_first_valid_after_rangeable_s") is not None:
+                        d["ttfv_rangeable"].append(o["time_to_first_valid_after_rangeable_s"])
     obs_rows = []
     for d in obstacles.values():
         obs_rows.append({"name": d["name"], "runs_in_range": d["runs_in_range"], "runs_with_valid_range": d["runs_valid"],
                          "runs_never_valid": d["runs_in_range"] - d["runs_valid"],
                          "in_range_at_s": _mean_std(d["in_range_at_s"]), "time_to_first_valid_s": _mean_std(d["ttfv"]),
+                         "runs_never_rangeable": d["runs_in_range"] - d["runs_rangeable"],
+                         "time_to_first_valid_after_rangeable_s": _mean_std(d["ttfv_rangeable"]),
                          "detected_fraction": _mean_std(d["detected_fraction"])})
     # detection by true range: the runs' bin counts summed (same bins: one score config per campaign)
     det_by_range: dict[str, list[dict]] = {}

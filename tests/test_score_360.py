@@ -242,6 +242,11 @@ def test_campaign_pools_bins_remembered_and_targets():
     assert b["20–30 m"]["obstacle_cells"] == 10 and b["20–30 m"]["valid"] == 5 and b["20–30 m"]["unknown_rate"] == 0.5
     assert a["cells_out_of_view"]["obstacle"] == 5 and a["pooled_rates_out_of_view"]["valid_range"] == 1.0
     assert a["cells"]["obstacle"] == good["cells"]["obstacle"] + bad["cells"]["obstacle"]
+    # the vehicle only turns: its obstacle was never rangeable in either run, and the rangeable counts pool to 0
+    (o,) = a["obstacles"]
+    assert o["runs_in_range"] == 2 and o["runs_never_rangeable"] == 2 and o["time_to_first_valid_after_rangeable_s"]["n"] == 0
+    assert a["rangeable"]["obstacle_cells_in_view"] == 10 and a["rangeable"]["cells"] == 0
+    assert a["remembered"]["rangeable_cells"] == 0
     from flightsim.report import index_markdown
 
     camp = {"scenario_name": "x", "scenario": "x.toml", "mode": "replay", "seeds": [1, 2], "workers": 1, "wall_s": 1.0,

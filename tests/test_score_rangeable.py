@@ -172,3 +172,23 @@ def test_remembered_cells_are_rangeable_only_if_their_point_was_when_last_seen()
     assert s["remembered"]["cells"] == F1 and s["remembered"]["rangeable_cells"] == F1
     assert s["remembered"]["rangeable_within_tolerance"] == 0 and s["remembered"]["rangeable_rate"] == 0.0
     assert "of them rangeable when last in view 5" in markdown(s)
+
+
+def test_time_to_the_first_valid_range_is_also_counted_from_when_the_obstacle_could_be_ranged():
+    # the lateral pass: in view from 0 s, rangeable from 0.4 s (1° of parallax); ranged right from 0.6 s
+    F = 12
+    p = np.zeros((F, 3))
+    p[:, 1] = np.arange(F) / RATE
+    truth = truth_of(p, np.zeros(F), (20.0, 0.0))
+    secs = [int(np.flatnonzero(np.isfinite(truth.sector_m[f]))[0]) for f in range(F)]
+    rows = [od(t + 0.02, {secs[f]: 2000} if f >= 6 else {}) for f, t in enumerate(truth.t_s)]
+    s = summarize(evaluate(RangeMessages.build(od=rows), truth, NOWARM))
+    (o,) = s["obstacles"]
+    assert o["in_range_at_s"] == pytest.approx(0.02) and o["first_rangeable_at_s"] == pytest.approx(0.42)
+    assert o["time_to_first_valid_s"] == pytest.approx(0.6)
+    assert o["time_to_first_valid_after_rangeable_s"] == pytest.approx(0.2)
+    # turning in place: never rangeable, never ranged
+    yaw = np.radians(-20.0 + 4.0 * np.arange(F))
+    spin = truth_of(np.zeros((F, 3)), yaw, (15.0, 0.0))
+    s = summarize(evaluate(RangeMessages.build(od=[od(t + 0.02, {}) for t in spin.t_s]), spin, NOWARM))
+    assert all(o["first_rangeable_at_s"] is None and o["time_to_first_valid_after_rangeable_s"] is None for o in s["obstacles"])

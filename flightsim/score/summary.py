@@ -71,6 +71,7 @@ def _obstacle_rows(ev: Evaluation, m: CellMasks) -> list[dict]:
         row = {"id": k, "name": name, "centroid_ne_m": [round(float(v), 2) for v in ev.obstacle_centroids[k]],
                "messages_in_range": int(in_msgs.size), "in_range_at_s": None, "last_in_range_at_s": None,
                "first_detection_at_s": None, "first_valid_at_s": None, "time_to_first_valid_s": None,
+               "first_rangeable_at_s": None, "time_to_first_valid_after_rangeable_s": None,
                "detected_fraction": None, "valid_fraction": None, "nearest_true_m": None}
         if in_msgs.size:
             row["in_range_at_s"] = float(t_rel[in_msgs[0]])
@@ -87,6 +88,12 @@ def _obstacle_rows(ev: Evaluation, m: CellMasks) -> list[dict]:
             if first_val.size:
                 row["first_valid_at_s"] = float(t_rel[first_val[0]])
                 row["time_to_first_valid_s"] = float(t_rel[first_val[0]] - t_rel[in_msgs[0]])
+            # the single camera's ceiling: from the first message in which one of its cells could be ranged at all
+            first_rg = np.flatnonzero(np.any(cells & m.rangeable, axis=1))
+            if first_rg.size:
+                row["first_rangeable_at_s"] = float(t_rel[first_rg[0]])
+                if first_val.size:  # 0 when it was ranged first (from a neighbouring point, or memory)
+                    row["time_to_first_valid_after_rangeable_s"] = max(0.0, float(t_rel[first_val[0]] - t_rel[first_rg[0]]))
         rows.append(row)
     return rows
 
