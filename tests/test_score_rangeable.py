@@ -43,6 +43,18 @@ def truth_of(p_ned: np.ndarray, yaw: np.ndarray, obstacle_ne, view: np.ndarray |
     return SectorTruth(t, sec, p_ned, yaw, 60.0, front_view(F) if view is None else view)
 
 
+def lateral_pass(F: int) -> SectorTruth:
+    """Moving east at 1 m/s, facing north, with the obstacle 20 m north of the start."""
+    p = np.zeros((F, 3))
+    p[:, 1] = np.arange(F) / RATE
+    return truth_of(p, np.zeros(F), (20.0, 0.0))
+
+
+def obstacle_sectors(truth: SectorTruth) -> list[int]:
+    """The sector of the obstacle in each frame."""
+    return [int(np.flatnonzero(np.isfinite(truth.sector_m[f]))[0]) for f in range(len(truth.t_s))]
+
+
 def rangeable_of(truth: SectorTruth, cfg: ScoreConfig = NOWARM) -> np.ndarray:
     """Per frame: whether the obstacle's cell (where it is in view) is rangeable."""
     F = len(truth.t_s)
@@ -87,9 +99,7 @@ def test_a_lateral_pass_is_rangeable_once_the_parallax_reaches_the_threshold():
     # moving east at 1 m/s with the obstacle 20 m north: the parallax after x metres is atan(x / 20);
     # 1° is reached at x = 0.349 m, i.e. from the frame at 0.4 s
     F = 12
-    p = np.zeros((F, 3))
-    p[:, 1] = np.arange(F) / RATE
-    truth = truth_of(p, np.zeros(F), (20.0, 0.0))
+    truth = lateral_pass(F)
     got = rangeable_of(truth)
     assert got.tolist() == [False] * 4 + [True] * (F - 4)
     # a 2° threshold needs x ≥ 0.698 m: from 0.7 s
@@ -134,10 +144,8 @@ def test_only_views_within_the_window_and_in_view_count():
 
 def test_summary_reports_the_ceiling_and_detection_among_the_rangeable():
     F = 12
-    p = np.zeros((F, 3))
-    p[:, 1] = np.arange(F) / RATE
-    truth = truth_of(p, np.zeros(F), (20.0, 0.0))
-    secs = [int(np.flatnonzero(np.isfinite(truth.sector_m[f]))[0]) for f in range(F)]
+    truth = lateral_pass(F)
+    secs = obstacle_sectors(truth)
     # ranged right in every frame but the last; the first four frames are not rangeable
     rows = [od(t + 0.02, {secs[f]: 2000} if f < F - 1 else {}) for f, t in enumerate(truth.t_s)]
     s = summarize(evaluate(RangeMessages.build(od=rows), truth, NOWARM))
@@ -177,10 +185,8 @@ def test_remembered_cells_are_rangeable_only_if_their_point_was_when_last_seen()
 def test_time_to_the_first_valid_range_is_also_counted_from_when_the_obstacle_could_be_ranged():
     # the lateral pass: in view from 0 s, rangeable from 0.4 s (1° of parallax); ranged right from 0.6 s
     F = 12
-    p = np.zeros((F, 3))
-    p[:, 1] = np.arange(F) / RATE
-    truth = truth_of(p, np.zeros(F), (20.0, 0.0))
-    secs = [int(np.flatnonzero(np.isfinite(truth.sector_m[f]))[0]) for f in range(F)]
+    truth = lateral_pass(F)
+    secs = obstacle_sectors(truth)
     rows = [od(t + 0.02, {secs[f]: 2000} if f >= 6 else {}) for f, t in enumerate(truth.t_s)]
     s = summarize(evaluate(RangeMessages.build(od=rows), truth, NOWARM))
     (o,) = s["obstacles"]
