@@ -29,6 +29,7 @@ import numpy as np
 
 from bench.report import print_campaign_readings
 from flightsim.score.config import REP_CLEAR, REP_RANGE, REP_UNKNOWN, TRUTH_OBSTACLE, ScoreConfig
+from flightsim.score.evaluation import range_errors
 from flightsim.score.inputs import SectorTruth
 
 MOTIONS = ("turning", "hovering", "moving")
@@ -62,15 +63,10 @@ def split_cells(series: dict, truth: SectorTruth, cfg: ScoreConfig = ScoreConfig
     cells &= (frame >= 0)[:, None]
     motion = np.broadcast_to(motion_of(truth, turn_dps, hover_mps)[np.maximum(frame, 0)][:, None], T.shape)
     rangeable = np.asarray(series["od_rangeable"], bool) if "od_rangeable" in series else None
-    with np.errstate(invalid="ignore"):
-        tol = cfg.tolerance(np.where(np.isfinite(T), T, 0.0))
-        kind = {
-            "valid": (rep == REP_RANGE) & (np.abs(r - T) <= tol),
-            "unknown": rep == REP_UNKNOWN,
-            "too_near": (rep == REP_RANGE) & (T - r > tol),
-            "too_far": (rep == REP_RANGE) & (r - T > tol),
-            "clear": rep == REP_CLEAR,
-        }
+    near, far = range_errors(T, r, cfg)  # the scorer's own test (flightsim.score.evaluation)
+    rng = rep == REP_RANGE
+    kind = {"valid": rng & ~near & ~far, "unknown": rep == REP_UNKNOWN, "too_near": rng & near, "too_far": rng & far,
+            "clear": rep == REP_CLEAR}
     edges = list(cfg.detection_bins_m) + [np.inf]
     out: dict = {}
     for mi, m in enumerate(MOTIONS):

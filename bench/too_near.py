@@ -33,6 +33,7 @@ import numpy as np
 
 from bench.report import print_campaign_readings
 from flightsim.score.config import REP_RANGE, ScoreConfig
+from flightsim.score.evaluation import range_errors
 from flightsim.score.summary import matches_neighbour
 
 #: k values the forward sector is republished with
@@ -56,7 +57,7 @@ def cell_breakdown(z, cfg: ScoreConfig) -> dict[str, int]:
     with np.errstate(invalid="ignore"):
         obstacle = scored & np.isfinite(T) & (T <= mx)
         rng = obstacle & (np.asarray(z["od_rep"]) == REP_RANGE)
-        near = rng & (T - r > cfg.tolerance(np.where(np.isfinite(T), T, 0.0)))
+        near = rng & range_errors(T, r, cfg)[0]
     beside = matches_neighbour(r, np.where(obstacle, T, np.nan), cfg.beside_sectors, cfg) & near
     iv = np.asarray(z["od_in_view"], bool)
     out = {}

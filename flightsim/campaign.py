@@ -241,6 +241,11 @@ def pool_claims_by_source(per_run: list) -> dict | None:
     return out
 
 
+def _sum_counts(scores: list[dict], block: str, keys) -> dict[str, int]:
+    """The runs' counts ``score[block][key]`` summed (a run without the block, or the key, adds 0)."""
+    return {k: sum(int((s.get(block) or {}).get(k) or 0) for s in scores) for k in keys}
+
+
 def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig = ScoreConfig()) -> dict:
     """Pool the scored runs: summed cell counts and pooled rates, mean ± std of per-run rates, the
     targets on the pooled rates (and how many runs meet each), pooled range error, latency, NEES and
@@ -356,20 +361,18 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
                         "unknown_rate": row["unknown"] / n_ if n_ else None, "dangerous_rate": row["clear"] / n_ if n_ else None,
                         "valid_of_claimed": row["valid"] / row["claimed"] if row["claimed"] else None})
         det_by_range[view] = rows
-    rem = {k: sum(int((s.get("remembered") or {}).get(k) or 0) for s in scores)
-           for k in ("cells", "within_tolerance", "ranges", "unknown", "dangerous_clears", "rangeable_cells",
-                     "rangeable_within_tolerance")}
+    rem = _sum_counts(scores, "remembered", ("cells", "within_tolerance", "ranges", "unknown", "dangerous_clears",
+                                             "rangeable_cells", "rangeable_within_tolerance"))
     rem["rate"] = rem["within_tolerance"] / rem["cells"] if rem["cells"] else None
     rem["rangeable_rate"] = rem["rangeable_within_tolerance"] / rem["rangeable_cells"] if rem["rangeable_cells"] else None
-    rng = {k: sum(int((s.get("rangeable") or {}).get(k) or 0) for s in scores)
-           for k in ("obstacle_cells_in_view", "cells", "within_tolerance", "unknown", "not_rangeable_within_tolerance")}
+    rng = _sum_counts(scores, "rangeable", ("obstacle_cells_in_view", "cells", "within_tolerance", "unknown",
+                                            "not_rangeable_within_tolerance"))
     rng["share"] = rng["cells"] / rng["obstacle_cells_in_view"] if rng["obstacle_cells_in_view"] else None
     rng["rate"] = rng["within_tolerance"] / rng["cells"] if rng["cells"] else None
     first_rng = next((s["rangeable"] for s in scores if s.get("rangeable")), None)
     if first_rng:
         rng.update({k: first_rng.get(k) for k in ("window_s", "parallax_deg", "scale")})
-    beside = {k: sum(int((s.get("false_obstacles_beside_obstacle") or {}).get(k) or 0) for s in scores)
-              for k in ("in_view", "in_view_total", "out_of_view", "out_of_view_total")}
+    beside = _sum_counts(scores, "false_obstacles_beside_obstacle", ("in_view", "in_view_total", "out_of_view", "out_of_view_total"))
     by_source = pool_claims_by_source([s.get("claims_by_source") for s in scores])
     outcomes = [s["avoidance"] for s in scores if s.get("avoidance")]
     return _jsonable({

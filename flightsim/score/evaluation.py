@@ -389,6 +389,15 @@ class CellMasks:
     remembered_rangeable: np.ndarray  # remembered cells whose point was rangeable when last in view
 
 
+def range_errors(T: np.ndarray, r: np.ndarray, config: ScoreConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(too near, too far): the published range ``r`` nearer / farther than the true distance ``T``
+    by more than ``tol(T)``; both False where ``T`` is not finite or there is no range (NaN)."""
+    T = np.asarray(T, float)
+    with np.errstate(invalid="ignore"):
+        tol = np.where(np.isfinite(T), config.tolerance(np.where(np.isfinite(T), T, 0.0)), np.inf)
+        return T - r > tol, r - T > tol
+
+
 def cell_masks(ev: Evaluation) -> CellMasks:
     cfg = ev.config
     rep, T, tc = ev.od_rep, ev.od_truth, ev.od_tcls
@@ -400,10 +409,7 @@ def cell_masks(ev: Evaluation) -> CellMasks:
     clear_any = tc == TRUTH_CLEAR
     obstacle = obstacle_any & counted
     clear = clear_any & counted
-    with np.errstate(invalid="ignore"):
-        tol = np.where(np.isfinite(T), cfg.tolerance(np.where(np.isfinite(T), T, 0.0)), np.inf)
-        under = T - ev.od_r > tol
-        over = ev.od_r - T > tol
+    under, over = range_errors(T, ev.od_r, cfg)
     detection = obstacle & rng
     too_near = detection & under
     over_range = detection & over
