@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from companion.mavlink.dialect import UINT16_MAX, mavlink  # first: MAVLink 2 + ardupilotmega
-from companion.core.sectors import SECTOR_COUNT, SectorState, fold_into_bins, forward_reading_consistent
+from companion.core.sectors import SECTOR_COUNT, SectorState, fold_into_bins, forward_reading_consistent, forward_unknown_reason
 from companion.mavlink import messages as M
 from companion.pipeline import FrameResult, PipelineConfig
 
@@ -153,16 +153,20 @@ class Reporter:
     """
 
     #: NAMED_VALUE_FLOAT diagnostics: frame rate, live tracks, nearest range, latency, points held by the
-    #: obstacle map, sectors claimed from memory only (no live point), sectors inferred between two sides (docs/derivations/obstacle_map.md, sectors.md)
+    #: obstacle map, sectors claimed from memory only (no live point), sectors inferred between two sides (docs/derivations/obstacle_map.md, sectors.md),
+    #: the forward range and its σ, and why the forward sector is unknown (an UnknownReason code, 0 when it claims;
+    #: docs/derivations/sectors.md, "Why a sector is unknown")
     STATE_PREFIX = ("Ranging active", "Ranging:", "Ranging starting:", "Ranging invalid:")  # the texts of the ranging state (Health)
-    DIAG_NAMES = ("MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER", "MR_FWD_M", "MR_FWD_SIG")
+    DIAG_NAMES = ("MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER", "MR_FWD_M", "MR_FWD_SIG",
+                  "MR_FWD_WHY")
 
     def __init__(self, config, pipeline: PipelineConfig, outputs=("autopilot",), start: float = 0.0,
                  heartbeat: bool = False, sector_sink=None):
         self.config = config
-        #: called as ``sector_sink(output, time_usec, distances_cm, sources, forward)`` for every OBSTACLE_DISTANCE built
-        #: (``forward``: the forward DISTANCE_SENSOR's current_distance, covariance, signal_quality, sent or not)
-        #: from a result (:class:`companion.sector_log.SectorLog`: where each sector's claim came from)
+        #: called as ``sector_sink(output, time_usec, distances_cm, sources, forward, reasons)`` for every OBSTACLE_DISTANCE
+        #: built (``forward``: the forward DISTANCE_SENSOR's current_distance, covariance, signal_quality, sent or not;
+        #: ``reasons``: each unknown sector's UnknownReason) from a result (:class:`companion.sector_log.SectorLog`:
+        #: where each sector's claim came from, and why the others have none)
         self.sector_sink = sector_sink
         self.pcfg = pipeline
         self.outputs = tuple(outputs)
@@ -246,8 +250,9 @@ class Reporter:
                         src = sec.rotated_sources(dyaw, turned) if dyaw else sec.sources()
                         if fold:
                             src = fold_into_bins(turned, self.max_cm, src)[1]
+                        why = sec.rotated_reasons(dyaw, turned) if dyaw else sec.unknown_reason  # folding keeps unknown as it was
                         f = forward_reading()
-                        self.sector_sink(out, time_usec, sent, src, (f.current_distance, f.covariance, f.signal_quality))
+                        self.sector_sink(out, time_usec, sent, src, (f.current_distance, f.covariance, f.signal_quality), why)
                     except Exception:
                         self.counters["sector_log_errors"] += 1
             else:
@@ -292,7 +297,7 @@ class Reporter:
     def _diagnostics(self, now: float, time_boot_ms: int) -> list:
         res = self._result
         nearest = fwd_m = fwd_sigma = -1.0  # -1: unknown
-        tracks = n_map = mem_sec = inferred = 0.0
+        tracks = n_map = mem_sec = inferred = fwd_why = 0.0
         if res is not None and res.ok and res.sectors is not None:
             sec = res.sectors
             f = sec.forward  # the forward DISTANCE_SENSOR's range and its σ, in metres (the σ a uint8 covariance cannot carry)
@@ -304,8 +309,9 @@ class Reporter:
             nearest = float(n) if math.isfinite(n) else -1.0
             mem_only = (sec.remembered_points > 0) & (sec.remembered_points == sec.obstacle_points)
             mem_sec, inferred = float(np.count_nonzero(mem_only)), float(sec.n_inferred)
+            fwd_why = float(forward_unknown_reason(sec, self.config.sectors.forward_half_width_deg))
         lat = self.last_latency_s * 1000.0 if math.isfinite(self.last_latency_s) else -1.0
-        vals = (self.fps(now), tracks, nearest, lat, n_map, mem_sec, inferred, fwd_m, fwd_sigma)
+        vals = (self.fps(now), tracks, nearest, lat, n_map, mem_sec, inferred, fwd_m, fwd_sigma, fwd_why)
         return [M.named_value_float(name, v, time_boot_ms) for name, v in zip(self.DIAG_NAMES, vals)]
 
     def _texts(self, events, now: float) -> list:

@@ -2,12 +2,14 @@
 
 One JSON object per line.  The first line is a header::
 
-    {"sector_log": 1, "sectors": 72, "increment_deg": 5.0, "sources": {"0": "none", "1": "live", ...}}
+    {"sector_log": 1, "sectors": 72, "increment_deg": 5.0, "sources": {"0": "none", "1": "live", ...},
+     "reasons": {"0": "none", "1": "not_seen", "2": "no_points", ...}}
 
 then one line per OBSTACLE_DISTANCE the companion built from a result, for the outputs logged
 (the autopilot's by default)::
 
-    {"out": "autopilot", "time_usec": 1234000, "d": [65535, 812, ...], "src": "000011133300...", "fwd": [812, 255, 71]}
+    {"out": "autopilot", "time_usec": 1234000, "d": [65535, 812, ...], "src": "000011133300...", "fwd": [812, 255, 71],
+     "why": "600000000001..."}
 
 ``time_usec`` and ``d`` are the message's own fields (exposure on the autopilot's boot clock, the
 72 distances in cm, after the turn since exposure), so a reader finds the line of any
@@ -18,6 +20,11 @@ docs/derivations/sectors.md, "Where a claim comes from"); ``fwd`` is the forward
 from the same result (``current_distance`` cm, ``covariance`` cm², ``signal_quality``), whether it was sent
 to the autopilot or withheld (docs/derivations/sectors.md, "The forward DISTANCE_SENSOR and the
 autopilots"): a score of the forward range does not depend on which readings the autopilot was sent.
+``why`` holds one hexadecimal digit per sector, an :class:`~companion.core.sectors_types.UnknownReason`:
+why an unknown sector is unknown (1 not seen, 2 no tracked point, 3 points beside the band only, 4 too
+few far points for "clear", 5 "clear" vetoed, 6 still ranging, 7 too few near points, 8 partly in view,
+9 "clear" held back, a turned since exposure; docs/derivations/sectors.md, "Why a sector is unknown"), 0 where
+the sector claims.  Logs written before it have no ``why``; readers skip what they do not know.
 
 About 0.4 kB a line: at 15 Hz some 20 MB an hour.  A write that fails (disk full, a vanished
 mount) is logged once and ends the log; the companion flies on.  I/O only: the sources themselves
@@ -30,7 +37,7 @@ import json
 
 import numpy as np
 
-from companion.core.sectors_types import SECTOR_COUNT, SECTOR_DEG, SectorSource
+from companion.core.sectors_types import SECTOR_COUNT, SECTOR_DEG, SectorSource, UnknownReason
 from companion.errors import InputError
 from companion.jsonl_log import JsonlLog
 
@@ -46,9 +53,10 @@ class SectorLog(JsonlLog):
     def __init__(self, path, outputs=("autopilot",)):
         self.outputs = tuple(outputs)
         super().__init__(path, {"sector_log": FORMAT_VERSION, "sectors": SECTOR_COUNT, "increment_deg": SECTOR_DEG,
-                                "sources": {str(int(s)): s.name.lower() for s in SectorSource}})
+                                "sources": {str(int(s)): s.name.lower() for s in SectorSource},
+                                "reasons": {format(int(r), "x"): r.name.lower() for r in UnknownReason}})
 
-    def __call__(self, out: str, time_usec: int, distances_cm, sources, forward=None) -> None:
+    def __call__(self, out: str, time_usec: int, distances_cm, sources, forward=None, reasons=None) -> None:
         if not self.open or out not in self.outputs:
             return
         d = np.asarray(distances_cm).astype(np.int64).reshape(-1)
@@ -56,6 +64,8 @@ class SectorLog(JsonlLog):
         rec = {"out": out, "time_usec": int(time_usec), "d": d.tolist(), "src": "".join(str(int(v)) for v in src)}
         if forward is not None:
             rec["fwd"] = [int(v) for v in forward]
+        if reasons is not None:
+            rec["why"] = "".join(format(int(v), "x") for v in np.asarray(reasons).astype(np.int64).reshape(-1))
         self.write(rec)
 
 
@@ -98,6 +108,25 @@ def read_sector_log(path, output: str = "autopilot") -> dict[tuple[int, bytes], 
     return out
 
 
+def read_sector_reasons(path, output: str = "autopilot") -> dict[tuple[int, bytes], np.ndarray]:
+    """The reasons of ``output``'s lines (those that carry ``why``), keyed like :func:`read_sector_log`
+    → the (72,) int8 :class:`~companion.core.sectors_types.UnknownReason` of each sector (0 where it claims)."""
+    out: dict[tuple[int, bytes], np.ndarray] = {}
+    top = max(UnknownReason)
+    for r in _records(path, output):
+        try:
+            d = np.asarray(r["d"], np.int64)
+            c = np.frombuffer(r["why"].encode("ascii"), np.uint8).astype(np.int16)
+            why = np.where(c >= ord("a"), c - (ord("a") - 10), np.where(c <= ord("9"), c - ord("0"), -1)).astype(np.int8)
+            key = (int(r["time_usec"]), d.astype(np.uint16).tobytes())
+        except (KeyError, TypeError, ValueError, AttributeError):
+            continue
+        if d.shape != (SECTOR_COUNT,) or why.shape != (SECTOR_COUNT,) or np.any((why < 0) | (why > top)):
+            continue
+        out[key] = why
+    return out
+
+
 def read_sector_forward(path, output: str = "autopilot") -> dict[tuple[int, bytes], tuple[int, int, int]]:
     """The forward readings of ``output``'s lines (those that carry ``fwd``), keyed like
     :func:`read_sector_log` → ``(current_distance cm, covariance cm², signal_quality)``."""
@@ -115,4 +144,4 @@ def read_sector_forward(path, output: str = "autopilot") -> dict[tuple[int, byte
     return out
 
 
-__all__ = ["FORMAT_VERSION", "SectorLog", "read_sector_forward", "read_sector_log"]
+__all__ = ["FORMAT_VERSION", "SectorLog", "read_sector_forward", "read_sector_log", "read_sector_reasons"]

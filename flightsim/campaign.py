@@ -222,23 +222,21 @@ def pooled_nees(scores: list[dict], samples: np.ndarray, confidence: float) -> d
     return out
 
 
-def pool_claims_by_source(per_run: list) -> dict | None:
-    """The runs' ``claims_by_source`` (:func:`flightsim.score.summary.claims_by_source`) summed; None
-    when no run had a sector log."""
-    have = [c for c in per_run if c]
-    if not have:
-        return None
-    out = {"runs": len(have), "messages_scored": sum(c["messages_scored"] for c in have),
-           "messages_matched": sum(c["messages_matched"] for c in have)}
-    for view in ("in_view", "out_of_view"):
-        rows: dict[str, dict] = {}
-        for c in have:
-            for name, row in (c.get(view) or {}).items():
-                acc = rows.setdefault(name, {})
-                for k, v in row.items():
-                    acc[k] = acc.get(k, 0) + int(v)
-        out[view] = rows
+def _sum_nested(blocks: list[dict]) -> dict:
+    """Dicts of counts (nested dicts of counts too) summed key by key; a key missing from a block adds 0."""
+    out: dict = {}
+    for b in blocks:
+        for k, v in b.items():
+            out[k] = _sum_nested([out.get(k) or {}, v]) if isinstance(v, dict) else out.get(k, 0) + int(v)
     return out
+
+
+def pool_log_counts(per_run: list) -> dict | None:
+    """The runs' counts from the companion's sector log summed — ``claims_by_source``
+    (:func:`flightsim.score.summary.claims_by_source`) or ``unknown_by_reason``
+    (:func:`flightsim.score.summary.unknown_by_reason`) — with ``runs``, the runs that had them; None when none had."""
+    have = [c for c in per_run if c]
+    return {"runs": len(have), **_sum_nested(have)} if have else None
 
 
 def _sum_counts(scores: list[dict], block: str, keys) -> dict[str, int]:
@@ -373,7 +371,7 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
     if first_rng:
         rng.update({k: first_rng.get(k) for k in ("window_s", "parallax_deg", "scale")})
     beside = _sum_counts(scores, "false_obstacles_beside_obstacle", ("in_view", "in_view_total", "out_of_view", "out_of_view_total"))
-    by_source = pool_claims_by_source([s.get("claims_by_source") for s in scores])
+    by_source = pool_log_counts([s.get("claims_by_source") for s in scores])
     outcomes = [s["avoidance"] for s in scores if s.get("avoidance")]
     return _jsonable({
         "avoidance": pool_outcomes(outcomes) if outcomes else None,
@@ -384,6 +382,7 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
         "detection_by_range": det_by_range, "remembered": rem, "rangeable": rng if first_rng else None,
         "false_obstacles_beside_obstacle": beside,
         "claims_by_source": by_source,
+        "unknown_by_reason": pool_log_counts([s.get("unknown_by_reason") for s in scores]),
         "warmup_messages_excluded": sum(int((s.get("warmup") or {}).get("messages_excluded") or 0) for s in scores),
         "range_error": range_error, "latency": latency, "nees": nees, "obstacles": obs_rows,
         "first_claim_at_s": _mean_std(s.get("first_claim_at_s") for s in scores),

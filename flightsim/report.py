@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.score.config import REP_CLEAR, REP_RANGE, SECTOR_DEG, TRUTH_OBSTACLE
-from flightsim.score.markdown import claims_by_source_lines, mark, nees_lines, remembered_rangeable_text
+from flightsim.score.markdown import claims_by_source_lines, mark, nees_lines, remembered_rangeable_text, unknown_by_reason_lines
 
 
 def _plt():
@@ -446,6 +446,9 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
     cbs = a.get("claims_by_source")
     if cbs:
         L += [""] + claims_by_source_lines(cbs)
+    ubr = a.get("unknown_by_reason")
+    if ubr:
+        L += [""] + unknown_by_reason_lines(ubr)
     dbr = a.get("detection_by_range")
     if dbr:
         L += ["", "## Detection by true range, pooled", "",

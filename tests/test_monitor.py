@@ -416,3 +416,14 @@ def test_reader_counts_truncated_datagrams_and_keeps_going():
     assert reader.pump(st, 1.0) >= 2
     s = st.snapshot(1.0)
     assert s.counts["HEARTBEAT"] == 2 and s.errors["truncated"] == 2 and s.system_status == mavlink.MAV_STATE_ACTIVE
+
+
+def test_why_the_forward_sector_is_unknown_in_words():
+    """MR_FWD_WHY (an UnknownReason code) is shown as words, and not at all while the forward sector claims."""
+    st = _known_state()
+    st.add(wire(M.named_value_float("MR_FWD_WHY", 4.0)), 9.0)
+    assert "forward unknown: few far" in render_text(st.snapshot(10.0), "udpin:127.0.0.1:14550", width=110)
+    st.add(wire(M.named_value_float("MR_FWD_WHY", 0.0)), 9.5)
+    assert "forward unknown" not in render_text(st.snapshot(10.0), "udpin:127.0.0.1:14550", width=110)
+    st.add(wire(M.named_value_float("MR_FWD_WHY", 99.0)), 9.6)
+    assert "forward unknown: code 99" in render_text(st.snapshot(10.0), "udpin:127.0.0.1:14550", width=110)

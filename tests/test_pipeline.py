@@ -269,7 +269,8 @@ def test_wall_ahead_gives_forward_ranges_with_correct_fields(rig):
     # diagnostics at <= 1 Hz per name
     nv = v.received_t("NAMED_VALUE_FLOAT")
     names = {m.name for _, m in nv}
-    assert {"MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER", "MR_FWD_M", "MR_FWD_SIG"} <= names
+    assert {"MR_FPS", "MR_TRACKS", "MR_NEAR_M", "MR_LAT_MS", "MR_MAP", "MR_MEM_SEC", "MR_INFER", "MR_FWD_M", "MR_FWD_SIG",
+            "MR_FWD_WHY"} <= names
     assert max(m.value for _, m in nv if m.name == "MR_MAP") > 0  # converged wall points entered the map
     # the forward σ in metres, where the uint8 covariance cannot carry it: it agrees with signal_quality
     ds = {round(t, 3): m for t, m in v.received_t("DISTANCE_SENSOR")}

@@ -173,7 +173,7 @@ def test_the_reporter_logs_every_obstacle_distance_with_its_turned_sources():
     msgs = rep.on_result(res, 10.03, yaw_now=math.radians(10.0), last_frame_at=10.0)
     od = [m for _, m in msgs if m.get_type() == "OBSTACLE_DISTANCE"]
     assert len(od) == 1 and len(got) == 1
-    out, time_usec, d, src, fwd = got[0]
+    out, time_usec, d, src, fwd, why = got[0]
     assert out == "autopilot" and time_usec == od[0].time_usec == 10_000_000
     # the forward reading of the same result, here withheld from the autopilot (turned 10°: unknown) but logged
     assert fwd == (UINT16_MAX, 255, 1) and not [m for _, m in msgs if m.get_type() == "DISTANCE_SENSOR"]

@@ -43,7 +43,7 @@ N_SCENES = 300 if jit.ENABLED else 30
 RTOL = ATOL = 1e-12
 
 _INT_FIELDS = ("distances_cm", "state", "in_view", "fully_in_view", "obstacle_points", "clear_points", "obstacle_cm",
-               "remembered_points", "inferred", "inferred_vertical")
+               "remembered_points", "inferred", "inferred_vertical", "unknown_reason")
 _FLOAT_FIELDS = ("range_m", "sigma_m", "obstacle_bearing_rad")
 
 

@@ -71,10 +71,13 @@ from companion.core.sectors_types import (  # noqa: F401
     Sectors,
     SectorSource,
     SectorState,
+    UnknownReason,
     fold_into_bins,
     forward_reading_consistent,
+    forward_unknown_reason,
     rotate_sectors,
     sector_index,
+    unknown_reasons,
     unknown_sectors,
 )
 from companion.core.sectors_infer import (
@@ -329,6 +332,9 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     d_h = np.hypot(p_level[:, 0], p_level[:, 1])
     height = -p_level[:, 2]
     ground_known = ground_height_m is not None and math.isfinite(ground_height_m)
+    bearing = np.arctan2(p_level[:, 1], p_level[:, 0])
+    idx = sector_index(bearing)
+    tracked = usable & ~mem & in_view[idx]  # live points in view at any height, the ground's too ("why unknown")
     if ground_known and config.ground_margin_m > 0:  # the ground is not an obstacle for horizontal avoidance
         usable &= height >= ground_height_m + config.ground_margin_m
     r_safe = np.where(usable, r, 1.0)
@@ -340,8 +346,6 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         elev = np.arctan2(height, d_h)
         in_band = np.abs(elev - gamma) <= math.radians(config.band_half_angle_deg)
     in_band &= usable
-    bearing = np.arctan2(p_level[:, 1], p_level[:, 0])
-    idx = sector_index(bearing)
     seen = in_view[idx] | mem  # remembered points claim over 360° (docs/derivations/sectors.md)
     in_band &= seen
 
@@ -471,6 +475,9 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         # no "clear" beside a near obstacle (docs/derivations/sectors.md, rule 10): a clear bearing there is no way
         # through for a vehicle, and PX4 steers into it
         _corridor(state, dist, range_m, config.clear_corridor_m)
+    why = unknown_reasons(state, in_view, fully, n_obs, n_clr, n_veto,
+                          np.bincount(idx[in_band & ~conv & ~mem], minlength=SECTOR_COUNT),
+                          np.bincount(idx[tracked], minlength=SECTOR_COUNT), k, config.min_points_clear)
 
     # ---- forward window (DISTANCE_SENSOR) ------------------------------------------------------
     fwd = np.flatnonzero(np.abs(SECTOR_BEARING_DEG) <= config.forward_half_width_deg + 1e-9)
@@ -521,6 +528,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         remembered_points=n_mem,
         inferred=inferred,
         inferred_vertical=vertical,
+        unknown_reason=why,
     )
 
 
@@ -700,7 +708,7 @@ def _sectors_kernel(p_body, range_sigma, converged, valid, hfov_rad, R_cam_body,
     # equal conservative ranges (copies of one remembered point) are broken the same way
     p_level = np.where(usable[:, None], p, 0.0) @ R_lb.T
     (dist, state, range_m, sigma_m, n_obs, n_clr, n_mem, inferred, used, ob_bearing, ob_cm, fwd_state, fwd_vals,
-     near_p, near_vals, near_sector, vertical) = _sectors_core(
+     near_p, near_vals, near_sector, vertical, n_veto, n_ranging, n_tracked) = _sectors_core(
         p, sig, conv, usable, r, p_level, n, mem_tan, R_lb, in_view, fully, float(gamma), math.tan(gamma),
         float(ground_height_m) if ground_known else 0.0, ground_known, cfg)
     forward = ForwardRange(_STATES[fwd_state], float(fwd_vals[0]), float(fwd_vals[1]), float(fwd_vals[2]))
@@ -712,4 +720,6 @@ def _sectors_kernel(p_body, range_sigma, converged, valid, hfov_rad, R_cam_body,
         min_distance_cm=config.min_distance_cm, max_distance_cm=config.max_distance_cm, points_used=int(used),
         points_rejected=int(rejected), obstacle_bearing_rad=ob_bearing, obstacle_cm=ob_cm,
         obstacle_rank=config.min_points_obstacle, remembered_points=n_mem, inferred=inferred, inferred_vertical=vertical,
+        unknown_reason=unknown_reasons(state, in_view, fully, n_obs, n_clr, n_veto, n_ranging, n_tracked,
+                                       config.min_points_obstacle, config.min_points_clear),
     )

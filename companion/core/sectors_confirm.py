@@ -30,6 +30,7 @@ from companion.core.sectors_types import (
     SectorConfig,
     Sectors,
     SectorState,
+    UnknownReason,
     sector_shift,
 )
 
@@ -75,4 +76,6 @@ def confirm_clear(sectors: Sectors, run_prev: np.ndarray | None, yaw_change_rad:
     fwd = np.abs(SECTOR_BEARING_DEG) <= config.forward_half_width_deg + 1e-9
     if forward.state == SectorState.CLEAR and withhold[fwd].any():
         forward = ForwardRange(SectorState.UNKNOWN, math.nan, math.nan, math.nan)
-    return dataclasses.replace(sectors, distances_cm=dist, state=new_state, forward=forward), run
+    why = np.asarray(sectors.unknown_reason).copy()
+    why[withhold] = UnknownReason.HELD
+    return dataclasses.replace(sectors, distances_cm=dist, state=new_state, forward=forward, unknown_reason=why), run

@@ -272,9 +272,14 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     r_safe = np.empty(n)
     d_cons = np.empty(n)
     near = np.empty(n, np.bool_)
+    n_tracked = np.zeros(SECTOR_COUNT, np.int64)  # live points in view at any height, the ground's too ("why unknown")
     for i in range(n):
         d_h[i] = np.hypot(pl[i, 0], pl[i, 1])
         height[i] = -pl[i, 2]
+        if usable[i] and not mem[i]:
+            s_i = _sector_of(math.atan2(pl[i, 1], pl[i, 0]))
+            if in_view[s_i]:
+                n_tracked[s_i] += 1
         if ground_cut and not (height[i] >= ground + cfg[_K_GROUND_MARGIN]):
             usable[i] = False
         r_safe[i] = r[i] if usable[i] else 1.0
@@ -305,6 +310,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     n_clr = np.zeros(SECTOR_COUNT, np.int64)
     n_veto = np.zeros(SECTOR_COUNT, np.int64)
     n_mem = np.zeros(SECTOR_COUNT, np.int64)
+    n_ranging = np.zeros(SECTOR_COUNT, np.int64)  # unconverged live points in the band ("why unknown")
     obs_pts = np.zeros(n, np.bool_)
     used = 0
     edge_half = SECTOR_DEG / 2 - cfg[_K_EDGE]  # a point beyond this from its sector's centre vetoes "clear" next door
@@ -312,6 +318,8 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     margin_c = cfg[_K_CVETO_MARGIN] if cfg[_K_CVETO_MARGIN] > 0 else -np.inf  # (−inf: off)
     for i in range(n):
         claims = False  # claims or vetoes its own sector
+        if in_band[i] and not conv[i] and not mem[i]:
+            n_ranging[idx[i]] += 1
         if in_band[i] and conv[i]:
             used += 1
             if near[i]:
@@ -513,7 +521,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                 ob_bearing[o], ob_cm[o] = (s * SECTOR_DEG) * _DEG2RAD, dist[s]
                 o += 1
     return (dist, state, range_m, sigma_m, n_obs, n_clr, n_mem, inferred, used, ob_bearing, ob_cm, fwd_state, fwd_vals, near_p,
-            near_vals, near_sector, vertical)
+            near_vals, near_sector, vertical, n_veto, n_ranging, n_tracked)
 
 
 @_jit.njit(inline="always")

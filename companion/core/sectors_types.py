@@ -52,6 +52,62 @@ class SectorSource(enum.IntEnum):
     VERTICAL = 5  # inferred from points above or below the band: a vertical structure through it, the cap from above
 
 
+class UnknownReason(enum.IntEnum):
+    """Why a sector is unknown (UINT16_MAX), the first rule it fell short of (:func:`unknown_reasons`;
+    docs/derivations/sectors.md, "Why a sector is unknown").  :attr:`NONE` where it makes a claim."""
+
+    NONE = 0  # the sector claims an obstacle or "clear"
+    NOT_SEEN = 1  # out of the camera's view and no remembered obstacle published there
+    NO_POINTS = 2  # in view, but no tracked point in the sector at any height (a texture-poor surface, a refill pending)
+    BESIDE_BAND = 3  # tracked points, none of them in the band around the flight path (all above or below it)
+    FEW_FAR = 4  # converged points beyond max_distance in the band, fewer than min_points_clear: no evidence of "clear"
+    VETOED = 5  # enough far points for "clear", but a point that may lie nearer forbids it (unconverged, beside the band, across an edge)
+    RANGING = 6  # points in the band not yet converged (the filter is still ranging them)
+    FEW_NEAR = 7  # converged points within max_distance, fewer than min_points_obstacle
+    PARTLY_IN_VIEW = 8  # evidence of "clear", but part of the sector lies outside the view
+    HELD = 9  # "clear" withheld: beside a near obstacle (clear_corridor_m) or not yet confirmed (clear_confirm_frames)
+    TURNED = 10  # the vehicle turned since exposure and the obstacle that held this bearing moved to a neighbouring sector
+
+
+def unknown_reasons(state, in_view, fully_in_view, n_obstacle, n_clear, n_veto, n_ranging, n_tracked,
+                    min_points_obstacle: int, min_points_clear: int) -> np.ndarray:
+    """(72,) int8 :class:`UnknownReason` of each sector from the counts the rules made
+    (docs/derivations/sectors.md, "Why a sector is unknown"): ``n_obstacle`` converged in-band points within
+    max_distance, ``n_clear`` evidence of "clear", ``n_veto`` vetoes of "clear", ``n_ranging`` unconverged live
+    points in the band, ``n_tracked`` usable live points at any height.  A later cause in this list wins
+    over an earlier one: no points, beside the band, few far, vetoed, ranging, few near, partly in view,
+    held; out of view without a claim is :attr:`~UnknownReason.NOT_SEEN`; a claim is
+    :attr:`~UnknownReason.NONE`."""
+    R = UnknownReason
+    enough = np.asarray(n_clear) >= min_points_clear
+    veto = np.asarray(n_veto) > 0
+    why = np.full(SECTOR_COUNT, R.NO_POINTS, np.int8)
+    why[np.asarray(n_tracked) > 0] = R.BESIDE_BAND
+    why[np.asarray(n_clear) > 0] = R.FEW_FAR
+    why[enough & veto] = R.VETOED
+    why[np.asarray(n_ranging) > 0] = R.RANGING
+    n_obs = np.asarray(n_obstacle)
+    why[(n_obs > 0) & (n_obs < min_points_obstacle)] = R.FEW_NEAR
+    clear_ok = enough & ~veto & (n_obs == 0)
+    why[clear_ok & ~np.asarray(fully_in_view, bool)] = R.PARTLY_IN_VIEW
+    why[clear_ok & np.asarray(fully_in_view, bool)] = R.HELD  # the clear rule held; a later rule withheld it
+    why[~np.asarray(in_view, bool)] = R.NOT_SEEN
+    why[np.asarray(state) != SectorState.UNKNOWN] = R.NONE
+    return why
+
+
+def forward_unknown_reason(sectors: "Sectors", forward_half_width_deg: float) -> UnknownReason:
+    """Why the forward reading (:attr:`Sectors.forward`) is unknown: the reason of the first unknown sector of its
+    window (± ``forward_half_width_deg``, nearest the axis first); :attr:`UnknownReason.NONE` when it claims."""
+    if SectorState(sectors.forward.state) != SectorState.UNKNOWN:
+        return UnknownReason.NONE
+    fwd = np.flatnonzero(np.abs(SECTOR_BEARING_DEG) <= forward_half_width_deg + 1e-9)
+    fwd = fwd[np.argsort(np.abs(SECTOR_BEARING_DEG[fwd]), kind="stable")]
+    why = np.asarray(sectors.unknown_reason)[fwd]
+    why = why[why > 0]
+    return UnknownReason(int(why[0])) if why.size else UnknownReason.NONE
+
+
 @dataclasses.dataclass(frozen=True)
 class SectorConfig:
     """The ``[sectors]`` table."""
@@ -212,6 +268,7 @@ class Sectors:
     remembered_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(SECTOR_COUNT, np.int64))  # (72,) map points behind each sector's claim
     inferred: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(SECTOR_COUNT, bool))  # (72,) obstacle inferred between two sides
     inferred_vertical: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(SECTOR_COUNT, bool))  # (72,) of those, set by a rule on points above or below the band (a vertical structure, the cap from above)
+    unknown_reason: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(SECTOR_COUNT, np.int8))  # (72,) UnknownReason of each unknown sector (0 where it claims)
 
     @property
     def n_inferred(self) -> int:
@@ -249,6 +306,27 @@ class Sectors:
         out = np.where(take_a, src[a], np.where(take_b, src[b], np.where(nearer_a, src[a], np.where(obs[b], src[b], 0))))
         out = out.astype(np.int8)
         out[d_new > self.max_distance_cm] = SectorSource.NONE
+        return out
+
+    def rotated_reasons(self, yaw_change_rad: float, rotated_cm=None) -> np.ndarray:
+        """:attr:`unknown_reason` for the distances of :meth:`rotated` (the same yaw change; pass them as
+        ``rotated_cm`` when already computed): a turned sector that is unknown takes the reason of the old
+        sector it overlaps that was unknown (the first of the two, as :func:`rotate_sectors` reads them);
+        where neither was (an obstacle whose points now lie in the sector beside), :attr:`UnknownReason.TURNED`;
+        :attr:`UnknownReason.NONE` where the turned sector makes a claim."""
+        if not math.isfinite(yaw_change_rad):
+            return np.full(SECTOR_COUNT, UnknownReason.TURNED, np.int8)
+        d_new = np.asarray(self.rotated(yaw_change_rad) if rotated_cm is None else rotated_cm).astype(np.int64)
+        why = np.asarray(self.unknown_reason, np.int8)
+        lo, frac = sector_shift(yaw_change_rad)
+        i = np.arange(SECTOR_COUNT)
+        a, b = (i + lo) % SECTOR_COUNT, (i + lo + 1) % SECTOR_COUNT
+        if frac < 1e-6:
+            b = a
+        elif frac > 1 - 1e-6:
+            a = b
+        out = np.where(why[a] > 0, why[a], np.where(why[b] > 0, why[b], UnknownReason.TURNED)).astype(np.int8)
+        out[d_new != UNKNOWN_CM] = UnknownReason.NONE
         return out
 
     @property

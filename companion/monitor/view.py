@@ -14,14 +14,22 @@ import math
 import numpy as np
 
 from companion.mavlink.dialect import mavlink  # first: MAVLink 2 + ardupilotmega
-from companion.core.sectors import SECTOR_COUNT, SectorState
+from companion.core.sectors import SECTOR_COUNT, SectorState, UnknownReason
 from companion.monitor.decode import DecodedSectors, bin_sectors, severity_name, state_name
 from companion.monitor.state import MonitorConfig, Snapshot
 
 #: Friendly labels for the companion's own diagnostics (:attr:`companion.reporter.Reporter.DIAG_NAMES`).
 DIAG_LABELS = {"MR_FPS": "fps", "MR_TRACKS": "tracks", "MR_NEAR_M": "nearest m", "MR_LAT_MS": "latency ms",
                "MR_MAP": "map points", "MR_MEM_SEC": "sectors from memory", "MR_INFER": "inferred sectors",
-               "MR_FWD_M": "forward m", "MR_FWD_SIG": "forward σ m"}
+               "MR_FWD_M": "forward m", "MR_FWD_SIG": "forward σ m", "MR_FWD_WHY": "forward unknown:"}
+
+
+def reason_name(code: float) -> str:
+    """An :class:`~companion.core.sectors_types.UnknownReason` code (``MR_FWD_WHY``) as words: "ranging", "few far", …"""
+    try:
+        return UnknownReason(int(code)).name.lower().replace("_", " ")
+    except (ValueError, OverflowError):
+        return f"code {code:g}"
 
 
 # ---------------------------------------------------------------------- rendering --------------
@@ -207,6 +215,10 @@ def render(snap: Snapshot, source: str = ""):
         old = age > max(3.0, c.link_timeout_s)
         if name == "MR_NEAR_M" and value < 0:
             shown = "none"
+        elif name == "MR_FWD_WHY":
+            if value == 0:
+                continue  # the forward sector claims: nothing to explain
+            shown = reason_name(value)
         elif math.isfinite(value) and value == int(value) and abs(value) < 1e9:
             shown = str(int(value))
         else:

@@ -25,7 +25,7 @@ from companion.io.atomic import StagedFiles, atomic_path
 from companion.io.config_files import read_toml
 from companion.io.inputs import check_input_file
 from companion.io.tlog import read_tlog
-from companion.sector_log import read_sector_forward, read_sector_log
+from companion.sector_log import read_sector_forward, read_sector_log, read_sector_reasons
 from flightsim.score.config import N_SECTORS, ScoreConfig
 from flightsim.score.evaluation import evaluate
 from flightsim.score.inputs import RangeMessages, SectorTruth
@@ -188,7 +188,8 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
     (:func:`flightsim.plots.plot_run_nees`: the forward error with its ±2σ envelope and the running
     NEES against its n_eff band); skipped without matplotlib; the score then names it under
     ``plots``.  ``sector_log``: the companion's sector log (default: ``sectors.jsonl`` beside the
-    ranges tlog, used when present): the claims split by source (``claims_by_source``).
+    ranges tlog, used when present): the claims split by source (``claims_by_source``) and the unknown
+    cells by reason (``unknown_by_reason``).
     ``fields`` override :class:`ScoreConfig` fields."""
     cfg = config or ScoreConfig()
     over = {}
@@ -203,11 +204,12 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
     msgs = read_ranges_tlog(ranges_tlog, component_id)
     truth = read_truth_npz(truth_npz)
     log_path = Path(ranges_tlog).with_name(SECTOR_LOG) if sector_log is None else Path(sector_log)
-    lines = forward = None
+    lines = forward = reasons = None
     if log_path.is_file():
         try:
             lines = read_sector_log(log_path)
             forward = read_sector_forward(log_path)
+            reasons = read_sector_reasons(log_path)
         except (InputError, OSError) as e:  # the score stands without it
             log.warning("sector log %s not read: %s", log_path, e)
     elif sector_log is not None:
@@ -217,7 +219,7 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
         msgs = forward_from_sector_log(msgs, forward)
         forward_source = "sector log (every forward reading computed, sent to the autopilot or withheld)"
     ev = evaluate(msgs, truth, cfg, namer=world_namer(world) if world is not None else None)
-    score = summarize(ev, lines)
+    score = summarize(ev, lines, reasons)
     score["inputs"] = {"ranges": str(ranges_tlog), "truth": str(truth_npz), "forward_readings": forward_source}
     if lines is not None:
         score["inputs"]["sector_log"] = str(log_path)

@@ -126,6 +126,7 @@ def markdown(score: dict, title: str = "Score") -> str:
               f"tolerance: a real obstacle on a neighbouring bearing, not a phantom): in view {fb['in_view']} of "
               f"{fb['in_view_total']}, out of view {fb['out_of_view']} of {fb['out_of_view_total']}.", ""]
     L += claims_by_source_lines(s.get("claims_by_source"))
+    L += unknown_by_reason_lines(s.get("unknown_by_reason"))
     dbr = s.get("detection_by_range")
     if dbr:
         L += ["## Detection by true range", "",
@@ -188,6 +189,38 @@ def markdown(score: dict, title: str = "Score") -> str:
     if s.get("notes"):
         L += ["", "## Notes", ""] + [f"- {n}" for n in s["notes"]]
     return "\n".join(L) + "\n"
+
+
+#: the groups of ``unknown_by_reason`` as table rows
+_UNKNOWN_GROUPS = (("obstacle_in_view", "obstacle cells in view"), ("obstacle_out_of_view", "obstacle cells out of view"),
+                   ("remembered", "of them remembered"), ("clear_in_view", "clear cells in view"))
+
+
+def unknown_by_reason_lines(ubr) -> list[str]:
+    """The "Unknown cells by reason" table (the companion's sector log; ``unknown_by_reason`` of a score or a
+    campaign): per group, the unknown cells and the share of each reason (docs/derivations/sectors.md, "Why a
+    sector is unknown"); only the reasons that occur are columns."""
+    if not ubr:
+        return []
+    groups = [(k, label, ubr.get(k) or {}) for k, label in _UNKNOWN_GROUPS]
+    names = [n for n in next((g for _, _, g in groups if g), {}) if n != "cells"]
+    names = [n for n in names if any(g.get(n) for _, _, g in groups)]
+    L = ["## Unknown cells by reason (the companion's sector log)", "",
+         f"Messages scored {ubr['messages_scored']}, of them found in the sector log {ubr['messages_matched']}. "
+         "Why each unknown sector was unknown, the first rule it fell short of: not seen (out of view, nothing "
+         "remembered there), no points (no tracked point in the sector), beside band (points above or below the "
+         "band only), few far (too few far points for clear), vetoed (clear forbidden by a point that may be "
+         "nearer), ranging (points in the band not yet converged), few near, partly in view, held (clear held "
+         "back), turned (the vehicle turned since exposure); unattributed = no log line.", ""]
+    if not names:
+        return L + ["No unknown cells.", ""]
+    L += ["| cells | unknown | " + " | ".join(n.replace("_", " ") for n in names) + " |",
+          "|---|---|" + "---|" * len(names)]
+    for _, label, g in groups:
+        n = int(g.get("cells") or 0)
+        if n:
+            L.append(f"| {label} | {n} | " + " | ".join(f"{100.0 * int(g.get(k) or 0) / n:.1f} %" for k in names) + " |")
+    return L + [""]
 
 
 def claims_by_source_lines(cbs) -> list[str]:

@@ -14,7 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
-from companion.core.sectors_types import SectorSource
+from companion.core.sectors_types import SectorSource, UnknownReason
 from flightsim.score.config import N_SECTORS, REP_CLEAR, REP_RANGE, REP_UNKNOWN, SECTOR_DEG, TRUTH_OBSTACLE
 from flightsim.score.evaluation import CellMasks, Evaluation, cell_masks
 from flightsim.score.stats import EffectiveSize, effective_sample_size, nees_band, normal_coverage, stretch_labels
@@ -197,10 +197,15 @@ def matches_neighbour(r: np.ndarray, T_obstacle: np.ndarray, sectors: int, cfg) 
 SOURCE_NAMES = tuple(s.name.lower() for s in SectorSource)
 
 
+#: why an unknown sector is unknown, by code ("none", "not_seen", "no_points", …; docs/derivations/sectors.md)
+REASON_NAMES = tuple(r.name.lower() for r in UnknownReason)
+
+
 def message_sources(ev: Evaluation, sector_log: dict) -> np.ndarray:
     """(N, 72) int8: the source of each cell of each OBSTACLE_DISTANCE from the companion's sector log
-    (:func:`companion.sector_log.read_sector_log`: its lines by ``(time_usec, distances)``); −1 for a
-    message that has no line there."""
+    (:func:`companion.sector_log.read_sector_log`: its lines by ``(time_usec, distances)``), or any other
+    per-sector row of it keyed the same way (the reasons, :func:`companion.sector_log.read_sector_reasons`);
+    −1 for a message that has no line there."""
     msgs = ev.messages
     n = len(ev.od_t)
     src = np.full((n, N_SECTORS), -1, np.int8)
@@ -235,9 +240,29 @@ def claims_by_source(ev: Evaluation, m: CellMasks, src: np.ndarray, beside: np.n
     return out
 
 
-def summarize(ev: Evaluation, sector_log: dict | None = None) -> dict:
+def unknown_by_reason(ev: Evaluation, m: CellMasks, why: np.ndarray) -> dict:
+    """The unknown cells split by why the companion says each sector was unknown (``why``, :func:`message_sources`
+    of :func:`companion.sector_log.read_sector_reasons`; docs/derivations/sectors.md, "Why a sector is unknown"):
+    obstacle cells in view (missed detections), out of view (neutral) and of them the remembered ones (the
+    remembered target's misses), and clear cells in view (where PX4 refuses to move).  ``unattributed``: a
+    message without a log line, or a line that names no reason for that sector."""
+    unknown = ev.od_rep == REP_UNKNOWN
+    groups = {"obstacle_in_view": m.missed_unknown & m.in_view, "obstacle_out_of_view": m.obstacle_any & ~m.in_view & unknown,
+              "remembered": m.remembered & unknown, "clear_in_view": m.clear & m.in_view & unknown}
+    out: dict = {"messages_scored": int(ev.od_scored.sum()),
+                 "messages_matched": int(np.sum(ev.od_scored & np.all(why >= 0, axis=1)))}
+    for g, sel in groups.items():
+        row = {"cells": int(sel.sum())}
+        row.update({name: int((sel & (why == code)).sum()) for code, name in enumerate(REASON_NAMES) if code > 0})
+        row["unattributed"] = int((sel & (why <= 0)).sum())
+        out[g] = row
+    return out
+
+
+def summarize(ev: Evaluation, sector_log: dict | None = None, reasons: dict | None = None) -> dict:
     """The JSON-ready score of one run (the contents of ``score.json``); with the companion's
-    ``sector_log`` (:func:`companion.sector_log.read_sector_log`) also its claims by source."""
+    ``sector_log`` (:func:`companion.sector_log.read_sector_log`) also its claims by source, and with its
+    ``reasons`` (:func:`companion.sector_log.read_sector_reasons`) the unknown cells by reason."""
     cfg = ev.config
     m = cell_masks(ev)
     msgs = ev.messages
@@ -410,6 +435,7 @@ def summarize(ev: Evaluation, sector_log: dict | None = None) -> dict:
         "rangeable": rangeable,
         "false_obstacles_beside_obstacle": false_beside,
         "claims_by_source": None if sector_log is None else claims_by_source(ev, m, message_sources(ev, sector_log), beside),
+        "unknown_by_reason": unknown_by_reason(ev, m, message_sources(ev, reasons)) if reasons else None,
         "targets": targets,
         "sectors": sectors,
         "range_error": range_error,
