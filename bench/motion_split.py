@@ -12,7 +12,9 @@ frame, and by true range:
 For each: obstacle cells, the share with a range within tolerance (detection), unknown, too near,
 too far, "clear", and the share the single camera could have ranged at all (``od_rangeable``, the
 scorer's ceiling; absent from series written before it).  Speed and heading rate are the truth's
-(``truth.npz`` ``p_ned`` and ``rpy``), differentiated over the frames.
+(``truth.npz`` ``p_ned`` and ``rpy``), differentiated over the frames.  A second table splits the
+unknown cells by why the companion says each was unknown (``od_why``, from its sector log;
+docs/derivations/sectors.md, "Why a sector is unknown"), when the series carry it.
 
     python -m bench.motion_split out/bench/campaign_quad_slalom out/bench/campaign_quad_yaw_spin …
 
@@ -31,6 +33,7 @@ from bench.report import print_campaign_readings
 from flightsim.score.config import REP_CLEAR, REP_RANGE, REP_UNKNOWN, TRUTH_OBSTACLE, ScoreConfig
 from flightsim.score.evaluation import range_errors
 from flightsim.score.inputs import SectorTruth
+from flightsim.score.summary import REASON_NAMES
 
 MOTIONS = ("turning", "hovering", "moving")
 KINDS = ("valid", "unknown", "too_near", "too_far", "clear")
@@ -63,6 +66,7 @@ def split_cells(series: dict, truth: SectorTruth, cfg: ScoreConfig = ScoreConfig
     cells &= (frame >= 0)[:, None]
     motion = np.broadcast_to(motion_of(truth, turn_dps, hover_mps)[np.maximum(frame, 0)][:, None], T.shape)
     rangeable = np.asarray(series["od_rangeable"], bool) if "od_rangeable" in series else None
+    why = np.asarray(series["od_why"]) if "od_why" in series else None
     near, far = range_errors(T, r, cfg)  # the scorer's own test (flightsim.score.evaluation)
     rng = rep == REP_RANGE
     kind = {"valid": rng & ~near & ~far, "unknown": rep == REP_UNKNOWN, "too_near": rng & near, "too_far": rng & far,
@@ -74,6 +78,10 @@ def split_cells(series: dict, truth: SectorTruth, cfg: ScoreConfig = ScoreConfig
             sel = cells & (motion == mi) & (T >= edges[b]) & (T < edges[b + 1])
             row = {"cells": int(sel.sum())} | {k: int((sel & kind[k]).sum()) for k in KINDS}
             row["rangeable"] = None if rangeable is None else int((sel & rangeable).sum())
+            if why is not None:  # the unknown cells by the companion's reason (−1: no sector-log line)
+                u = sel & kind["unknown"]
+                row["why"] = {name: int((u & (why == code)).sum()) for code, name in enumerate(REASON_NAMES) if code > 0}
+                row["why"]["unattributed"] = int((u & (why <= 0)).sum())
             out[f"{m}/{b}"] = row
     return out
 
@@ -96,9 +104,13 @@ def analyse(campaign: Path, cfg: ScoreConfig = ScoreConfig(), turn_dps: float = 
     for run in runs:
         for key, row in split_cells(load_series(run / "score_series.npz"), read_truth_npz(run / "truth.npz"), cfg,
                                     turn_dps, hover_mps).items():
-            acc = pooled.setdefault(key, {k: 0 for k in row})
+            acc = pooled.setdefault(key, {k: 0 for k in row if k != "why"} | {"why": {} if "why" in row else None})
             for k, v in row.items():
-                acc[k] = None if v is None or acc[k] is None else acc[k] + v
+                if k != "why":
+                    acc[k] = None if v is None or acc[k] is None else acc[k] + v
+            # the reasons pooled only while every run so far had them (a split of some runs would mislead)
+            acc["why"] = None if acc["why"] is None or "why" not in row else {
+                name: acc["why"].get(name, 0) + c for name, c in row["why"].items()}
     return {"campaign": str(campaign), "runs": len(runs), "turn_dps": turn_dps, "hover_mps": hover_mps, "cells": pooled}
 
 
@@ -121,7 +133,24 @@ def markdown(results: list[dict], cfg: ScoreConfig = ScoreConfig()) -> str:
             L.append(f"| {m} | {_bin_label(cfg, int(b))} | {n} | " + " | ".join(_pc(row[k], n) for k in KINDS)
                      + f" | {_pc(row['rangeable'], n)} |")
         L.append("")
+        L += _reasons_table(res, cfg)
     return "\n".join(L)
+
+
+def _reasons_table(res: dict, cfg: ScoreConfig) -> list[str]:
+    """The unknown cells of each motion × range row by the companion's reason (only reasons that occur)."""
+    rows = [(key, row) for key, row in res["cells"].items() if row.get("why") and row["unknown"]]
+    names = [n for n in REASON_NAMES[1:] + ("unattributed",) if any(r["why"].get(n) for _, r in rows)]
+    if not rows or not names:
+        return []
+    L = ["Unknown cells by the companion's reason (its sector log; docs/derivations/sectors.md, \"Why a sector is "
+         "unknown\"):", "", "| motion | true range | unknown cells | " + " | ".join(n.replace("_", " ") for n in names) + " |",
+         "|---|---|---|" + "---|" * len(names)]
+    for key, row in rows:
+        m, b = key.split("/")
+        u = row["unknown"]
+        L.append(f"| {m} | {_bin_label(cfg, int(b))} | {u} | " + " | ".join(_pc(row["why"].get(n, 0), u) for n in names) + " |")
+    return L + [""]
 
 
 def main(argv=None) -> int:

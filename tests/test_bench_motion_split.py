@@ -89,3 +89,43 @@ def test_a_campaign_directory_is_read_and_pooled(tmp_path, capsys):
     assert M.main([str(tmp_path / "nothing")]) == 2
     with pytest.raises(SystemExit):
         M.main([str(tmp_path / "camp"), "--turn-dps", "0"])
+
+
+def test_unknown_cells_by_the_companions_reason(tmp_path, capsys):
+    """The turning frames are unknown: the first five for "ranging" (6), the rest without a sector-log line (−1).
+    Two runs carry the reasons, a third does not: the pooled split is then dropped, not half counted."""
+    truth = flight()
+    values = np.array([800] * 10 + [U] * 10 + [800] * 10)
+    ev = evaluate(messages(truth, values), truth, CFG)
+    why = np.zeros((30, 72), np.int8)
+    why[10:20, 0] = np.r_[np.full(5, 6), np.full(5, -1)]
+    s = series_arrays(ev, why)
+    assert s["od_why"].dtype == np.int8 and s["od_why"].shape == (30, 72)
+    out = M.split_cells(s, truth, CFG)
+    m = M.motion_of(truth)
+    turning = out["turning/1"]
+    n_ranging = int(np.sum((m[10:15] == M.MOTIONS.index("turning"))))
+    assert turning["why"]["ranging"] == n_ranging and turning["why"]["unattributed"] == turning["unknown"] - n_ranging
+    assert sum(turning["why"].values()) == turning["unknown"]
+    assert out["hovering/1"]["why"]["ranging"] == 0
+    truth_npz = {"t_s": truth.t_s, "p_ned": truth.p_ned, "rpy": np.c_[np.zeros((30, 2)), truth.yaw],
+                 "sector_max_m": np.array(60.0), "sector_m": np.where(truth.in_view, truth.sector_m, np.nan),
+                 "sector_all_m": truth.sector_m, "in_view": truth.in_view}
+    for seed in (1, 2):
+        run = tmp_path / "camp" / "runs" / f"seed_{seed:04d}"
+        save_series(run / "score_series.npz", s)
+        save_npz_deterministic(run / "truth.npz", truth_npz)
+    res = M.analyse(tmp_path / "camp", CFG)
+    assert res["cells"]["turning/1"]["why"]["ranging"] == 2 * n_ranging
+    assert M.main([str(tmp_path / "camp")]) == 0
+    text = capsys.readouterr().out
+    assert "Unknown cells by the companion's reason" in text and "| turning | 5–10 m |" in text and "ranging" in text
+    plain = tmp_path / "camp" / "runs" / "seed_0003"
+    save_series(plain / "score_series.npz", series_arrays(ev))
+    save_npz_deterministic(plain / "truth.npz", truth_npz)
+    assert M.analyse(tmp_path / "camp", CFG)["cells"]["turning/1"]["why"] is None  # read last
+    (plain / "score_series.npz").rename(plain / "x")
+    first = tmp_path / "camp" / "runs" / "seed_0000"
+    save_series(first / "score_series.npz", series_arrays(ev))
+    save_npz_deterministic(first / "truth.npz", truth_npz)
+    assert M.analyse(tmp_path / "camp", CFG)["cells"]["turning/1"]["why"] is None  # read first

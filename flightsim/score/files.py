@@ -31,7 +31,7 @@ from flightsim.score.evaluation import evaluate
 from flightsim.score.inputs import RangeMessages, SectorTruth
 from flightsim.score.markdown import markdown
 from flightsim.score.obstacles import world_namer
-from flightsim.score.summary import series_arrays, summarize
+from flightsim.score.summary import message_sources, series_arrays, summarize
 
 log = logging.getLogger(__name__)
 
@@ -232,7 +232,7 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
             score["avoidance"] = evaluate_outcome(tr, world)
             score["inputs"]["trajectory"] = str(traj)
     if series_out is not None or plot_dir is not None:
-        arrays = series_arrays(ev)
+        arrays = series_arrays(ev, message_sources(ev, reasons) if reasons else None)
         if series_out is not None:
             save_series(series_out, arrays)
         if plot_dir is not None:

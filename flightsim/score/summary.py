@@ -511,11 +511,13 @@ def nees_summary(ev: Evaluation) -> dict:
     return out
 
 
-def series_arrays(ev: Evaluation) -> dict[str, np.ndarray]:
-    """Per-message arrays a campaign report pools over runs (saved as ``score_series.npz``)."""
+def series_arrays(ev: Evaluation, why: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Per-message arrays a campaign report pools over runs (saved as ``score_series.npz``); with ``why``
+    (:func:`message_sources` of the sector log's reasons) also ``od_why``, each cell's reason for being unknown."""
     m = cell_masks(ev)
     fwd = forward_samples(ev, "exposure")
-    return {
+    extra = {} if why is None else {"od_why": np.asarray(why, np.int8)}
+    return extra | {
         "t0": np.array(ev.t0), "sector_max_m": np.array(ev.sector_max_m),
         "od_t": ev.od_t, "od_scored": ev.od_scored, "od_rep": ev.od_rep, "od_cm": ev.od_cm.astype(np.int32), "od_truth": ev.od_truth.astype(np.float32),
         "od_tcls": ev.od_tcls, "od_label": ev.od_label.astype(np.int16), "od_max_m": ev.od_max_m,
