@@ -6,7 +6,8 @@ sectors, inferred from points above or below the band; docs/derivations/sectors.
 comes from"), and the score pools the ranges by
 source into ``claims_by_source`` (``flightsim/score/summary.py``).  This prints, per campaign, the
 ranges of each source in view and out of view, the share within tolerance, and where the false
-obstacles and the too-near ranges came from:
+obstacles and the too-near ranges came from; then the cells left unknown by why the companion says each was
+unknown (``unknown_by_reason``: docs/derivations/sectors.md, "Why a sector is unknown"):
 
     python -m bench.sources out/bench/campaign_quad_slalom out/bench/campaign_quad_corner …
 
@@ -20,20 +21,21 @@ import json
 import sys
 from pathlib import Path
 
+from flightsim.score.markdown import unknown_reason_table
 from flightsim.score.summary import SOURCE_NAMES
 
 SOURCES = (*SOURCE_NAMES[1:], "unattributed")  # the companion's sources ("none" has no ranges), then no log line
 
 
-def load(path: Path) -> tuple[str, dict | None]:
-    """(name, claims_by_source) of a campaign directory (its ``campaign.json``) or a run's (``score.json``)."""
+def load(path: Path, block: str = "claims_by_source") -> tuple[str, dict | None]:
+    """(name, ``block``) of a campaign directory (its ``campaign.json``) or a run's (``score.json``):
+    ``claims_by_source`` or ``unknown_by_reason``."""
     for name, key in (("campaign.json", "aggregate"), ("score.json", None)):
         f = path / name
         if f.is_file():
             d = json.loads(f.read_text(encoding="utf-8"))
             label = d.get("scenario_name") or d.get("scenario") or path.name
-            cbs = (d.get(key) or {}).get("claims_by_source") if key else d.get("claims_by_source")
-            return str(label), cbs
+            return str(label), (d.get(key) or {}).get(block) if key else d.get(block)
     raise FileNotFoundError(f"{path}: neither campaign.json nor score.json")
 
 
@@ -71,15 +73,17 @@ def main(argv=None) -> int:
     ap.add_argument("dirs", nargs="+", type=Path, help="campaign directories (campaign.json) or run directories (score.json)")
     ap.add_argument("--json", action="store_true", help="print the claims by source as JSON instead of the tables")
     args = ap.parse_args(argv)
-    loaded = []
+    loaded, reasons = [], []
     for d in args.dirs:
         try:
             loaded.append(load(d))
+            reasons.append(load(d, "unknown_by_reason"))
         except (FileNotFoundError, json.JSONDecodeError) as e:
             print(f"bench.sources: {e}", file=sys.stderr)
             return 2
     if args.json:
-        print(json.dumps({label: cbs for label, cbs in loaded}, indent=2))
+        print(json.dumps({label: {"claims_by_source": cbs, "unknown_by_reason": ubr}
+                          for (label, cbs), (_, ubr) in zip(loaded, reasons)}, indent=2))
         return 0
     L = ["| scenario | view | source | ranges | within tolerance (of those on obstacles) | too near | false obstacles |",
          "|---|---|---|---|---|---|---|"]
@@ -95,6 +99,9 @@ def main(argv=None) -> int:
         fo, tn = sum(v["false_obstacles"] for v in t.values()), sum(v["too_near"] for v in t.values())
         share.append(f"| {label} | " + " / ".join(_pc(t[s]["false_obstacles"], fo) for s in SOURCES) + f" (of {fo}) | "
                      + " / ".join(_pc(t[s]["too_near"], tn) for s in SOURCES) + f" (of {tn}) |")
+    why = unknown_reason_table(reasons)
+    if why:
+        share += ["", "Unknown cells by the companion's reason (shares of the unknown cells of each group):", ""] + why
     print("\n".join(L + share))
     if missing:
         print(f"\nno sector log in: {', '.join(missing)} (flown before the companion wrote one)")

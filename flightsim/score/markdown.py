@@ -6,6 +6,8 @@ obstacles, the forward DISTANCE_SENSOR, the per-sector table and the definitions
 
 from __future__ import annotations
 
+from flightsim.score.summary import REASON_NAMES
+
 
 # ---------------------------------------------------------------------- markdown ---------------
 def _f(v, fmt: str = "{:.2f}", none: str = "–") -> str:
@@ -191,20 +193,39 @@ def markdown(score: dict, title: str = "Score") -> str:
     return "\n".join(L) + "\n"
 
 
+#: the reasons of ``unknown_by_reason`` as table columns, in code order, then "unattributed" (no log line)
+REASON_COLUMNS = (*REASON_NAMES[1:], "unattributed")
 #: the groups of ``unknown_by_reason`` as table rows
 _UNKNOWN_GROUPS = (("obstacle_in_view", "obstacle cells in view"), ("obstacle_out_of_view", "obstacle cells out of view"),
                    ("remembered", "of them remembered"), ("clear_in_view", "clear cells in view"))
 
 
+def unknown_reason_table(items) -> list[str]:
+    """A table of unknown cells by reason for ``items`` = [(scenario label or None, ``unknown_by_reason``)]: one row
+    per group with unknown cells, the share of each reason that occurs in any of them (docs/derivations/sectors.md,
+    "Why a sector is unknown"); a scenario column when a label is given.  [] when nothing is unknown."""
+    items = [(label, u) for label, u in items if u]
+    names = [n for n in REASON_COLUMNS if any((u.get(k) or {}).get(n) for _, u in items for k, _ in _UNKNOWN_GROUPS)]
+    if not names:
+        return []
+    lead = "| scenario " if any(label for label, _ in items) else ""
+    L = [lead + "| cells | unknown | " + " | ".join(n.replace("_", " ") for n in names) + " |",
+         ("|---" if lead else "") + "|---|---|" + "---|" * len(names)]
+    for label, u in items:
+        for key, group in _UNKNOWN_GROUPS:
+            g = u.get(key) or {}
+            n = int(g.get("cells") or 0)
+            if n:
+                L.append((f"| {label} " if lead else "") + f"| {group} | {n} | "
+                         + " | ".join(f"{100.0 * int(g.get(k) or 0) / n:.1f} %" for k in names) + " |")
+    return L
+
+
 def unknown_by_reason_lines(ubr) -> list[str]:
-    """The "Unknown cells by reason" table (the companion's sector log; ``unknown_by_reason`` of a score or a
-    campaign): per group, the unknown cells and the share of each reason (docs/derivations/sectors.md, "Why a
-    sector is unknown"); only the reasons that occur are columns."""
+    """The "Unknown cells by reason" section (the companion's sector log; ``unknown_by_reason`` of a score or a
+    campaign): per group, the unknown cells and the share of each reason (:func:`unknown_reason_table`)."""
     if not ubr:
         return []
-    groups = [(k, label, ubr.get(k) or {}) for k, label in _UNKNOWN_GROUPS]
-    names = [n for n in next((g for _, _, g in groups if g), {}) if n != "cells"]
-    names = [n for n in names if any(g.get(n) for _, _, g in groups)]
     L = ["## Unknown cells by reason (the companion's sector log)", "",
          f"Messages scored {ubr['messages_scored']}, of them found in the sector log {ubr['messages_matched']}. "
          "Why each unknown sector was unknown, the first rule it fell short of: not seen (out of view, nothing "
@@ -212,15 +233,7 @@ def unknown_by_reason_lines(ubr) -> list[str]:
          "band only), few far (too few far points for clear), vetoed (clear forbidden by a point that may be "
          "nearer), ranging (points in the band not yet converged), few near, partly in view, held (clear held "
          "back), turned (the vehicle turned since exposure); unattributed = no log line.", ""]
-    if not names:
-        return L + ["No unknown cells.", ""]
-    L += ["| cells | unknown | " + " | ".join(n.replace("_", " ") for n in names) + " |",
-          "|---|---|" + "---|" * len(names)]
-    for _, label, g in groups:
-        n = int(g.get("cells") or 0)
-        if n:
-            L.append(f"| {label} | {n} | " + " | ".join(f"{100.0 * int(g.get(k) or 0) / n:.1f} %" for k in names) + " |")
-    return L + [""]
+    return L + (unknown_reason_table([(None, ubr)]) or ["No unknown cells."]) + [""]
 
 
 def claims_by_source_lines(cbs) -> list[str]:
