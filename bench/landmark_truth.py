@@ -14,7 +14,10 @@ samples, mean and median z, NEES (mean z², 1 when σ is honest), the share with
 beyond +3σ (long) and −3σ (short).  The samples of one landmark in consecutive frames are strongly
 correlated: read the counts as frames, not as independent draws.
 
-``--young S`` keeps only landmarks first logged less than S seconds before the frame (new points,
+``--unconverged`` takes the valid landmarks not yet converged instead (the points behind a sector whose reason
+for being unknown is "ranging"; docs/derivations/sectors.md, "Why a sector is unknown"); the last two columns, the
+median σ / range and the median |range − true range| / true range, say how far they are from converging and how
+good their estimates already are.  ``--young S`` keeps only landmarks first logged less than S seconds before the frame (new points,
 not tracks carried since take-off); ``--axis DEG`` only those within DEG of the camera's optical axis
 (the direction of travel on a straight approach).  docs/BENCHMARKS.md, "Why the pole ahead was ranged
 long", measured the same thing with a hook, before this tool existed.  The computation is
@@ -44,6 +47,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scenario", help="the scenario file, if not the one sitl.json names (relative to the run's working directory)")
     ap.add_argument("--young", type=float, metavar="S", help="only landmarks first logged less than S seconds before the frame")
     ap.add_argument("--axis", type=float, metavar="DEG", help="only landmarks within DEG of the optical axis")
+    ap.add_argument("--unconverged", action="store_true",
+                    help="the landmarks not yet converged instead of the converged ones (what a sector reads as \"ranging\")")
     ap.add_argument("--bins", default=",".join(f"{b:g}" for b in DEFAULT_BINS), help="true-range bin edges, m")
     ap.add_argument("--json", action="store_true", help="print JSON instead of the table")
     args = ap.parse_args(argv)
@@ -62,7 +67,8 @@ def main(argv=None) -> int:
     try:
         for d in dirs:
             frames, t, R, p, raycast = load_run(d, args.scenario)
-            samples.append(landmark_z(frames, t, R, p, raycast, young_s=args.young, axis_deg=args.axis))
+            samples.append(landmark_z(frames, t, R, p, raycast, young_s=args.young, axis_deg=args.axis,
+                                      converged=not args.unconverged))
     except (CompanionError, OSError, KeyError, json.JSONDecodeError) as e:
         print(f"{COMMAND}: {e}", file=sys.stderr)
         return 2

@@ -49,6 +49,10 @@ def test_z_against_a_wall_on_exact_geometry():
               frame(10.1, p, R_NORTH, b, truth + 2 * sig, sig, [1, 2, 3], converged=[True, True, False])]
     z = landmark_z(frames, np.array([10.0, 10.1]), np.stack([R_NORTH] * 2), np.stack([p, p]), wall_raycast)
     assert z.shape == (5, 6)  # the unconverged landmark of the second frame is left out
+    only = landmark_z(frames, np.array([10.0, 10.1]), np.stack([R_NORTH] * 2), np.stack([p, p]), wall_raycast, converged=False)
+    assert only.shape == (1, 6) and only[0, 4] == 3 and only[0, 0] == pytest.approx(2.0)  # ... and it alone here
+    both = landmark_z(frames, np.array([10.0, 10.1]), np.stack([R_NORTH] * 2), np.stack([p, p]), wall_raycast, converged=None)
+    assert both.shape == (6, 6)
     np.testing.assert_allclose(z[:3, 0], 0.0, atol=1e-9)
     np.testing.assert_allclose(z[3:, 0], 2.0, atol=1e-9)
     np.testing.assert_allclose(z[:3, 1], truth, rtol=1e-12)
@@ -90,5 +94,7 @@ def test_summary_bins_and_table():
     assert rows[1]["mean_z"] == pytest.approx(0.0) and rows[1]["nees"] == pytest.approx(16.0)
     assert rows[1]["long_3sigma"] == pytest.approx(0.5) and rows[1]["short_3sigma"] == pytest.approx(0.5)
     assert rows[1]["within_2sigma"] == 0.0 and rows[0]["within_2sigma"] == 1.0
+    assert rows[1]["median_rel_sigma"] == pytest.approx(np.median([0.1 / 4.4, 0.1 / 4.1]))
+    assert rows[1]["median_rel_error"] == pytest.approx(np.median([0.4 / 4.0, 0.4 / 4.5]))
     text = markdown(rows)
-    assert "| 3–5 m | 2 (2) | +0.00 |" in text and "| 5–8 m | 0 |" in text
+    assert "| 3–5 m | 2 (2) | +0.00 |" in text and "| 5–8 m | 0 |" in text and "| 0.024 | 0.094 |" in text

@@ -25,8 +25,9 @@ MAX_TRUTH_M = 100.0
 
 
 def landmark_z(frames, t_truth, R_truth, p_truth, raycast, *, young_s: float | None = None,
-               axis_deg: float | None = None, tol_s: float = 1e-3):
-    """(z, true range, range, σ, landmark id, frame time) of the converged, valid landmarks of ``frames``
+               axis_deg: float | None = None, tol_s: float = 1e-3, converged: bool | None = True):
+    """(z, true range, range, σ, landmark id, frame time) of the converged (``converged=False``: the not yet
+    converged; None: all), valid landmarks of ``frames``
     (:func:`companion.landmark_log.read_landmark_log`) against the truth poses (``t_truth`` (K,) on the
     companion's clock, ``R_truth`` (K,3,3) camera to world, ``p_truth`` (K,3)); ``raycast(origin (3,), dirs (N,3))``
     returns the distance along each unit direction, inf where nothing is hit.  A frame with no truth
@@ -39,7 +40,8 @@ def landmark_z(frames, t_truth, R_truth, p_truth, raycast, *, young_s: float | N
         k = int(np.argmin(np.abs(t_truth - f["t"]))) if len(t_truth) else -1
         if k < 0 or abs(t_truth[k] - f["t"]) > tol_s:
             continue
-        m = f["converged"] & f["valid"] & np.isfinite(f["range"]) & np.isfinite(f["range_sigma"]) & (f["range_sigma"] > 0)
+        conv = np.asarray(f["converged"], bool)
+        m = (np.ones_like(conv) if converged is None else conv if converged else ~conv) & f["valid"] & np.isfinite(f["range"]) & np.isfinite(f["range_sigma"]) & (f["range_sigma"] > 0)
         if young_s is not None:
             m &= np.array([f["t"] - first[int(i)] < young_s for i in f["ids"]], bool)
         d_world = f["p_world"] - f["p_world_cam"]
@@ -63,9 +65,12 @@ def landmark_z(frames, t_truth, R_truth, p_truth, raycast, *, young_s: float | N
 
 
 def summarize(samples: np.ndarray, bins=DEFAULT_BINS) -> list[dict]:
-    """Per true-range bin [lo, hi): n, mean and median z, NEES, within ±2σ, beyond +3σ and −3σ."""
+    """Per true-range bin [lo, hi): n, mean and median z, NEES, within ±2σ, beyond +3σ and −3σ, and the median σ / range
+    and |range − true range| / true range."""
     out = []
     z, truth = samples[:, 0], samples[:, 1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel_sigma, rel_err = samples[:, 3] / samples[:, 2], np.abs(samples[:, 2] - truth) / truth
     for lo, hi in zip(bins[:-1], bins[1:]):
         sel = (truth >= lo) & (truth < hi)
         n = int(sel.sum())
@@ -73,20 +78,23 @@ def summarize(samples: np.ndarray, bins=DEFAULT_BINS) -> list[dict]:
         out.append(dict(lo=float(lo), hi=float(hi), n=n, landmarks=int(len(np.unique(samples[sel, 4]))),
                         mean_z=float(zz.mean()) if n else None, median_z=float(np.median(zz)) if n else None,
                         nees=float(np.mean(zz**2)) if n else None, within_2sigma=float(np.mean(np.abs(zz) <= 2)) if n else None,
-                        long_3sigma=float(np.mean(zz > 3)) if n else None, short_3sigma=float(np.mean(zz < -3)) if n else None))
+                        long_3sigma=float(np.mean(zz > 3)) if n else None, short_3sigma=float(np.mean(zz < -3)) if n else None,
+                        median_rel_sigma=float(np.median(rel_sigma[sel])) if n else None,
+                        median_rel_error=float(np.median(rel_err[sel])) if n else None))
     return out
 
 
 def markdown(rows: list[dict]) -> str:
-    lines = ["| true range | samples (landmarks) | mean z | median z | NEES | within ±2σ | beyond +3σ (long) | beyond −3σ (short) |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| true range | samples (landmarks) | mean z | median z | NEES | within ±2σ | beyond +3σ (long) | beyond −3σ (short) "
+             "| median σ / range | median abs. error / range |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if not r["n"]:
-            lines.append(f"| {r['lo']:g}–{r['hi']:g} m | 0 | – | – | – | – | – | – |")
+            lines.append(f"| {r['lo']:g}–{r['hi']:g} m | 0 | – | – | – | – | – | – | – | – |")
             continue
         lines.append(f"| {r['lo']:g}–{r['hi']:g} m | {r['n']} ({r['landmarks']}) | {r['mean_z']:+.2f} | {r['median_z']:+.2f} | "
                      f"{r['nees']:.2f} | {100 * r['within_2sigma']:.1f} % | {100 * r['long_3sigma']:.1f} % | "
-                     f"{100 * r['short_3sigma']:.1f} % |")
+                     f"{100 * r['short_3sigma']:.1f} % | {r['median_rel_sigma']:.3f} | {r['median_rel_error']:.3f} |")
     return "\n".join(lines)
 
 
