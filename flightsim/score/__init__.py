@@ -77,8 +77,11 @@ safety targets are judged pooled.
 
 *Remembered* cells (:func:`.evaluation.remembered_cells`): out-of-view obstacle cells whose obstacle (the
 grouping below) was in view within ``remember_window_s`` with the vehicle moved less than
-``remember_max_travel_m`` since; their share reported within tolerance (unknown counts as not
-reported).  Detection by true range (``detection_bins_m``): per bin, in view and out of view (all
+``remember_max_travel_m`` since, and whose own point (``remember_point``) was then in an in-view sector and
+— with the scenario's world at hand, ``remember_visible`` — in the line of sight: no solid nearer than
+max(``visible_tolerance_m``, ``visible_tolerance_rel`` · distance) short of it on the ray from the vehicle
+(the far faces of a box passed along one side were in view but never seen; a thin pole's far side counts as
+seen); their share reported within tolerance (unknown counts as not reported).  Detection by true range (``detection_bins_m``): per bin, in view and out of view (all
 out-of-view obstacle cells), the share within tolerance, the share with any range, unknown and
 clear.  Warm-up: messages stamped within ``warmup_s`` of the first truth frame are not scored
 (cells, the forward DISTANCE_SENSOR and NEES); latency and the first claim include them.

@@ -37,6 +37,9 @@ class ScoreConfig:
     remember_window_s: float = 10.0  # remembered: the obstacle was in view at most this long before, s
     remember_max_travel_m: float = 20.0  # ... and the vehicle moved less than this since, m
     remember_point: bool = True  # remembered also needs the cell's own world point to have been in view then (a long wall counts only where seen)
+    remember_visible: bool = True  # ... and in the line of sight then: no solid of the world between the vehicle and the point (a box's far faces were never seen; needs the world)
+    visible_tolerance_m: float = 1.5  # a point counts as in the line of sight when the first solid on the ray lies no nearer than this short of it, m (a thin pole hides its own far side: 1.5 m covers the thickest pole or trunk of the scenarios) ...
+    visible_tolerance_rel: float = 0.05  # ... or this fraction of its distance, whichever is larger (the cell's point sits on its sector's centre bearing, not on the surface's nearest point)
     truth_max_age_s: float = 0.1  # the truth frame used for a message may be at most this much older than its stamp, s
     capture_snap: float = 0.5  # a mapped exposure time snaps to the nearest truth frame within this many frame periods
     pair_window_s: float = 0.005  # a DISTANCE_SENSOR pairs with the OBSTACLE_DISTANCE sent at most this much before it, s
@@ -70,6 +73,11 @@ class ScoreConfig:
         require_finite("near_range_m", self.near_range_m, positive=True)
         require_finite("remember_window_s", self.remember_window_s, positive=True)
         require_finite("remember_max_travel_m", self.remember_max_travel_m, positive=True)
+        for name in ("remember_point", "remember_visible"):
+            require(isinstance(getattr(self, name), bool), f"{name} must be true or false, got {getattr(self, name)!r}")
+        require_finite("visible_tolerance_m", self.visible_tolerance_m, nonnegative=True)
+        require_finite("visible_tolerance_rel", self.visible_tolerance_rel, nonnegative=True)
+        require(self.visible_tolerance_rel < 1, f"visible_tolerance_rel must be below 1, got {self.visible_tolerance_rel}")
         require_finite("rangeable_window_s", self.rangeable_window_s, positive=True)
         require_finite("rangeable_parallax_deg", self.rangeable_parallax_deg, positive=True)
         require(self.rangeable_parallax_deg < 90, f"rangeable_parallax_deg must be below 90, got {self.rangeable_parallax_deg}")

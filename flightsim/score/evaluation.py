@@ -109,7 +109,8 @@ def cell_points(truth: SectorTruth, j: np.ndarray, ii: np.ndarray) -> np.ndarray
 
 
 def remembered_cells(truth: SectorTruth, labels: np.ndarray, view_f: np.ndarray, frame: np.ndarray, lab: np.ndarray,
-                     candidates: np.ndarray, config: ScoreConfig) -> tuple[np.ndarray, np.ndarray]:
+                     candidates: np.ndarray, config: ScoreConfig,
+                     visible: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The *remembered* cells among ``candidates`` (out-of-view obstacle cells of the messages; the
     coverage targets, docs/derivations/obstacle_map.md): ``(remembered (N, 72) bool, seen (N, 72)
     int)``, ``seen`` the truth frame in which the cell was last in view (−1 elsewhere).
@@ -119,8 +120,9 @@ def remembered_cells(truth: SectorTruth, labels: np.ndarray, view_f: np.ndarray,
     ``remember_window_s`` before the message's truth frame (``frame``), and the vehicle moved less
     than ``remember_max_travel_m`` (3-D) from its position in the *latest* such frame.  One group
     may be large (a long wall): a part of it that never was in view counts when another part was.
-    With ``remember_point`` the cell's own point must have been in view (:func:`_point_seen`), and
-    ``seen`` is that frame; without, ``seen`` is the obstacle's.
+    With ``remember_point`` the cell's own point must have been in view (:func:`_point_seen`; with
+    ``remember_visible`` and ``visible`` also in the line of sight), and ``seen`` is that frame; without,
+    ``seen`` is the obstacle's.
     """
     cfg = config
     n = len(frame)
@@ -142,7 +144,7 @@ def remembered_cells(truth: SectorTruth, labels: np.ndarray, view_f: np.ndarray,
     ok &= np.linalg.norm(np.asarray(truth.p_ned, float)[j] - np.asarray(truth.p_ned, float)[lsj], axis=1) < cfg.remember_max_travel_m
     nn, ii, j, ref = nn[ok], ii[ok], j[ok], lsj[ok]
     if cfg.remember_point:
-        ref = _point_seen(truth, view_f, j, cell_points(truth, j, ii), cfg)
+        ref = _point_seen(truth, view_f, j, cell_points(truth, j, ii), cfg, visible if cfg.remember_visible else None)
         nn, ii, ref = nn[ref >= 0], ii[ref >= 0], ref[ref >= 0]
     out[nn, ii] = True
     seen_at[nn, ii] = ref
@@ -156,11 +158,15 @@ def _window(truth: SectorTruth, j: np.ndarray, window_s: float) -> tuple[np.ndar
     return lo, int(np.max(j - lo)) + 1
 
 
-def _point_seen(truth: SectorTruth, view_f: np.ndarray, j: np.ndarray, pt: np.ndarray, cfg: ScoreConfig) -> np.ndarray:
+def _point_seen(truth: SectorTruth, view_f: np.ndarray, j: np.ndarray, pt: np.ndarray, cfg: ScoreConfig,
+                visible: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """(len(j),) int: the latest truth frame at most ``remember_window_s`` before (or at) frame ``j`` in
     which the world point ``pt`` (C, 3) lay in an in-view sector within ``sector_max_m`` of the vehicle,
-    from where the vehicle has since moved less than ``remember_max_travel_m``; −1 if none.  A long wall
-    counts only where its own part was in view (occlusion by other obstacles is not checked)."""
+    from where the vehicle has since moved less than ``remember_max_travel_m``, and — with ``visible``
+    (``visible(origins (K, 3), points (K, 3)) -> (K,) bool``, :func:`flightsim.score.obstacles.world_visibility`)
+    — in the line of sight from the vehicle then; −1 if none.  A long wall counts only where its own part
+    was in view; without ``visible`` a point hidden behind a solid (another obstacle, or the far side of
+    its own) counts as seen."""
     out = np.full(len(j), -1, np.int64)
     if len(j) == 0:
         return out
@@ -177,6 +183,9 @@ def _point_seen(truth: SectorTruth, view_f: np.ndarray, j: np.ndarray, pt: np.nd
         sec = sector_of(rel[..., 0], rel[..., 1], yaw[f])
         moved = np.linalg.norm(p[j[c], None, :] - p[f], axis=2) < cfg.remember_max_travel_m
         hit = inwin & view_f[f, sec] & (r <= truth.sector_max_m) & moved
+        if visible is not None and hit.any():  # in view is not seen: the line of sight must be free
+            cc, ww = np.nonzero(hit)
+            hit[cc, ww] = visible(p[f[cc, ww]], pt[c][cc])
         first = np.argmax(hit, axis=1)  # the latest such frame (f runs backwards)
         out[c] = np.where(hit.any(axis=1), f[np.arange(len(first)), first], -1)
     return out
@@ -249,8 +258,11 @@ def _boot_offset(msgs: RangeMessages) -> float:
 
 
 def evaluate(msgs: RangeMessages, truth: SectorTruth, config: ScoreConfig = ScoreConfig(), *,
-             namer: Callable[[np.ndarray], list] | None = None) -> Evaluation:
-    """Compare every message with the truth (definitions in the module docstring)."""
+             namer: Callable[[np.ndarray], list] | None = None,
+             visible: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> Evaluation:
+    """Compare every message with the truth (definitions in the module docstring); ``namer`` names the
+    obstacles, ``visible`` tests lines of sight in the world (:func:`flightsim.score.obstacles.world_visibility`:
+    a remembered cell's point must have been seen, not only in view; without it, a note says so)."""
     cfg = config
     notes: list[str] = []
     fp = truth.frame_period_s
@@ -290,7 +302,10 @@ def evaluate(msgs: RangeMessages, truth: SectorTruth, config: ScoreConfig = Scor
     lab = np.full((n, N_SECTORS), -1, np.int64)
     lab[scored] = labels[frame[scored]]
     lab[tcls != TRUTH_OBSTACLE] = -1
-    remember, seen_at = remembered_cells(truth, labels, view_f, frame, lab, (tcls == TRUTH_OBSTACLE) & ~view, cfg)
+    remember, seen_at = remembered_cells(truth, labels, view_f, frame, lab, (tcls == TRUTH_OBSTACLE) & ~view, cfg, visible)
+    if cfg.remember_point and cfg.remember_visible and visible is None and np.any(remember):
+        notes.append("remembered cells: lines of sight not checked (no world given), so a point hidden behind a solid "
+                     "counts as seen")
     rangeable = rangeable_cells(truth, view_f, frame, (tcls == TRUTH_OBSTACLE) & view, cfg)
     rangeable |= rangeable_cells(truth, view_f, frame, remember, cfg, ref=seen_at)
     # --- exposure and latency -----------------------------------------------------------------

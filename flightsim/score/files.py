@@ -30,7 +30,7 @@ from flightsim.score.config import N_SECTORS, ScoreConfig
 from flightsim.score.evaluation import evaluate
 from flightsim.score.inputs import RangeMessages, SectorTruth
 from flightsim.score.markdown import markdown
-from flightsim.score.obstacles import world_namer
+from flightsim.score.obstacles import world_namer, world_visibility
 from flightsim.score.summary import message_sources, series_arrays, summarize
 
 log = logging.getLogger(__name__)
@@ -218,7 +218,8 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
     if forward:
         msgs = forward_from_sector_log(msgs, forward)
         forward_source = "sector log (every forward reading computed, sent to the autopilot or withheld)"
-    ev = evaluate(msgs, truth, cfg, namer=world_namer(world) if world is not None else None)
+    visible = None if world is None else world_visibility(world, cfg.visible_tolerance_m, cfg.visible_tolerance_rel)
+    ev = evaluate(msgs, truth, cfg, namer=world_namer(world) if world is not None else None, visible=visible)
     score = summarize(ev, lines, reasons)
     score["inputs"] = {"ranges": str(ranges_tlog), "truth": str(truth_npz), "forward_readings": forward_source}
     if lines is not None:

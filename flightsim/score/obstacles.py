@@ -109,6 +109,28 @@ def name_obstacles(centroids: np.ndarray, points: list[np.ndarray],
     return out
 
 
+def world_visibility(world, tolerance_m: float = 1.5, tolerance_rel: float = 0.05) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """A line-of-sight test for :func:`flightsim.score.evaluation.evaluate`: ``visible(origins (K, 3), points (K, 3))``
+    → (K,) bool, True where the first solid on the ray from the origin towards the point (the world's obstacles,
+    :meth:`flightsim.world.World.raycast`; the ground is left out, both ends lie above it) lies no nearer than
+    max(``tolerance_m``, ``tolerance_rel`` · distance) short of the point.  The scorer's cell points sit on their
+    sector's centre bearing at the sector's true distance, on the surface or just in front of it (the wedge's
+    nearest point may lie off the centre bearing): the tolerance keeps a surface from hiding itself."""
+
+    def visible(origins: np.ndarray, points: np.ndarray) -> np.ndarray:
+        o = np.asarray(origins, float).reshape(-1, 3)
+        d = np.asarray(points, float).reshape(-1, 3) - o
+        dist = np.linalg.norm(d, axis=1)
+        out = np.ones(len(d), bool)
+        ok = dist > 1e-9
+        if np.any(ok):
+            hit = world.raycast(o[ok], d[ok] / dist[ok, None], ground=False).distance
+            out[ok] = hit >= dist[ok] - np.maximum(tolerance_m, tolerance_rel * dist[ok])
+        return out
+
+    return visible
+
+
 def world_namer(world, max_distance_m: float = 2.0) -> Callable[[np.ndarray], list]:
     """A namer for :func:`name_obstacles`: the world solid whose footprint is nearest each point
     (within ``max_distance_m``), using :meth:`flightsim.world.World.closest_horizontal`."""
