@@ -89,42 +89,35 @@ def _records(path, output: str):
                 yield r
 
 
+def _digit_rows(path, output: str, field: str, top: int) -> dict[tuple[int, bytes], np.ndarray]:
+    """The per-sector digit string ``field`` (hexadecimal digits 0…``top``) of ``output``'s lines that carry it,
+    keyed by ``(time_usec, distances as uint16 bytes)`` → (72,) int8; a line cut short or malformed is skipped."""
+    out: dict[tuple[int, bytes], np.ndarray] = {}
+    for r in _records(path, output):
+        try:
+            d = np.asarray(r["d"], np.int64)
+            c = np.frombuffer(r[field].encode("ascii"), np.uint8).astype(np.int16)
+            row = np.where(c >= ord("a"), c - (ord("a") - 10), np.where(c <= ord("9"), c - ord("0"), -1)).astype(np.int8)
+            key = (int(r["time_usec"]), d.astype(np.uint16).tobytes())
+        except (KeyError, TypeError, ValueError, AttributeError):
+            continue
+        if d.shape != (SECTOR_COUNT,) or row.shape != (SECTOR_COUNT,) or np.any((row < 0) | (row > top)):
+            continue
+        out[key] = row
+    return out
+
+
 def read_sector_log(path, output: str = "autopilot") -> dict[tuple[int, bytes], np.ndarray]:
     """The lines of ``output`` in a sector log, keyed by ``(time_usec, distances as uint16 bytes)``
     → the (72,) int8 sources.  A line cut short (a companion killed mid-write) is skipped; a file
     that is not a sector log raises :class:`~companion.errors.InputError`."""
-    out: dict[tuple[int, bytes], np.ndarray] = {}
-    top = max(SectorSource)
-    for r in _records(path, output):
-        try:
-            d = np.asarray(r["d"], np.int64)
-            src = np.frombuffer(r["src"].encode("ascii"), np.uint8).astype(np.int8) - ord("0")
-            key = (int(r["time_usec"]), d.astype(np.uint16).tobytes())
-        except (KeyError, TypeError, ValueError, AttributeError):
-            continue
-        if d.shape != (SECTOR_COUNT,) or src.shape != (SECTOR_COUNT,) or np.any((src < 0) | (src > top)):
-            continue
-        out[key] = src
-    return out
+    return _digit_rows(path, output, "src", max(SectorSource))
 
 
 def read_sector_reasons(path, output: str = "autopilot") -> dict[tuple[int, bytes], np.ndarray]:
     """The reasons of ``output``'s lines (those that carry ``why``), keyed like :func:`read_sector_log`
     → the (72,) int8 :class:`~companion.core.sectors_types.UnknownReason` of each sector (0 where it claims)."""
-    out: dict[tuple[int, bytes], np.ndarray] = {}
-    top = max(UnknownReason)
-    for r in _records(path, output):
-        try:
-            d = np.asarray(r["d"], np.int64)
-            c = np.frombuffer(r["why"].encode("ascii"), np.uint8).astype(np.int16)
-            why = np.where(c >= ord("a"), c - (ord("a") - 10), np.where(c <= ord("9"), c - ord("0"), -1)).astype(np.int8)
-            key = (int(r["time_usec"]), d.astype(np.uint16).tobytes())
-        except (KeyError, TypeError, ValueError, AttributeError):
-            continue
-        if d.shape != (SECTOR_COUNT,) or why.shape != (SECTOR_COUNT,) or np.any((why < 0) | (why > top)):
-            continue
-        out[key] = why
-    return out
+    return _digit_rows(path, output, "why", max(UnknownReason))
 
 
 def read_sector_forward(path, output: str = "autopilot") -> dict[tuple[int, bytes], tuple[int, int, int]]:
