@@ -192,3 +192,33 @@ def test_random_bytes_as_a_tlog_read_or_are_a_config_error(tmp_path, data):
     except ConfigError as exc:
         assert str(p) in str(exc)
 
+
+
+@SETTINGS
+@given(why=st.text(max_size=80), src=st.text(alphabet="0123456789abcdefz", max_size=80))
+@example(why=("0123456789a" * 7)[:72], src="012345" * 12)  # both valid: read
+@example(why="b" * 72, src="6" * 72)  # one past the last code of each: skipped
+@example(why="A" * 72, src=":" * 72)  # upper case, and the character after '9': skipped
+def test_sector_log_digit_fields_read_or_are_skipped(tmp_path, why, src):
+    """Any text in a sector-log line's ``why`` or ``src`` (companion/sector_log.py): the line is read only when it is
+    72 digits within the field's range, and nothing raises; a valid line written by the log reads back exactly."""
+    import json
+
+    from companion.core.sectors_types import SectorSource, UnknownReason
+    from companion.sector_log import SectorLog, read_sector_log, read_sector_reasons
+
+    path = tmp_path / "s.jsonl"
+    path.unlink(missing_ok=True)
+    log = SectorLog(path)
+    good_src, good_why = np.arange(72) % (max(SectorSource) + 1), np.arange(72) % (max(UnknownReason) + 1)
+    log("autopilot", 1, np.full(72, 65535), good_src, None, good_why)
+    log.close()
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(json.dumps({"out": "autopilot", "time_usec": 2, "d": [65535] * 72, "src": src, "why": why}) + "\n")
+    reasons, sources = read_sector_reasons(path), read_sector_log(path)
+    key1 = (1, np.full(72, 65535, np.uint16).tobytes())
+    assert np.array_equal(reasons[key1], good_why) and np.array_equal(sources[key1], good_src)
+    key2 = (2, key1[1])
+    hexval = lambda t, top: len(t) == 72 and all(c in "0123456789abcdef"[: top + 1] for c in t)  # noqa: E731
+    assert (key2 in reasons) == hexval(why, int(max(UnknownReason)))
+    assert (key2 in sources) == hexval(src, int(max(SectorSource)))
