@@ -15,6 +15,15 @@ then one line per processed frame::
      "p_world": [[x, y, z], ...], "range": [...], "range_sigma": [...], "mean_nis": [...],
      "converged": "0110...", "valid": "1111...", "scale": [...], "scale_sigma": [...]}
 
+With the local obstacle map on, each line also carries the map's *remembered* points (those whose landmark is no
+longer tracked) as the sectors saw them in that frame::
+
+     "map_p_world": [[x, y, z], ...], "map_published": "1101...", "map_age": [...]
+
+``map_published`` says whether a point was handed to the sectors (1) or withheld (0: no ``min_support``),
+``map_age`` the time since it was last observed, s (docs/derivations/obstacle_map.md).  ``python -m bench
+map_cells`` reads them: what the map held where a remembered obstacle was reported unknown.
+
 ``t`` is the frame's capture time on the companion clock; ``p_world`` is each landmark's point on
 the ray measured in this frame (where the map and the sectors take it from,
 :func:`companion.core.obstacle_map.points_on_current_rays`), ``range`` and ``range_sigma`` the
@@ -62,16 +71,26 @@ class LandmarkLog(JsonlLog):
     def __init__(self, path):
         super().__init__(path, {"landmark_log": FORMAT_VERSION, "frame": "world NED, metres; camera pose R_world_cam row-major",
                                 "fields": ["t", "p_world_cam", "R_world_cam", "ids", "p_world", "range", "range_sigma",
-                                           "mean_nis", "converged", "valid", "scale", "scale_sigma"]})
+                                           "mean_nis", "converged", "valid", "scale", "scale_sigma", "map_p_world",
+                                           "map_published", "map_age"]})
 
-    def __call__(self, t: float, R_world_cam, p_world_cam, out, p_world, scale=None, scale_sigma=None) -> None:
+    def __call__(self, t: float, R_world_cam, p_world_cam, out, p_world, scale=None, scale_sigma=None, memory=None) -> None:
+        """One frame; ``memory``: the map's remembered points as ``(p_world (M, 3), published (M,) bool, age_s (M,))``
+        (None without a map)."""
         if not self.open:
             return
         n = len(out.ids)
         nis = out.mean_nis if out.mean_nis is not None else np.full(n, np.nan)
         scale = np.full(n, np.nan) if scale is None else np.asarray(scale, float).reshape(n)
         scale_sigma = np.full(n, np.nan) if scale_sigma is None else np.asarray(scale_sigma, float).reshape(n)
-        self.write({
+        extra = {}
+        if memory is not None:
+            mp, pub, age = memory
+            mp = np.asarray(mp, float).reshape(-1, 3)
+            extra = {"map_p_world": _rounded(mp, 3),
+                     "map_published": "".join("1" if v else "0" for v in np.asarray(pub, bool).reshape(len(mp))),
+                     "map_age": _rounded(np.asarray(age, float).reshape(len(mp)), 3)}
+        self.write(extra | {
             "t": round(float(t), 6),
             "p_world_cam": _rounded(p_world_cam, 3),
             "R_world_cam": _rounded(np.asarray(R_world_cam, float).reshape(-1), 7),
@@ -144,4 +163,11 @@ def _frame(r: dict) -> dict:
     for name in ("range", "range_sigma", "mean_nis", "scale", "scale_sigma"):
         if len(frame[name]) != n:
             raise ValueError(f"{name} has {len(frame[name])} values for {n} landmarks")
+    if "map_p_world" in r:  # the map's remembered points (logs written before them, or without a map, have none)
+        m = len(r["map_p_world"])
+        frame["map_p_world"] = np.asarray([_nan_for_null(q) for q in r["map_p_world"]], float).reshape(m, 3)
+        frame["map_published"] = np.frombuffer(r["map_published"].encode("ascii"), np.uint8) == ord("1")
+        frame["map_age"] = _nan_for_null(r["map_age"])
+        if len(frame["map_published"]) != m or len(frame["map_age"]) != m:
+            raise ValueError(f"map_published / map_age do not match the {m} map points")
     return frame

@@ -157,7 +157,8 @@ class Pipeline:
         self.map = ObstacleMap(mcfg) if mcfg is not None and mcfg.enabled else None
         self._bearing_sigma = config.ekf_anchored.sigma_px / min(camera.fx, camera.fy)
         #: called once per processed frame with (t, R_world_cam, p_world_cam, the estimator's RangeOutput, its points on
-        #: the current rays), e.g. a :class:`companion.landmark_log.LandmarkLog`; an exception in it is logged and ends it
+        #: the current rays, the tracks' patch scales and their σ, the map's remembered points as (p_world, published,
+        #: age) or None), e.g. a :class:`companion.landmark_log.LandmarkLog`; an exception in it is logged and ends it
         self.landmark_sink: Callable | None = None
         self._new_state()
 
@@ -340,9 +341,10 @@ class Pipeline:
         """The estimator's output for the latest processed frame (world points, ranges, σ)."""
         return self._out_prev
 
-    def _log_landmarks(self, t, R_wc, p_wc, out: RangeOutput, p_world, tf) -> None:
-        """Hand this frame's landmarks (and their tracks' patch scales) to ``landmark_sink``; a sink that raises is
-        dropped (logged), ranging goes on."""
+    def _log_landmarks(self, t, R_wc, p_wc, out: RangeOutput, p_world, tf, rem=None) -> None:
+        """Hand this frame's landmarks (and their tracks' patch scales) to ``landmark_sink``, with the map's remembered
+        points (``rem``: those handed to the sectors; the rest were withheld); a sink that raises is dropped (logged),
+        ranging goes on."""
         try:
             scale, scale_sigma = np.full(len(out.ids), np.nan), np.full(len(out.ids), np.nan)
             if len(tf.ids) and len(out.ids):
@@ -350,7 +352,13 @@ class Pipeline:
                 j = np.clip(np.searchsorted(tf.ids, out.ids, sorter=order), 0, len(order) - 1)
                 hit = tf.ids[order[j]] == out.ids
                 scale[hit], scale_sigma[hit] = tf.scale[order[j[hit]]], tf.scale_sigma[order[j[hit]]]
-            self.landmark_sink(t, R_wc, p_wc, out, p_world, scale, scale_sigma)
+            memory = None
+            if self.map is not None:
+                om = self.map
+                rows = np.flatnonzero(~om.live)
+                published = np.isin(om.keys[rows], rem.keys) if rem is not None else np.zeros(len(rows), bool)
+                memory = (om.p[rows], published, np.maximum(t - om.t_seen[rows], 0.0))
+            self.landmark_sink(t, R_wc, p_wc, out, p_world, scale, scale_sigma, memory)
         except Exception as exc:  # a diagnostic must never cost a frame
             log.error("landmark sink failed (%r): no more landmarks are logged; ranging goes on", exc)
             self.counters["landmark_sink_errors"] += 1
@@ -476,7 +484,7 @@ class Pipeline:
             self._clear_yaw = yaw
         stage["sectors"] = time.thread_time() - c1
         if self.landmark_sink is not None:  # a diagnostic: after the stages, so their timings stay the ranging's own
-            self._log_landmarks(t, R_wc, p_wc, out, p_world, tf)
+            self._log_landmarks(t, R_wc, p_wc, out, p_world, tf, rem)
         if self.map is not None:
             res.n_map, res.n_remembered = len(self.map), len(rem)
         res.sectors = sectors

@@ -104,6 +104,26 @@ def test_a_line_cut_off_by_a_kill_is_skipped_anything_else_malformed_is_refused(
         read_landmark_log(tmp_path / "empty.jsonl")
 
 
+def test_the_maps_remembered_points_round_trip_and_are_optional(tmp_path):
+    path = tmp_path / "l.jsonl"
+    lg = LandmarkLog(path)
+    out, p = _out()
+    mp = np.array([[1.0, 2.0, -3.0], [4.12345, -5.0, -6.0], [7.0, 8.0, -9.0]])
+    lg(1.0, np.eye(3), np.zeros(3), out, p, memory=(mp, np.array([True, False, True]), np.array([0.0, 1.25, 19.5])))
+    lg(2.0, np.eye(3), np.zeros(3), out, p)  # no map (or [map] enabled = false)
+    lg(3.0, np.eye(3), np.zeros(3), out, p, memory=(np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0)))
+    lg.close()
+    a, b, c = read_landmark_log(path)
+    np.testing.assert_allclose(a["map_p_world"], mp.round(3))
+    assert a["map_published"].tolist() == [True, False, True] and a["map_age"].tolist() == [0.0, 1.25, 19.5]
+    assert "map_p_world" not in b and c["map_p_world"].shape == (0, 3) and c["map_published"].shape == (0,)
+    bad = path.read_text().splitlines()
+    bad[1] = bad[1].replace('"map_published": "101"', '"map_published": "10"')
+    path.write_text("\n".join(bad) + "\n")
+    with pytest.raises(InputError, match="map_published"):
+        read_landmark_log(path)
+
+
 def test_an_unwritable_log_is_a_configuration_error_and_a_failing_write_ends_only_the_log(tmp_path):
     (tmp_path / "d").mkdir()
     with pytest.raises(ConfigError, match="--landmark-log"):
@@ -142,6 +162,9 @@ def test_replay_logs_each_landmark_at_its_range_and_logging_changes_nothing_sent
     fit = np.isfinite(scales)
     assert 0 < np.count_nonzero(fit) < len(scales) and np.all(np.abs(scales[fit] - 1) < 0.3)
     assert np.array_equal(fit, np.isfinite(np.concatenate([f["scale_sigma"] for f in frames])))
+    # the map's remembered points ride along (the map is on): some published, ages never negative
+    assert all("map_p_world" in f for f in frames)
+    assert sum(len(f["map_p_world"]) for f in frames) > 0 and all(np.all(f["map_age"] >= 0) for f in frames)
 
 
 def test_a_sink_that_raises_is_dropped_and_costs_no_frame(recording, tmp_path):  # noqa: F811
