@@ -16,6 +16,8 @@ Subcommands:
             are a track's errors independent (bench/looming_truth.py)
   landmark_truth  each converged landmark's range against the truth on a SITL flight with a landmark log: is its σ
             honest, by true range (bench/landmark_truth.py)
+  map_cells  what the local obstacle map held where an obstacle out of view was reported unknown: no point, off the
+            band, withheld, published (bench/map_cells.py; reads SITL runs flown with --landmark-log)
   all       all of these plus the simulator's speed; with --write FILE, rewrite the sections of docs/BENCHMARKS.md
             it produces and keep the sections other commands produced (report.merge_document)
 """
@@ -125,7 +127,7 @@ def cmd_timing(args) -> dict:
 
 #: subcommands that are modules with their own argparse (``python -m bench NAME …`` = ``python -m bench.NAME …``)
 OWN_COMMAND_LINE = ("hostile", "compute", "position_states", "telemetry_ablation", "too_near", "looming_truth",
-                    "landmark_truth", "motion_split")
+                    "landmark_truth", "motion_split", "map_cells")
 
 
 def main(argv=None) -> int:
@@ -217,6 +219,8 @@ def main(argv=None) -> int:
     sub.add_parser("landmark_truth", help="each converged landmark's range and σ against the truth on a SITL flight "
                                           "flown with --landmark-log: z by true range (options: python -m bench "
                                           "landmark_truth --help)", add_help=False)
+    sub.add_parser("map_cells", help="what the local obstacle map held where an obstacle out of view was reported unknown "
+                                     "(options: python -m bench map_cells --help)", add_help=False)
     sub.add_parser("position_states", help="the anchored EKF under a Gauss–Markov position error, white model vs the "
                                            "position-error states: range NEES and coverage (options: python -m bench "
                                            "position_states --help)", add_help=False)

@@ -437,3 +437,19 @@ def test_a_companion_compiling_for_ever_is_given_up(tmp_path, monkeypatch):
     with pytest.raises(SitlError, match="did not connect to the camera frames"):
         run_sitl(short_scenario(tmp_path, 1.0), tmp_path / "never", config=cfg, score=False)
     assert time.monotonic() - t0 < 30
+
+
+def test_map_cells_reads_a_sitl_run(lockstep_runs, capsys):
+    """python -m bench map_cells on the run flown with --landmark-log: every OBSTACLE_DISTANCE of the sector log finds
+    its landmark-log frame (with the map's points) and its truth frame; the run without the log is refused (exit 2)."""
+    from bench import map_cells
+
+    _scen, _a, out_a, _b, out_b = lockstep_runs
+    c = map_cells.analyse_run(out_b, within_m=40.0)
+    assert c["messages"] > 20 and c["messages_matched"] == c["messages"] and c["frames_without_map"] == 0
+    assert map_cells.main([str(out_b), "--within", "40"]) == 0
+    assert "| b | 1 |" in capsys.readouterr().out
+    assert map_cells.main([str(out_a)]) == 2
+    assert "--landmark-log" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        map_cells.main([str(out_b), "--within", "0"])
