@@ -26,25 +26,19 @@ long", measured the same thing with a hook, before this tool existed.  The compu
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 
+from bench.report import landmark_run_parser, run_dirs
 from flightsim.score.landmarks import DEFAULT_BINS, landmark_z, load_run, markdown, summarize
 
 COMMAND = "python -m bench landmark_truth"
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog=COMMAND, description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
-    ap.add_argument("runs", nargs="+", metavar="DIR",
-                    help="flightsim sitl output directories flown with --landmark-log, or SITL campaign directories "
-                         "(flightsim campaign … --mode sitl --landmark-log): all their runs")
-    ap.add_argument("--scenario", help="the scenario file, if not the one sitl.json names (relative to the run's working directory)")
+    ap = landmark_run_parser(COMMAND, __doc__)
     ap.add_argument("--young", type=float, metavar="S", help="only landmarks first logged less than S seconds before the frame")
     ap.add_argument("--axis", type=float, metavar="DEG", help="only landmarks within DEG of the optical axis")
     ap.add_argument("--unconverged", action="store_true",
@@ -60,9 +54,7 @@ def main(argv=None) -> int:
         ap.error("--bins: at least two increasing edges")
     from companion.errors import CompanionError
 
-    dirs = []
-    for d in map(Path, args.runs):  # a campaign directory stands for its runs
-        dirs += sorted((d / "runs").glob("seed_*")) if (d / "runs").is_dir() else [d]
+    dirs = [r for d in args.runs for r in run_dirs(d)]  # a campaign directory stands for its runs
     samples = []
     try:
         for d in dirs:

@@ -25,13 +25,14 @@ and the map at its exposure.  Nothing is flown.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from bench.report import landmark_run_parser, run_dirs
 
 COMMAND = "python -m bench map_cells"
 KINDS = ("claimed", "no_map_point", "off_band_only", "withheld", "published")
@@ -113,15 +114,10 @@ def markdown(results: list[tuple[str, int, dict]], within_m: float, band_m: floa
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog=COMMAND, description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
-    ap.add_argument("runs", nargs="+", metavar="DIR",
-                    help="flightsim sitl outputs flown with --landmark-log, or SITL campaign directories flown with "
-                         "--landmark-log (all their runs pooled)")
+    ap = landmark_run_parser(COMMAND, __doc__)
     ap.add_argument("--within", type=float, default=10.0, metavar="M", help="true distance of the cells counted, m (default 10)")
     ap.add_argument("--band", type=float, default=1.5, metavar="M",
                     help="half height of the band around the vehicle, m (default 1.5, [sectors] band_half_height_m)")
-    ap.add_argument("--scenario", help="the scenario file, if not the one sitl.json names")
     ap.add_argument("--json", action="store_true", help="print JSON instead of the table")
     args = ap.parse_args(argv)
     if not (math.isfinite(args.within) and args.within > 0 and math.isfinite(args.band) and args.band > 0):
@@ -131,7 +127,7 @@ def main(argv=None) -> int:
     results = []
     try:
         for d in map(Path, args.runs):
-            dirs = sorted((d / "runs").glob("seed_*")) if (d / "runs").is_dir() else [d]
+            dirs = run_dirs(d)
             total: dict = {}
             for r in dirs:
                 for k, v in analyse_run(r, args.within, args.band, args.scenario).items():

@@ -327,3 +327,26 @@ def print_campaign_readings(prog: str, read, campaigns, as_json: bool, markdown)
         return 2
     print(json.dumps(results, indent=1) if as_json else markdown(results), end="")
     return 0
+
+
+def landmark_run_parser(command: str, doc: str):
+    """The argument parser shared by the commands that read SITL runs flown with ``--landmark-log``
+    (``bench.landmark_truth``, ``bench.map_cells``): the module docstring as description and epilog, the run or
+    campaign directories, ``--scenario``; callers add their own options."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog=command, description=doc.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=doc.split("\n\n", 1)[1])
+    ap.add_argument("runs", nargs="+", metavar="DIR",
+                    help="flightsim sitl output directories flown with --landmark-log, or SITL campaign directories "
+                         "(flightsim campaign … --mode sitl --landmark-log): all their runs")
+    ap.add_argument("--scenario", help="the scenario file, if not the one sitl.json names (relative to the run's working directory)")
+    return ap
+
+
+def run_dirs(path) -> list:
+    """The run directories a path stands for: a campaign's ``runs/seed_*``, else the path itself."""
+    from pathlib import Path
+
+    d = Path(path)
+    return sorted((d / "runs").glob("seed_*")) if (d / "runs").is_dir() else [d]
