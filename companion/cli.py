@@ -145,7 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "~20 MB an hour at 15 Hz (companion/sector_log.py)")
     r.add_argument("--landmark-log", metavar="FILE",
                    help="write one JSON line per processed frame with every landmark the estimator holds: its point, range, "
-                        "σ, mean NIS, converged and valid flags, and the camera pose; ~15 MB a minute at 15 Hz with 300 landmarks, "
+                        "σ, mean NIS, converged and valid flags, the camera pose and the map's remembered points; ~15 MB a minute at 15 Hz "
+                        "with 300 landmarks, more with a full map, "
                         "for the flights that need explaining (companion/landmark_log.py)")
     r.add_argument("--camera-config", metavar="TOML",
                    help="a TOML whose [camera] table replaces the config's (e.g. the camera.toml flightsim writes)")
