@@ -231,3 +231,17 @@ def test_the_score_splits_unknown_cells_by_reason():
     assert pooled["runs"] == 2 and pooled["obstacle_in_view"]["ranging"] == 4 and pooled["messages_matched"] == 6
     # without reasons in the log there is no split
     assert summarize(evaluate(RangeMessages.build(od=rows), truth, ScoreConfig(warmup_s=0.0)), log)["unknown_by_reason"] is None
+
+
+def test_folding_for_px4_keeps_every_unknown_sector_unknown_and_nothing_else():
+    """The reporter logs the turned reasons unchanged when it folds OBSTACLE_DISTANCE into PX4's 10° bins: that holds
+    only if folding never turns an unknown element into a claim nor a claim into unknown (seeded random rings)."""
+    from companion.core.sectors_types import fold_into_bins
+
+    rng = np.random.default_rng(11)
+    max_cm = CFG.max_distance_cm
+    for _ in range(500):
+        kind = rng.integers(0, 3, 72)
+        d = np.where(kind == 0, UINT16_MAX, np.where(kind == 1, max_cm + 1, rng.integers(50, max_cm + 1, 72)))
+        folded, _ = fold_into_bins(d.astype(np.uint16), max_cm)
+        assert np.array_equal(folded == UINT16_MAX, d == UINT16_MAX)
