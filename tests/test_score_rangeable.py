@@ -198,3 +198,25 @@ def test_time_to_the_first_valid_range_is_also_counted_from_when_the_obstacle_co
     spin = truth_of(np.zeros((F, 3)), yaw, (15.0, 0.0))
     s = summarize(evaluate(RangeMessages.build(od=[od(t + 0.02, {}) for t in spin.t_s]), spin, NOWARM))
     assert all(o["first_rangeable_at_s"] is None and o["time_to_first_valid_after_rangeable_s"] is None for o in s["obstacles"])
+
+
+def test_a_view_that_did_not_see_the_point_does_not_make_it_rangeable():
+    """The lateral pass again, but the first 0.5 s of views were blocked (a line-of-sight test that says no from
+    east < 0.45 m): the parallax must now build up from the first view that saw the point, at 0.5 s, so the cell
+    becomes rangeable at 0.9 s instead of 0.4 s; with rangeable_visible off the world's answer is ignored."""
+    F = 14
+    truth = lateral_pass(F)
+
+    def visible(origins, points):
+        return np.asarray(origins)[:, 1] >= 0.45
+
+    cand = np.isfinite(truth.sector_m) & truth.view
+
+    def per_frame(cfg):
+        out = rangeable_cells(truth, truth.view, np.arange(F), cand, cfg, visible=visible)
+        return [bool(out[f][cand[f]].any()) for f in range(F)]
+
+    # from 0.5 m (seen) the parallax reaches 1° at 0.5 + 0.349 m: the frame at 0.9 s
+    assert per_frame(NOWARM) == [False] * 9 + [True] * (F - 9)
+    off = ScoreConfig(warmup_s=0.0, rangeable_visible=False)
+    assert per_frame(off) == [False] * 4 + [True] * (F - 4)

@@ -91,8 +91,9 @@ obstacle cells a single camera could have ranged at all, from how it moved.  The
 true distance on its centre bearing, at the vehicle's altitude) lay in an in-view sector in some
 truth frame at most ``rangeable_window_s`` earlier, from where its line of sight differs from the
 present one by at least ``rangeable_parallax_deg`` (bearing parallax) or its distance by at least
-the fraction ``rangeable_scale`` (looming).  A vehicle turning in place gains neither.  Occlusion
-and texture are not checked: it is the ceiling of any monocular method on that flight.  Reported
+the fraction ``rangeable_scale`` (looming), and — with the scenario's world, ``rangeable_visible`` —
+where nothing hid it (the line of sight of the remembered cells).  A vehicle turning in place gains
+neither.  Texture is not checked: it is the ceiling of any monocular method on that flight.  Reported
 are its share of the in-view obstacle cells and the detection within tolerance among them, and
 among the remembered cells those whose point was rangeable in the frame it was last in view (what
 a map can only remember if it could range it then) with their share within tolerance.

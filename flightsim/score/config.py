@@ -54,6 +54,7 @@ class ScoreConfig:
     rangeable_window_s: float = 20.0  # rangeable: the camera's views of the cell's point over at most this long before the message, s
     rangeable_parallax_deg: float = 1.0  # ... rangeable when its line of sight from one of those views differs from today's by at least this (parallax), deg
     rangeable_scale: float = 0.1  # ... or its distance from one of them differs from today's by at least this fraction (looming: image scale changed by it)
+    rangeable_visible: bool = True  # ... and that view had the point in its line of sight (visible_tolerance_*; needs the world)
     beside_sectors: int = 2  # a false obstacle within this many sectors of an obstacle at its range is reported as "beside an obstacle" (diagnostic only)
     nees_confidence: float = 0.95  # two-sided probability of the NEES band
     nees_gap_s: float = 0.5  # forward NEES samples further apart than this start a new stretch (effective sample size), s
@@ -73,7 +74,7 @@ class ScoreConfig:
         require_finite("near_range_m", self.near_range_m, positive=True)
         require_finite("remember_window_s", self.remember_window_s, positive=True)
         require_finite("remember_max_travel_m", self.remember_max_travel_m, positive=True)
-        for name in ("remember_point", "remember_visible"):
+        for name in ("remember_point", "remember_visible", "rangeable_visible"):
             require(isinstance(getattr(self, name), bool), f"{name} must be true or false, got {getattr(self, name)!r}")
         require_finite("visible_tolerance_m", self.visible_tolerance_m, nonnegative=True)
         require_finite("visible_tolerance_rel", self.visible_tolerance_rel, nonnegative=True)

@@ -191,7 +191,8 @@ def _point_seen(truth: SectorTruth, view_f: np.ndarray, j: np.ndarray, pt: np.nd
     return out
 
 
-def points_rangeable(truth: SectorTruth, view_f: np.ndarray, pt: np.ndarray, j: np.ndarray, config: ScoreConfig) -> np.ndarray:
+def points_rangeable(truth: SectorTruth, view_f: np.ndarray, pt: np.ndarray, j: np.ndarray, config: ScoreConfig,
+                     visible: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """(C,) bool: could a single camera have ranged the world point ``pt`` (C, 3) by truth frame ``j``?
 
     Yes when, in some truth frame ``f`` at most ``rangeable_window_s`` before ``j`` and no later, the
@@ -199,8 +200,10 @@ def points_rangeable(truth: SectorTruth, view_f: np.ndarray, pt: np.ndarray, j: 
     the vehicle at ``f`` and at ``j`` differ by at least ``rangeable_parallax_deg`` (the bearing
     parallax of DESIGN.md §3's triangulation) or its distances from the two differ by at least the
     fraction ``rangeable_scale`` (looming, DESIGN.md §7).  A vehicle turning in place gains neither:
-    a bearing and a scale that do not change carry no range.  Neither occlusion nor texture is
-    checked, and the camera is taken at the vehicle's centre: an upper bound for any monocular method.
+    a bearing and a scale that do not change carry no range.  With ``visible`` (and ``rangeable_visible``)
+    that earlier view must also have had the point in its line of sight
+    (:func:`flightsim.score.obstacles.world_visibility`).  Texture is not checked, and the camera is taken
+    at the vehicle's centre: an upper bound for any monocular method.
     """
     cfg = config
     ok = np.zeros(len(j), bool)
@@ -225,12 +228,17 @@ def points_rangeable(truth: SectorTruth, view_f: np.ndarray, pt: np.ndarray, j: 
         with np.errstate(invalid="ignore", divide="ignore"):
             cosang = np.einsum("cwk,ck->cw", los, los_j[c]) / (r * r_j[c, None])
             loom = np.abs(np.log(r / r_j[c, None]))
-        ok[c] = np.any(seen & ((cosang <= cos_min) | (loom >= log_scale)), axis=1)
+        cand = seen & ((cosang <= cos_min) | (loom >= log_scale))
+        if visible is not None and cfg.rangeable_visible and cand.any():  # that view must have seen the point
+            cc, ww = np.nonzero(cand)
+            cand[cc, ww] = visible(p[f[cc, ww]], pt[c][cc])
+        ok[c] = np.any(cand, axis=1)
     return ok
 
 
 def rangeable_cells(truth: SectorTruth, view_f: np.ndarray, frame: np.ndarray, candidates: np.ndarray,
-                    config: ScoreConfig, ref: np.ndarray | None = None) -> np.ndarray:
+                    config: ScoreConfig, ref: np.ndarray | None = None,
+                    visible: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """(N, 72) bool: the *rangeable* cells among ``candidates``: cells whose point
     (:func:`cell_points`, at the message's truth frame ``frame``) a single camera could have ranged
     (:func:`points_rangeable`) by the frame ``ref`` (N, 72) — the message's own for cells in view
@@ -246,7 +254,7 @@ def rangeable_cells(truth: SectorTruth, view_f: np.ndarray, frame: np.ndarray, c
     j, jr = frame[nn], ref[nn, ii]
     key, inv = np.unique(np.stack([j, ii, jr], 1), axis=0, return_inverse=True)  # one test per distinct cell
     pt = cell_points(truth, key[:, 0], key[:, 1])
-    out[nn, ii] = points_rangeable(truth, view_f, pt, key[:, 2], config)[inv.reshape(-1)]
+    out[nn, ii] = points_rangeable(truth, view_f, pt, key[:, 2], config, visible)[inv.reshape(-1)]
     return out
 
 
@@ -306,8 +314,8 @@ def evaluate(msgs: RangeMessages, truth: SectorTruth, config: ScoreConfig = Scor
     if cfg.remember_point and cfg.remember_visible and visible is None and np.any(remember):
         notes.append("remembered cells: lines of sight not checked (no world given), so a point hidden behind a solid "
                      "counts as seen")
-    rangeable = rangeable_cells(truth, view_f, frame, (tcls == TRUTH_OBSTACLE) & view, cfg)
-    rangeable |= rangeable_cells(truth, view_f, frame, remember, cfg, ref=seen_at)
+    rangeable = rangeable_cells(truth, view_f, frame, (tcls == TRUTH_OBSTACLE) & view, cfg, visible=visible)
+    rangeable |= rangeable_cells(truth, view_f, frame, remember, cfg, ref=seen_at, visible=visible)
     # --- exposure and latency -----------------------------------------------------------------
     off = _boot_offset(msgs)
     cap_t = np.full(n, np.nan)
