@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.report import landmark_run_parser, run_dirs
+from flightsim.score.evaluation import sector_of
 
 COMMAND = "python -m bench map_cells"
 KINDS = ("claimed", "no_map_point", "off_band_only", "withheld", "published")
@@ -49,8 +50,7 @@ def classify(p_vehicle: np.ndarray, yaw: float, map_p: np.ndarray, map_published
     if len(map_p) == 0 or len(sectors) == 0:
         return out
     d = np.asarray(map_p, float) - np.asarray(p_vehicle, float)
-    bearing = np.degrees(np.arctan2(d[:, 1], d[:, 0]) - yaw)
-    sec = np.mod(np.rint(bearing / 5.0).astype(np.int64), 72)
+    sec = sector_of(d[:, 0], d[:, 1], np.full(len(d), float(yaw)))  # the scorer's own sector of a world direction
     band = np.abs(d[:, 2]) <= band_m
     pub = np.asarray(map_published, bool)
     any_pt = np.bincount(sec, minlength=72) > 0

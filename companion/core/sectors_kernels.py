@@ -276,10 +276,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     for i in range(n):
         d_h[i] = np.hypot(pl[i, 0], pl[i, 1])
         height[i] = -pl[i, 2]
-        if usable[i] and not mem[i]:
-            s_i = _sector_of(math.atan2(pl[i, 1], pl[i, 0]))
-            if in_view[s_i]:
-                n_tracked[s_i] += 1
+        tracked = usable[i] and not mem[i]  # before the ground cut: the ground's points are tracked too
         if ground_cut and not (height[i] >= ground + cfg[_K_GROUND_MARGIN]):
             usable[i] = False
         r_safe[i] = r[i] if usable[i] else 1.0
@@ -292,6 +289,8 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
             band = abs(math.atan2(height[i], d_h[i]) - gamma) <= cfg[_K_HALF_ANGLE_RAD]
         bearing[i] = math.atan2(pl[i, 1], pl[i, 0])
         idx[i] = _sector_of(bearing[i])
+        if tracked and in_view[idx[i]]:
+            n_tracked[idx[i]] += 1
         seen[i] = in_view[idx[i]] or mem[i]
         in_band[i] = band and usable[i] and seen[i]
         r_cons[i] = max(r[i] - cfg[_K_SIGMA_K] * (sig[i] if usable[i] else 0.0), 0.0)

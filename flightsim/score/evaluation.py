@@ -144,7 +144,7 @@ def remembered_cells(truth: SectorTruth, labels: np.ndarray, view_f: np.ndarray,
     ok &= np.linalg.norm(np.asarray(truth.p_ned, float)[j] - np.asarray(truth.p_ned, float)[lsj], axis=1) < cfg.remember_max_travel_m
     nn, ii, j, ref = nn[ok], ii[ok], j[ok], lsj[ok]
     if cfg.remember_point:
-        ref = _point_seen(truth, view_f, j, cell_points(truth, j, ii), cfg, visible if cfg.remember_visible else None)
+        ref = _point_seen(truth, view_f, j, cell_points(truth, j, ii), cfg, visible)
         nn, ii, ref = nn[ref >= 0], ii[ref >= 0], ref[ref >= 0]
     out[nn, ii] = True
     seen_at[nn, ii] = ref
@@ -158,11 +158,21 @@ def _window(truth: SectorTruth, j: np.ndarray, window_s: float) -> tuple[np.ndar
     return lo, int(np.max(j - lo)) + 1
 
 
+def _keep_visible(mask: np.ndarray, visible: Callable[[np.ndarray, np.ndarray], np.ndarray], p: np.ndarray,
+                  f: np.ndarray, pt: np.ndarray) -> None:
+    """In place: ``mask`` (C, W) of (point, frame) pairs keeps only those where the vehicle at truth frame ``f[c, w]``
+    (positions ``p``) had the point ``pt[c]`` in its line of sight (``visible``); only the pairs set are tested."""
+    cc, ww = np.nonzero(mask)
+    if cc.size:
+        mask[cc, ww] = visible(p[f[cc, ww]], pt[cc])
+
+
 def _point_seen(truth: SectorTruth, view_f: np.ndarray, j: np.ndarray, pt: np.ndarray, cfg: ScoreConfig,
                 visible: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """(len(j),) int: the latest truth frame at most ``remember_window_s`` before (or at) frame ``j`` in
     which the world point ``pt`` (C, 3) lay in an in-view sector within ``sector_max_m`` of the vehicle,
-    from where the vehicle has since moved less than ``remember_max_travel_m``, and — with ``visible``
+    from where the vehicle has since moved less than ``remember_max_travel_m``, and — with ``visible`` and
+    ``remember_visible``
     (``visible(origins (K, 3), points (K, 3)) -> (K,) bool``, :func:`flightsim.score.obstacles.world_visibility`)
     — in the line of sight from the vehicle then; −1 if none.  A long wall counts only where its own part
     was in view; without ``visible`` a point hidden behind a solid (another obstacle, or the far side of
@@ -183,9 +193,8 @@ def _point_seen(truth: SectorTruth, view_f: np.ndarray, j: np.ndarray, pt: np.nd
         sec = sector_of(rel[..., 0], rel[..., 1], yaw[f])
         moved = np.linalg.norm(p[j[c], None, :] - p[f], axis=2) < cfg.remember_max_travel_m
         hit = inwin & view_f[f, sec] & (r <= truth.sector_max_m) & moved
-        if visible is not None and hit.any():  # in view is not seen: the line of sight must be free
-            cc, ww = np.nonzero(hit)
-            hit[cc, ww] = visible(p[f[cc, ww]], pt[c][cc])
+        if visible is not None and cfg.remember_visible:  # in view is not seen: the line of sight must be free
+            _keep_visible(hit, visible, p, f, pt[c])
         first = np.argmax(hit, axis=1)  # the latest such frame (f runs backwards)
         out[c] = np.where(hit.any(axis=1), f[np.arange(len(first)), first], -1)
     return out
@@ -229,9 +238,8 @@ def points_rangeable(truth: SectorTruth, view_f: np.ndarray, pt: np.ndarray, j: 
             cosang = np.einsum("cwk,ck->cw", los, los_j[c]) / (r * r_j[c, None])
             loom = np.abs(np.log(r / r_j[c, None]))
         cand = seen & ((cosang <= cos_min) | (loom >= log_scale))
-        if visible is not None and cfg.rangeable_visible and cand.any():  # that view must have seen the point
-            cc, ww = np.nonzero(cand)
-            cand[cc, ww] = visible(p[f[cc, ww]], pt[c][cc])
+        if visible is not None and cfg.rangeable_visible:  # that view must have seen the point
+            _keep_visible(cand, visible, p, f, pt[c])
         ok[c] = np.any(cand, axis=1)
     return ok
 
