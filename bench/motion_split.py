@@ -33,7 +33,8 @@ from bench.report import print_campaign_readings
 from flightsim.score.config import REP_CLEAR, REP_RANGE, REP_UNKNOWN, TRUTH_OBSTACLE, ScoreConfig
 from flightsim.score.evaluation import range_errors
 from flightsim.score.inputs import SectorTruth
-from flightsim.score.summary import REASON_NAMES
+from flightsim.score.markdown import REASON_COLUMNS
+from flightsim.score.summary import reason_counts
 
 MOTIONS = ("turning", "hovering", "moving")
 KINDS = ("valid", "unknown", "too_near", "too_far", "clear")
@@ -79,9 +80,7 @@ def split_cells(series: dict, truth: SectorTruth, cfg: ScoreConfig = ScoreConfig
             row = {"cells": int(sel.sum())} | {k: int((sel & kind[k]).sum()) for k in KINDS}
             row["rangeable"] = None if rangeable is None else int((sel & rangeable).sum())
             if why is not None:  # the unknown cells by the companion's reason (−1: no sector-log line)
-                u = sel & kind["unknown"]
-                row["why"] = {name: int((u & (why == code)).sum()) for code, name in enumerate(REASON_NAMES) if code > 0}
-                row["why"]["unattributed"] = int((u & (why <= 0)).sum())
+                row["why"] = reason_counts(sel & kind["unknown"], why)
             out[f"{m}/{b}"] = row
     return out
 
@@ -140,7 +139,7 @@ def markdown(results: list[dict], cfg: ScoreConfig = ScoreConfig()) -> str:
 def _reasons_table(res: dict, cfg: ScoreConfig) -> list[str]:
     """The unknown cells of each motion × range row by the companion's reason (only reasons that occur)."""
     rows = [(key, row) for key, row in res["cells"].items() if row.get("why") and row["unknown"]]
-    names = [n for n in REASON_NAMES[1:] + ("unattributed",) if any(r["why"].get(n) for _, r in rows)]
+    names = [n for n in REASON_COLUMNS if any(r["why"].get(n) for _, r in rows)]
     if not rows or not names:
         return []
     L = ["Unknown cells by the companion's reason (its sector log; docs/derivations/sectors.md, \"Why a sector is "

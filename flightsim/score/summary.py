@@ -252,10 +252,15 @@ def unknown_by_reason(ev: Evaluation, m: CellMasks, why: np.ndarray) -> dict:
     out: dict = {"messages_scored": int(ev.od_scored.sum()),
                  "messages_matched": int(np.sum(ev.od_scored & np.all(why >= 0, axis=1)))}
     for g, sel in groups.items():
-        row = {"cells": int(sel.sum())}
-        row.update({name: int((sel & (why == code)).sum()) for code, name in enumerate(REASON_NAMES) if code > 0})
-        row["unattributed"] = int((sel & (why <= 0)).sum())
-        out[g] = row
+        out[g] = {"cells": int(sel.sum())} | reason_counts(sel, why)
+    return out
+
+
+def reason_counts(sel: np.ndarray, why: np.ndarray) -> dict[str, int]:
+    """The cells ``sel`` counted by reason (``why``: :class:`UnknownReason` codes, −1 without a sector-log line):
+    one count per reason name, then ``unattributed`` (no line, or a line naming no reason for the cell)."""
+    out = {name: int((sel & (why == code)).sum()) for code, name in enumerate(REASON_NAMES) if code > 0}
+    out["unattributed"] = int((sel & (why <= 0)).sum())
     return out
 
 
