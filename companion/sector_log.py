@@ -34,6 +34,7 @@ are :meth:`companion.core.sectors_types.Sectors.sources`.
 from __future__ import annotations
 
 import json
+from typing import NamedTuple
 
 import numpy as np
 
@@ -89,52 +90,73 @@ def _records(path, output: str):
                 yield r
 
 
-def _digit_rows(path, output: str, field: str, top: int) -> dict[tuple[int, bytes], np.ndarray]:
-    """The per-sector digit string ``field`` (hexadecimal digits 0…``top``) of ``output``'s lines that carry it,
-    keyed by ``(time_usec, distances as uint16 bytes)`` → (72,) int8; a line cut short or malformed is skipped."""
-    out: dict[tuple[int, bytes], np.ndarray] = {}
+def _digits(text, top: int) -> np.ndarray | None:
+    """A per-sector digit string (hexadecimal digits 0…``top``) as (72,) int8, None when malformed."""
+    if not isinstance(text, str):
+        return None
+    try:
+        c = np.frombuffer(text.encode("ascii"), np.uint8).astype(np.int16)
+    except UnicodeEncodeError:
+        return None
+    row = np.where(c >= ord("a"), c - (ord("a") - 10), np.where(c <= ord("9"), c - ord("0"), -1)).astype(np.int8)
+    return row if row.shape == (SECTOR_COUNT,) and not np.any((row < 0) | (row > top)) else None
+
+
+class SectorLogLines(NamedTuple):
+    """The fields of a sector log's lines for one output, each keyed by ``(time_usec, distances as uint16 bytes)``:
+    ``sources`` (72,) int8 :class:`SectorSource`, ``forward`` ``(current_distance cm, covariance cm², signal_quality)``,
+    ``reasons`` (72,) int8 :class:`UnknownReason`; a line that lacks a field, or whose field is malformed, is
+    missing from that field's dict only."""
+
+    sources: dict
+    forward: dict
+    reasons: dict
+
+
+def read_sector_lines(path, output: str = "autopilot") -> SectorLogLines:
+    """Every field of ``output``'s lines in one pass over the file (:class:`SectorLogLines`).  A line cut short (a
+    companion killed mid-write) is skipped; a file that is not a sector log raises
+    :class:`~companion.errors.InputError`."""
+    out = SectorLogLines({}, {}, {})
+    top_src, top_why = max(SectorSource), max(UnknownReason)
     for r in _records(path, output):
         try:
             d = np.asarray(r["d"], np.int64)
-            c = np.frombuffer(r[field].encode("ascii"), np.uint8).astype(np.int16)
-            row = np.where(c >= ord("a"), c - (ord("a") - 10), np.where(c <= ord("9"), c - ord("0"), -1)).astype(np.int8)
             key = (int(r["time_usec"]), d.astype(np.uint16).tobytes())
         except (KeyError, TypeError, ValueError, AttributeError):
             continue
-        if d.shape != (SECTOR_COUNT,) or row.shape != (SECTOR_COUNT,) or np.any((row < 0) | (row > top)):
+        if d.shape != (SECTOR_COUNT,):
             continue
-        out[key] = row
+        if (src := _digits(r.get("src"), top_src)) is not None:
+            out.sources[key] = src
+        if (why := _digits(r.get("why"), top_why)) is not None:
+            out.reasons[key] = why
+        try:
+            cm, cov, q = (int(v) for v in r["fwd"])
+        except (KeyError, TypeError, ValueError):
+            continue
+        if 0 <= cm <= 65535 and 0 <= cov <= 255 and 0 <= q <= 100:
+            out.forward[key] = (cm, cov, q)
     return out
 
 
 def read_sector_log(path, output: str = "autopilot") -> dict[tuple[int, bytes], np.ndarray]:
     """The lines of ``output`` in a sector log, keyed by ``(time_usec, distances as uint16 bytes)``
-    → the (72,) int8 sources.  A line cut short (a companion killed mid-write) is skipped; a file
-    that is not a sector log raises :class:`~companion.errors.InputError`."""
-    return _digit_rows(path, output, "src", max(SectorSource))
+    → the (72,) int8 sources (:func:`read_sector_lines`)."""
+    return read_sector_lines(path, output).sources
 
 
 def read_sector_reasons(path, output: str = "autopilot") -> dict[tuple[int, bytes], np.ndarray]:
     """The reasons of ``output``'s lines (those that carry ``why``), keyed like :func:`read_sector_log`
     → the (72,) int8 :class:`~companion.core.sectors_types.UnknownReason` of each sector (0 where it claims)."""
-    return _digit_rows(path, output, "why", max(UnknownReason))
+    return read_sector_lines(path, output).reasons
 
 
 def read_sector_forward(path, output: str = "autopilot") -> dict[tuple[int, bytes], tuple[int, int, int]]:
     """The forward readings of ``output``'s lines (those that carry ``fwd``), keyed like
     :func:`read_sector_log` → ``(current_distance cm, covariance cm², signal_quality)``."""
-    out: dict[tuple[int, bytes], tuple[int, int, int]] = {}
-    for r in _records(path, output):
-        try:
-            d = np.asarray(r["d"], np.int64)
-            cm, cov, q = (int(v) for v in r["fwd"])
-            key = (int(r["time_usec"]), d.astype(np.uint16).tobytes())
-        except (KeyError, TypeError, ValueError, AttributeError):
-            continue
-        if d.shape != (SECTOR_COUNT,) or not (0 <= cm <= 65535 and 0 <= cov <= 255 and 0 <= q <= 100):
-            continue
-        out[key] = (cm, cov, q)
-    return out
+    return read_sector_lines(path, output).forward
 
 
-__all__ = ["FORMAT_VERSION", "SectorLog", "read_sector_forward", "read_sector_log", "read_sector_reasons"]
+__all__ = ["FORMAT_VERSION", "SectorLog", "SectorLogLines", "read_sector_forward", "read_sector_lines", "read_sector_log",
+           "read_sector_reasons"]

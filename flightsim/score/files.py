@@ -25,7 +25,7 @@ from companion.io.atomic import StagedFiles, atomic_path
 from companion.io.config_files import read_toml
 from companion.io.inputs import check_input_file
 from companion.io.tlog import read_tlog
-from companion.sector_log import read_sector_forward, read_sector_log, read_sector_reasons
+from companion.sector_log import read_sector_lines
 from flightsim.score.config import N_SECTORS, ScoreConfig
 from flightsim.score.evaluation import evaluate
 from flightsim.score.inputs import RangeMessages, SectorTruth
@@ -207,9 +207,7 @@ def score_run(ranges_tlog, truth_npz, *, config: ScoreConfig | None = None, comp
     lines = forward = reasons = None
     if log_path.is_file():
         try:
-            lines = read_sector_log(log_path)
-            forward = read_sector_forward(log_path)
-            reasons = read_sector_reasons(log_path)
+            lines, forward, reasons = read_sector_lines(log_path)  # one pass over the file
         except (InputError, OSError) as e:  # the score stands without it
             log.warning("sector log %s not read: %s", log_path, e)
     elif sector_log is not None:
