@@ -360,7 +360,7 @@ def aggregate(results: list[dict], series: dict[int, dict], config: ScoreConfig 
                         "valid_of_claimed": row["valid"] / row["claimed"] if row["claimed"] else None})
         det_by_range[view] = rows
     rem = _sum_counts(scores, "remembered", ("cells", "within_tolerance", "ranges", "unknown", "dangerous_clears",
-                                             "rangeable_cells", "rangeable_within_tolerance"))
+                                             "too_near", "over_range", "rangeable_cells", "rangeable_within_tolerance"))
     rem["rate"] = rem["within_tolerance"] / rem["cells"] if rem["cells"] else None
     rem["rangeable_rate"] = rem["rangeable_within_tolerance"] / rem["rangeable_cells"] if rem["rangeable_cells"] else None
     rng = _sum_counts(scores, "rangeable", ("obstacle_cells_in_view", "cells", "within_tolerance", "unknown",

@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.score.config import REP_CLEAR, REP_RANGE, SECTOR_DEG, TRUTH_OBSTACLE
-from flightsim.score.markdown import claims_by_source_lines, mark, nees_lines, remembered_rangeable_text, unknown_by_reason_lines
+from flightsim.score.markdown import (claims_by_source_lines, mark, nees_lines, remembered_errors_text, remembered_rangeable_text,
+                                      unknown_by_reason_lines)
 
 
 def _plt():
@@ -435,7 +436,7 @@ def index_markdown(c: dict, files: dict[str, Path], report_dir: Path) -> str:
     if rem:
         L += ["", f"Remembered obstacles out of view: {rem['cells']} cells, within tolerance {rem['within_tolerance']} "
               f"({_pc(rem['rate'])}), unknown {rem['unknown']}, dangerous clears {rem['dangerous_clears']}"
-              + remembered_rangeable_text(rem) + "."]
+              + remembered_errors_text(rem) + remembered_rangeable_text(rem) + "."]
     rg = a.get("rangeable")
     if rg and rg.get("obstacle_cells_in_view"):
         L += ["", f"Rangeable in view (the single camera's ceiling: the cell's point seen within {rg.get('window_s', 0):g} s from a "

@@ -45,14 +45,14 @@ class FullDisk:
 
 def sectors_optional_rules_off(**changes):
     """``[sectors]`` as shipped with its optional rules switched off: narrow-gap and vertical-span
-    inference, the cap above the band, the bound from unconverged points and the ground margin (the same-range gap rule,
-    ``infer_max_gap_sectors``, stays as shipped).  ``changes`` are applied on top."""
+    inference, the cap above the band, the bound from unconverged points, the ground margin and the far part of the
+    corridor (the same-range gap rule, ``infer_max_gap_sectors``, stays as shipped).  ``changes`` are applied on top."""
     import dataclasses
 
     from companion.core.sectors import SectorConfig
 
     off = dict(infer_narrow_gap_m=0.0, infer_vertical=False, infer_vertical_one_side=False, cap_above_m=0.0,
-               ground_margin_m=0.0, unconverged_cap_k=0.0)
+               ground_margin_m=0.0, unconverged_cap_k=0.0, corridor_far_ratio=0.0)
     return dataclasses.replace(SectorConfig(), **{**off, **changes})
 
 

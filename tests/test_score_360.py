@@ -94,6 +94,21 @@ def test_clear_behind_on_an_obstacle_is_dangerous():
     assert s["remembered"]["dangerous_clears"] == 1 and s["remembered"]["unknown"] == 4 and s["remembered"]["rate"] == 0.0
 
 
+def test_remembered_ranges_beyond_the_tolerance_are_told_apart():
+    """A remembered obstacle 20 m behind claimed at 24.5 m (beyond max(2 m, 4 m): the building seen past a mast's edge)
+    is "too far", at 15.5 m "too near"; at 23.5 m within tolerance, neither.  Pooled over a campaign."""
+    truth = turn_truth()
+    far, near, ok = (score(truth, msgs_after_turn(truth, 5, v))["remembered"] for v in (2450, 1550, 2350))
+    assert (far["over_range"], far["too_near"], far["within_tolerance"], far["ranges"]) == (5, 0, 0, 5)
+    assert (near["over_range"], near["too_near"], near["within_tolerance"]) == (0, 5, 0)
+    assert (ok["over_range"], ok["too_near"], ok["within_tolerance"]) == (0, 0, 5)
+    s = score(truth, msgs_after_turn(truth, 5, 2450))
+    assert "too near 0, too far 5" in markdown(s)
+    results = [{"seed": i, "status": "ok", "score": score(truth, msgs_after_turn(truth, 5, v))} for i, v in enumerate((2450, 1550), 1)]
+    a = C.aggregate(results, {}, NOWARM)["remembered"]
+    assert (a["over_range"], a["too_near"], a["cells"]) == (5, 5, 10)
+
+
 def test_unknown_out_of_view_changes_nothing():
     truth = turn_truth()
     msgs = msgs_after_turn(truth, 5, U)  # nothing published behind

@@ -172,6 +172,55 @@ def test_no_clear_within_the_corridor_of_a_near_obstacle():
         SectorConfig(clear_corridor_m=-1.0)
 
 
+def _ring(d_m, bearings_deg, z=0.0):
+    """Points at horizontal distance ``d_m`` and the given body bearings (clockwise from forward), height z."""
+    b = np.radians(np.asarray(list(bearings_deg), float))
+    return np.stack([d_m * np.cos(b), d_m * np.sin(b), np.full(b.shape, z)], 1)
+
+
+def test_far_claim_out_of_view_within_the_corridor_of_a_near_obstacle_is_capped():
+    """Rule 10's far part (``corridor_far_ratio``), out of view: the map remembers a mast 4 m away at 86.5°
+    (sector 17, published 3.60 m) and a building 28 m away behind and beside it, at 73–105° (sectors 15, 16 and
+    18–21). asin(0.5/3.60) = 7.98°: the mast's corridor reaches two sectors on each side (15, 16, 18, 19), whose
+    building claims (more than twice 3.60 m) are capped at the mast's value and marked inferred; sectors 20 and 21,
+    beyond the corridor, keep the building. A claim less than the ratio farther (a surface going on, 6 m in sector
+    18) stays. In view the same scene moves nothing (a sector's own points place the edge there); off (0) nothing
+    moves, nor without a corridor; no sector changes state. Shipped: 2."""
+    mast, building = _ring(4.0, [86.5]), _ring(28.0, [73.0, 78.0, 90.5, 95.0, 100.0, 105.0])
+    live = np.zeros((0, 3))
+
+    def remembered(*parts, config):
+        mem = np.vstack(parts)
+        return run(live, config=config, remembered_p_body=mem, remembered_sigma=np.full(len(mem), 0.2),
+                   remembered_tangential_sigma=np.full(len(mem), 0.01))
+
+    on = SectorConfig(clear_corridor_m=0.5, corridor_far_ratio=2.0)
+    off_cfg = SectorConfig(clear_corridor_m=0.5, corridor_far_ratio=0.0)
+    assert CFG.corridor_far_ratio == 2.0  # as shipped
+    off, s = remembered(building, mast, config=off_cfg), remembered(building, mast, config=on)
+    assert not np.any(s.in_view[15:22])
+    assert s.state[17] == SectorState.OBSTACLE and off.distances_cm[17] == s.distances_cm[17] < 400
+    for k in (15, 16, 18, 19):
+        assert off.state[k] == SectorState.OBSTACLE and off.distances_cm[k] > 2700
+        assert s.distances_cm[k] == s.distances_cm[17] and s.inferred[k]
+        assert s.range_m[k] == pytest.approx(s.range_m[17]) and s.sigma_m[k] == pytest.approx(s.sigma_m[17])
+    for k in (20, 21):
+        assert s.distances_cm[k] == off.distances_cm[k] > 2700 and not s.inferred[k]
+    assert np.array_equal(s.state, off.state)  # only far claims get nearer
+    wall_on = _ring(6.0, [90.5])
+    near_on, near_off = remembered(building, mast, wall_on, config=on), remembered(building, mast, wall_on, config=off_cfg)
+    assert near_on.distances_cm[18] == near_off.distances_cm[18] < 600 and not near_on.inferred[18]
+    # in view (the same scene turned to straight ahead): unchanged
+    turned = [_ring(28.0, np.array([73.0, 78.0, 90.5, 95.0, 100.0, 105.0]) - 90.0), _ring(4.0, [-3.5])]
+    a, b = run(np.vstack(turned), sigma=0.2, config=on), run(np.vstack(turned), sigma=0.2, config=off_cfg)
+    assert np.all(a.in_view[[69, 70, 71, 0, 1]]) and np.array_equal(a.distances_cm, b.distances_cm)
+    with pytest.raises(ConfigError, match="corridor_far_ratio"):
+        SectorConfig(corridor_far_ratio=0.5)
+    no_corridor = SectorConfig(clear_corridor_m=0.0, corridor_far_ratio=2.0)  # no corridor, nothing to cap within
+    assert np.array_equal(remembered(building, mast, config=no_corridor).distances_cm,
+                          remembered(building, mast, config=SectorConfig(clear_corridor_m=0.0, corridor_far_ratio=0.0)).distances_cm)
+
+
 def test_point_near_a_sector_edge_forbids_clear_across_it():
     """Rule 3, the edge margin: a tower's last corner 0.3° inside sector 2's edge (12.5°) and the background at
     100 m in sector 3 (13–17°). Off, sector 3 is clear beside the tower; with the shipped 1° it stays unknown, and
@@ -462,7 +511,9 @@ def test_a_4m_cap_covers_a_remembered_mast_whose_band_points_fell_in_the_next_se
     """quad_approach, the mast beside the path out of view (docs/BENCHMARKS.md, "The cap from above the band at
     4 m"): its remembered in-band points all lie in the 30° sector, the 35° sector holds only a remembered point
     on the building behind and the mast's point 2.8 m above the band's edge.  A 4 m cap reports the mast there;
-    the shipped 2.5 m claims the building, 23 m too far (4 m was measured and not shipped)."""
+    the 2.5 m cap alone claims the building, 23 m too far (4 m was measured and not shipped).  As shipped, rule 10's
+    far part (``corridor_far_ratio``) brings that claim in to the mast's sector's value instead ("No far claim beside a
+    near remembered obstacle")."""
     def at(d, bearing_deg, z):
         b = math.radians(bearing_deg)
         return [d * math.cos(b), d * math.sin(b), z]
@@ -475,13 +526,17 @@ def test_a_4m_cap_covers_a_remembered_mast_whose_band_points_fell_in_the_next_se
               roll_pitch_rad=(0.0, 0.0), ground_height_m=-10.0)  # 10 m up
     none = np.zeros((0, 3))
     assert CFG.cap_above_m == 2.5
-    cap4 = run(none, config=dataclasses.replace(CFG, cap_above_m=4.0), **kw)
-    cap25 = run(none, config=CFG, **kw)
+    no_far = dataclasses.replace(CFG, corridor_far_ratio=0.0)
+    cap4 = run(none, config=dataclasses.replace(no_far, cap_above_m=4.0), **kw)
+    cap25 = run(none, config=no_far, **kw)
     assert not cap4.in_view[7] and cap4.remembered_points[6] >= 3
     assert cap25.range_m[7] == pytest.approx(28.7 - 2 * 0.1, abs=0.1)  # the building behind the mast
     assert cap4.state[7] == SectorState.OBSTACLE and cap4.inferred[7]
     assert cap4.range_m[7] == pytest.approx(5.8 - 2 * 0.1, abs=0.1)  # the mast
     assert cap4.range_m[6] == pytest.approx(cap25.range_m[6])  # its own sector as before
+    shipped = run(none, config=CFG, **kw)
+    assert CFG.corridor_far_ratio == 2.0 and shipped.inferred[7]
+    assert shipped.range_m[7] == pytest.approx(shipped.range_m[6]) == pytest.approx(cap25.range_m[6])  # the mast's sector's value
 
 
 def test_an_unconverged_point_just_outside_the_band_vetoes_clear():

@@ -176,6 +176,9 @@ def configs():
     yield "corridor", dataclasses.replace(base, clear_line_of_sight=True, clear_corridor_m=0.5, min_points_clear=1)
     yield "wide corridor, no edge margin", dataclasses.replace(base, clear_line_of_sight=True, clear_corridor_m=3.0,
                                                                clear_edge_margin_deg=0.0, min_points_clear=2)
+    yield "corridor, far claims capped", dataclasses.replace(base, clear_corridor_m=1.5, corridor_far_ratio=1.5)
+    yield "wide corridor, far claims capped, no fusion", dataclasses.replace(base, clear_corridor_m=4.0, corridor_far_ratio=1.0,
+                                                                            fuse_gate_k=0.0, sigma_k=0.0)
     yield "veto beside the band", dataclasses.replace(base, unconverged_veto_margin_m=2.5, min_points_clear=1)
     yield "veto beside a degrees band", dataclasses.replace(base, unconverged_veto_margin_m=1.0, band_mode="degrees")
     yield "ranged veto beside the band", dataclasses.replace(base, converged_veto_margin_m=2.5, min_points_clear=1)
@@ -217,8 +220,12 @@ def test_kernel_equals_reference_on_seeded_scenes(name, config):
             assert not np.any(r.inferred_vertical)
         seen["remembered"] += int(np.sum(r.remembered_points))
         seen["rejected"] += r.points_rejected
+        if config.corridor_far_ratio > 0:  # the far part of rule 10 acts in these scenes (else the comparison is idle)
+            r0 = compute_sectors_reference(*args[:-1], dataclasses.replace(config, corridor_far_ratio=0.0), **opt, **kw)
+            seen["far_capped"] = seen.get("far_capped", 0) + int(np.sum(r0.distances_cm != r.distances_cm))
     # the scenes exercise what is compared (a vacuous comparison would pass anything)
     assert all(v > 0 for v in seen.values()), seen
+    assert config.corridor_far_ratio == 0 or "far_capped" in seen
 
 
 def _edge_scenes(c: SectorConfig):

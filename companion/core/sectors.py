@@ -471,6 +471,16 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
             pick[capped] = -1
             inferred |= capped
 
+    if config.corridor_far_ratio > 0:
+        # no far claim beside a near obstacle either out of view (rule 10, its far part): the surface seen past
+        # the obstacle's edge is no way through, and the remembered obstacle may reach into the neighbour
+        far = _corridor_far(state, range_m, config.clear_corridor_m, config.corridor_far_ratio)
+        far[in_view] = -1  # out of view only: in view a sector's own points place the edge
+        src = far[far >= 0]
+        cap = far >= 0
+        range_m[cap], dist[cap], sigma_m[cap] = range_m[src], dist[src], sigma_m[src]
+        pick[cap] = -1
+        inferred |= cap
     if config.clear_corridor_m > 0:
         # no "clear" beside a near obstacle (docs/derivations/sectors.md, rule 10): a clear bearing there is no way
         # through for a vehicle, and PX4 steers into it
@@ -586,6 +596,36 @@ def _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, cand, config: SectorCon
     return d_cons, sig_pub, est
 
 
+def _corridor_reach(range_m, corridor_m: float) -> np.ndarray:
+    """Rule 10's corridor (docs/derivations/sectors.md): how many neighbours on each side of obstacle sectors at
+    ``range_m`` (NaN: the widest) it reaches, the j-th when 5(j − 1) < asin(``corridor_m`` / r), degrees; at most 36."""
+    r = np.nan_to_num(np.asarray(range_m, float), nan=0.0)
+    mu = np.degrees(np.arcsin(np.minimum(1.0, corridor_m / np.maximum(r, 1e-9))))
+    return np.minimum(np.ceil(mu / SECTOR_DEG), SECTOR_COUNT // 2).astype(np.int64)
+
+
+def _corridor_far(state, range_m, corridor_m: float, ratio: float) -> np.ndarray:
+    """Rule 10's far part (docs/derivations/sectors.md): (72,) for each obstacle sector whose range exceeds ``ratio``
+    times that of an obstacle sector whose corridor (the j-th neighbour on each side when 5(j − 1) < asin(``corridor_m``
+    / r)) reaches it, the nearest such sector; −1 elsewhere.  Computed from the claims as they stand (no chains)."""
+    out = np.full(SECTOR_COUNT, -1, np.int64)
+    obs = np.flatnonzero(state == SectorState.OBSTACLE)
+    if obs.size < 2:
+        return out
+    reach = _corridor_reach(range_m[obs], corridor_m)
+    best = np.full(SECTOR_COUNT, np.inf)
+    for j in range(1, int(reach.max()) + 1):
+        for side in (1, -1):
+            src = obs[reach >= j]
+            dst = (src + side * j) % SECTOR_COUNT
+            rs = np.nan_to_num(range_m[src], nan=0.0)
+            hit = (state[dst] == SectorState.OBSTACLE) & (range_m[dst] > ratio * rs)
+            for s_, d_, r_ in zip(src[hit], dst[hit], rs[hit]):  # few: the neighbours of near obstacle sectors
+                if r_ < best[d_] or (r_ == best[d_] and s_ < out[d_]):  # the nearest; ties: the lowest sector
+                    best[d_], out[d_] = r_, s_
+    return out
+
+
 def _corridor(state, dist, range_m, corridor_m: float) -> None:
     """Rule 10 (docs/derivations/sectors.md), in place: every "clear" sector whose nearer edge lies within
     μ = asin(``corridor_m`` / r) of an obstacle sector's edge (r its published range; the obstacle may stand anywhere
@@ -593,9 +633,7 @@ def _corridor(state, dist, range_m, corridor_m: float) -> None:
     obs = np.flatnonzero(state == SectorState.OBSTACLE)
     if not obs.size:
         return
-    r = np.nan_to_num(range_m[obs], nan=0.0)
-    mu = np.degrees(np.arcsin(np.minimum(1.0, corridor_m / np.maximum(r, 1e-9))))
-    reach = np.minimum(np.ceil(mu / SECTOR_DEG), SECTOR_COUNT // 2).astype(np.int64)
+    reach = _corridor_reach(range_m[obs], corridor_m)
     veto = np.zeros(SECTOR_COUNT, bool)
     for j in range(1, int(reach.max()) + 1):
         veto[(obs[reach >= j] + j) % SECTOR_COUNT] = True

@@ -37,7 +37,7 @@ _VIEW_OFFSETS = np.radians(np.linspace(-SECTOR_DEG / 2, SECTOR_DEG / 2, _SAMPLES
  _K_VETO, _K_TOUCH, _K_SPREAD_K, _K_MAX_SPREAD_RAD, _K_DROP_SPREAD_RAD, _K_GAP, _K_REL_TOL, _K_NARROW_M, _K_NARROW_N,
  _K_VERT, _K_VERT_WIN, _K_VERT_GROUND, _K_ONE_SIDE, _K_MIN_EXTENT, _K_REACH, _K_CAP, _K_GROUND_MARGIN, _K_MIN_CM,
  _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_CAP_GATE, _K_DROP_ACROSS, _K_UCAP, _K_LOS,
- _K_CORRIDOR, _K_VETO_MARGIN, _K_CVETO_MARGIN, _K_SIZE) = range(41)
+ _K_CORRIDOR, _K_VETO_MARGIN, _K_CVETO_MARGIN, _K_FAR_RATIO, _K_SIZE) = range(42)
 
 
 def _kernel_config(config: SectorConfig) -> np.ndarray:
@@ -72,6 +72,7 @@ def _kernel_config(config: SectorConfig) -> np.ndarray:
     v[_K_CVETO_MARGIN] = c.converged_veto_margin_m
     v[_K_LOS] = c.clear_line_of_sight and c.band_mode == "metres"
     v[_K_CORRIDOR] = c.clear_corridor_m
+    v[_K_FAR_RATIO] = c.corridor_far_ratio
     v.flags.writeable = False
     _KERNEL_CONFIGS[id(config)] = (config, v)  # the config is kept alive with its id: no reuse while cached
     if len(_KERNEL_CONFIGS) > 64:  # bounded: configs are few (one per process, a handful in tests)
@@ -446,6 +447,27 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                 sigma_m[s] = sig[pt] * d_h[pt] / r_safe[pt]
                 pick[s] = -1
                 inferred[s] = True
+
+    if cfg[_K_FAR_RATIO] > 0:
+        # no far claim beside a near obstacle either (rule 10's far part; sectors._corridor_far): from the claims as
+        # they stand, each capped at the nearest obstacle sector whose corridor reaches it
+        src_far = np.full(SECTOR_COUNT, -1, np.int64)
+        best_far = np.full(SECTOR_COUNT, np.inf)
+        for s in range(SECTOR_COUNT):
+            if state[s] == _S_OBSTACLE:
+                rs = range_m[s] if range_m[s] == range_m[s] else 0.0
+                reach = _corridor_reach(range_m[s], cfg[_K_CORRIDOR])
+                for j in range(1, reach + 1):
+                    for d in ((s + j) % SECTOR_COUNT, (s - j) % SECTOR_COUNT):
+                        if state[d] == _S_OBSTACLE and range_m[d] > cfg[_K_FAR_RATIO] * rs and rs < best_far[d]:
+                            best_far[d], src_far[d] = rs, s
+        r0, d0, s0 = range_m.copy(), dist.copy(), sigma_m.copy()
+        for d in range(SECTOR_COUNT):
+            s = src_far[d]
+            if s >= 0 and not in_view[d]:  # out of view only
+                range_m[d], dist[d], sigma_m[d] = r0[s], d0[s], s0[s]
+                pick[d] = -1
+                inferred[d] = True
 
     if cfg[_K_CORRIDOR] > 0:
         # no "clear" beside a near obstacle claim: the neighbours within asin(corridor / range) of its sector's edges

@@ -127,6 +127,7 @@ class SectorConfig:
     clear_line_of_sight: bool = True  # metres mode: a converged point beyond max_distance is also evidence of "clear" when its line of sight stays inside the band out to max_distance (|offset|·max_distance/d ≤ half height), not only when the point itself is in the band; off = in-band points only
     clear_edge_margin_deg: float = 1.0  # a point that claims or vetoes its sector within this of the sector's edge also forbids "clear" across that edge (a surface goes on past its last corner), degrees; 0 = off
     clear_corridor_m: float = 0.5  # no "clear" in a sector whose nearer edge lies within asin(this / r) of an obstacle sector's edge (r its published range): a clear bearing beside a near obstacle is no way through for a vehicle this wide on each side, and PX4 steers into it, m; 0 = off
+    corridor_far_ratio: float = 2.0  # a neighbour within that corridor whose claim lies more than this many times farther than the obstacle sector's range and out of the camera's view is capped at that range (marked inferred): the surface seen past a near obstacle's edge is no way through either, and the remembered obstacle may reach into the neighbour; nothing while clear_corridor_m is 0; 0 = off
     touching_distance_m: float = 0.0  # estimate at or below this is sent as 0 (touching); 0 = never (ArduPilot discards 0)
     forward_half_width_deg: float = 2.5  # DISTANCE_SENSOR forward window: sectors centred within ± this (2.5 = sector 0 only)
     nearest_count: int = 5  # nearest obstacles (one per sector) kept for OBSTACLE_DISTANCE_3D
@@ -176,6 +177,8 @@ class SectorConfig:
         require_finite("clear_edge_margin_deg", self.clear_edge_margin_deg, nonnegative=True)
         require(self.clear_edge_margin_deg < SECTOR_DEG / 2, f"clear_edge_margin_deg must be < {SECTOR_DEG / 2}")
         require_finite("clear_corridor_m", self.clear_corridor_m, nonnegative=True)
+        require_finite("corridor_far_ratio", self.corridor_far_ratio, nonnegative=True)
+        require(self.corridor_far_ratio == 0 or self.corridor_far_ratio >= 1, f"corridor_far_ratio must be 0 (off) or >= 1, got {self.corridor_far_ratio}")
         require_finite("touching_distance_m", self.touching_distance_m, nonnegative=True)
         require(self.touching_distance_m < self.min_distance_m, "touching_distance_m must be below min_distance_m")
         require_finite("forward_half_width_deg", self.forward_half_width_deg, nonnegative=True)

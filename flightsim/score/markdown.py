@@ -22,6 +22,14 @@ def remembered_rangeable_text(rem: dict) -> str:
             f"{rem['rangeable_within_tolerance']} ({_pc(rem.get('rangeable_rate'))})")
 
 
+def remembered_errors_text(rem: dict) -> str:
+    """The remembered cells ranged beyond the tolerance: nearer (conservative) and farther (the obstacle missed
+    behind a valid-looking range); older scores lack them."""
+    if rem.get("over_range") is None:
+        return ""
+    return f", too near {rem['too_near']}, too far {rem['over_range']}"
+
+
 def _pc(v, digits: int = 1) -> str:
     return "–" if v is None else f"{100 * v:.{digits}f} %"
 
@@ -114,7 +122,8 @@ def markdown(score: dict, title: str = "Score") -> str:
     if rem:
         L += [f"Remembered obstacles out of view (in view within {rem['window_s']:g} s, vehicle moved < {rem['max_travel_m']:g} m): "
               f"{rem['cells']} cells, within tolerance {rem['within_tolerance']} ({_pc(rem['rate'])}), ranges {rem['ranges']}, "
-              f"unknown {rem['unknown']}, dangerous clears {rem['dangerous_clears']}" + remembered_rangeable_text(rem) + ".", ""]
+              f"unknown {rem['unknown']}, dangerous clears {rem['dangerous_clears']}" + remembered_errors_text(rem)
+              + remembered_rangeable_text(rem) + ".", ""]
     rg = s.get("rangeable")
     if rg and rg.get("obstacle_cells_in_view"):
         L += [f"Rangeable in view (the single camera's ceiling: the cell's point seen within {rg.get('window_s', 0):g} s from a "

@@ -296,6 +296,7 @@ def summarize(ev: Evaluation, sector_log: dict | None = None, reasons: dict | No
         "ranges": int((m.remembered & (ev.od_rep == REP_RANGE)).sum()),
         "unknown": int((m.remembered & (ev.od_rep == REP_UNKNOWN)).sum()),
         "dangerous_clears": int((m.remembered & (ev.od_rep == REP_CLEAR)).sum()),
+        "too_near": int((m.remembered & m.too_near).sum()), "over_range": int((m.remembered & m.over_range).sum()),
         "rangeable_cells": int(m.remembered_rangeable.sum()),
         "rangeable_within_tolerance": int((m.remembered_rangeable & m.valid).sum()),
         "rangeable_rate": _rate(int((m.remembered_rangeable & m.valid).sum()), int(m.remembered_rangeable.sum())),
