@@ -352,12 +352,7 @@ class Pipeline:
                 j = np.clip(np.searchsorted(tf.ids, out.ids, sorter=order), 0, len(order) - 1)
                 hit = tf.ids[order[j]] == out.ids
                 scale[hit], scale_sigma[hit] = tf.scale[order[j[hit]]], tf.scale_sigma[order[j[hit]]]
-            memory = None
-            if self.map is not None:
-                om = self.map
-                rows = np.flatnonzero(~om.live)
-                published = np.isin(om.keys[rows], rem.keys) if rem is not None else np.zeros(len(rows), bool)
-                memory = (om.p[rows], published, np.maximum(t - om.t_seen[rows], 0.0))
+            memory = None if self.map is None else self.map.memory(t, None if rem is None else rem.keys)
             self.landmark_sink(t, R_wc, p_wc, out, p_world, scale, scale_sigma, memory)
         except Exception as exc:  # a diagnostic must never cost a frame
             log.error("landmark sink failed (%r): no more landmarks are logged; ranging goes on", exc)

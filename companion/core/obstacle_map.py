@@ -537,6 +537,14 @@ class ObstacleMap:
         d2 = np.sum(q * q, 1)[:, None] + np.sum(P * P, 1)[None, :] - 2.0 * (q @ P.T)
         return np.count_nonzero(d2 <= (radius**2).astype(np.float32)[:, None], axis=1)
 
+    def memory(self, t: float, published_keys=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every remembered point (landmark no longer live), for diagnostics: ``(p_world (M, 3), published (M,) bool:
+        its key is in ``published_keys`` (those :meth:`remembered` handed on), age since last seen (M,) s)``."""
+        rows = np.flatnonzero(~self.live)
+        published = (np.isin(self.keys[rows], published_keys) if published_keys is not None
+                     else np.zeros(len(rows), bool))
+        return self.p[rows].copy(), published, np.maximum(t - self.t_seen[rows], 0.0)
+
     def remembered(self, t: float, p_world_vehicle: np.ndarray) -> Remembered:
         """Points whose landmark is no longer live, with σ relative to the vehicle (module doc).
 
