@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from companion.core.sectors_types import margin_k
 from companion.mavlink import messages as M
 from companion.mavlink.dialect import mavlink
 from companion.replay import TlogOut
@@ -163,26 +164,29 @@ def test_latency_unknown_without_sending_times():
 
 
 # ---------------------------------------------------------------------- σ and NEES -------------
-def nees_campaign(noise_scale: float, n: int = 3000, seed: int = 7, delay_s: float = 0.04):
-    """Forward estimates with σ reported via covariance (σ < 16 cm) or signal_quality, noise = scale·σ."""
+def nees_campaign(noise_scale: float, n: int = 3000, seed: int = 7, delay_s: float = 0.04, taper=None, scored_taper=None):
+    """Forward estimates with σ reported via covariance (σ < 16 cm) or signal_quality, noise = scale·σ.
+    ``taper`` (k_far, from_m, to_m): the companion narrows its margin far away ([sectors] sigma_k_taper_*);
+    ``scored_taper``: the taper the scorer is told of (default: the one published with)."""
     rng = np.random.default_rng(seed)
     fps, t0, boot0 = 30.0, 2000.0, 1900.0
     T = rng.uniform(2.0, 35.0, n)  # true forward distance per frame, jumping frame to frame
     truth = truth_of([{0: v} for v in T], t0=t0, rate=fps)
     od_rows, ds_rows, boot = [], [], []
     k, zrel = 2.0, 0.5
+    k_far, t_from, t_to = taper or (k, 10.0, 0.0)
     for f in range(n - 1):
         t_cap, t_send = truth.t_s[f], truth.t_s[f] + delay_s  # 40 ms: arrives after the next frame
         if f % 2:
             sigma = 0.1  # covariance = 100 cm²
             est = T[f] + noise_scale * sigma * rng.standard_normal()
-            pub = est - k * sigma
+            pub = est - margin_k(est, k, k_far, t_from, t_to) * sigma
             cm = int(round(pub * 100))
             cov, q = 100, M.signal_quality(cm / 100, sigma, zrel)
         else:
             sigma = 0.04 * T[f]
             est = T[f] + noise_scale * sigma * rng.standard_normal()
-            pub = est - k * sigma
+            pub = est - margin_k(est, k, k_far, t_from, t_to) * sigma
             cm = int(round(pub * 100))
             cov, q = 255, M.signal_quality(cm / 100, sigma, zrel)
         if not MIN_CM < cm < MAX_CM:
@@ -190,7 +194,9 @@ def nees_campaign(noise_scale: float, n: int = 3000, seed: int = 7, delay_s: flo
         od_rows.append(od(t_send, {0: cm}, int(round((t_cap - boot0) * 1e6))))
         ds_rows.append((t_send, cm, MIN_CM, MAX_CM, cov, q))
         boot.append((t_send, int(round((t_send - boot0) * 1000))))
-    ev = evaluate(RangeMessages.build(od=od_rows, ds=ds_rows, boot=boot), truth, ScoreConfig(sigma_k=k, warmup_s=0.0))
+    sk_far, s_from, s_to = scored_taper or (k_far, t_from, t_to)
+    cfg = ScoreConfig(sigma_k=k, sigma_k_far=sk_far, sigma_k_taper_from_m=s_from, sigma_k_taper_to_m=s_to, warmup_s=0.0)
+    ev = evaluate(RangeMessages.build(od=od_rows, ds=ds_rows, boot=boot), truth, cfg)
     return summarize(ev)
 
 
@@ -210,6 +216,20 @@ def test_nees_is_one_for_correctly_scaled_noise():
     pub = s["range_error"]["published_forward"][2]
     assert est["n"] > 500 and abs(est["bias_m"]) < 0.05 and pub["bias_m"] == pytest.approx(
         -2 * (0.5 * 0.1 + 0.5 * 0.04 * 27.5), rel=0.1)  # half σ = 0.1 m, half σ = 0.04·T with T ~ U(20, 35) in this bin
+
+
+def test_the_scorer_undoes_a_tapered_margin():
+    """The companion's margin narrowed far away (k 2 up to 10 m, 1 from 20 m): told of the taper, the
+    scorer recovers the estimate behind each published value (centred, NEES ≈ 1, as with one k); told
+    of one k only, it puts the far estimates σ too far (biased, NEES off its band)."""
+    s = nees_campaign(1.0, delay_s=0.01, taper=(1.0, 10.0, 20.0))
+    est = s["range_error"]["estimate_forward"][2]
+    pub = s["range_error"]["published_forward"][2]
+    assert est["n"] > 500 and abs(est["bias_m"]) < 0.05
+    assert pub["bias_m"] == pytest.approx(-(0.5 * 0.1 + 0.5 * 0.04 * 27.5), rel=0.1)  # k = 1 in this bin (20–40 m)
+    assert s["nees"]["band"][0] <= s["nees"]["mean"] <= s["nees"]["band"][1]
+    wrong = nees_campaign(1.0, delay_s=0.01, taper=(1.0, 10.0, 20.0), scored_taper=(2.0, 10.0, 0.0))
+    assert wrong["range_error"]["estimate_forward"][2]["bias_m"] > 0.3 and wrong["nees"]["mean"] > wrong["nees"]["band"][1]
 
 
 def test_nees_flags_a_sigma_reported_twice_too_small():

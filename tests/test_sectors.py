@@ -767,3 +767,66 @@ def test_the_unconverged_cap_only_ever_lowers_an_obstacle_claim_seeded():
         assert np.all(v.inferred[changed])
         n_changed += int(np.count_nonzero(changed))
     assert n_changed > 20
+
+
+# ---------------------------------------------------------------------- the margin's taper --------
+TAPER = dataclasses.replace(NEAREST_POINT, sigma_k_far=1.0, sigma_k_taper_from_m=10.0, sigma_k_taper_to_m=20.0)
+
+
+def test_the_margin_tapers_from_sigma_k_near_to_sigma_k_far_far_away():
+    """Single points straight ahead at 6, 15 and 30 m (σ/d = 0.1): near the full k = 2 margin, d − 2σ;
+    half-way through the taper k = 1.5; beyond it k = 1.  Off (the shipped default), k = 2 everywhere."""
+    for d, k in ((6.0, 2.0), (15.0, 1.5), (30.0, 1.0)):
+        s = run([[d, 0.0, 0.0]], sigma=0.1 * d, config=TAPER)
+        assert s.state[0] == SectorState.OBSTACLE
+        assert s.range_m[0] == pytest.approx(d - k * 0.1 * d, abs=1e-9)
+        assert s.distances_cm[0] == round(100 * (d - k * 0.1 * d))
+        assert s.forward.estimate_m == pytest.approx(d) and s.forward.sigma_m == pytest.approx(0.1 * d)
+        off = run([[d, 0.0, 0.0]], sigma=0.1 * d, config=NEAREST_POINT)
+        assert off.range_m[0] == pytest.approx(0.8 * d, abs=1e-9)
+    # a fused surface narrows by k at its fused estimate: a wall 30 m ahead, 41 points, σ 3 m each
+    w = wall(30.0, range(-2, 3))
+    fused = run(w, sigma=3.0, config=dataclasses.replace(TAPER, fuse_gate_k=2.0))
+    plain = run(w, sigma=3.0, config=dataclasses.replace(CFG, fuse_gate_k=2.0))
+    assert fused.state[0] == plain.state[0] == SectorState.OBSTACLE
+    est, sig = fused.forward.estimate_m, fused.forward.sigma_m
+    assert plain.forward.estimate_m == pytest.approx(est) and plain.forward.sigma_m == pytest.approx(sig)
+    assert fused.range_m[0] == pytest.approx(est - 1.0 * sig) and plain.range_m[0] == pytest.approx(est - 2.0 * sig)
+
+
+def test_a_tapered_margin_changes_no_state_and_moves_claims_only_farther():
+    """Monte Carlo over random scenes (points 1–60 m, σ up to 3 m): whether a point may lie within
+    max_distance is judged with the full margin, so the taper changes no sector's state where no rule
+    reads the claimed ranges (inference between sectors and the corridor off; the second half has
+    them on); an obstacle claim moves only farther, by at most (sigma_k − sigma_k_far)·σ, and only
+    where its point lies beyond the taper's start.  With every rule on the taper never makes a
+    sector "clear" (inference may lose an inferred obstacle whose sides no longer agree: unknown)."""
+    plain = sectors_optional_rules_off(fuse_gate_k=2.0, infer_max_gap_sectors=0, clear_corridor_m=0.0)
+    tapered = dataclasses.replace(plain, sigma_k_far=1.0, sigma_k_taper_from_m=10.0, sigma_k_taper_to_m=20.0)
+    moved_total = 0
+    for pts, sig, conv in random_scenes(3, 150):
+        a = run(pts, sigma=sig, converged=conv, config=plain)
+        b = run(pts, sigma=sig, converged=conv, config=tapered)
+        assert np.array_equal(a.state, b.state)
+        obs = a.state == SectorState.OBSTACLE
+        assert np.all(b.distances_cm[obs] >= a.distances_cm[obs])
+        assert np.all(b.range_m[obs] <= a.range_m[obs] + 1.0 * b.sigma_m[obs] + 0.01)
+        moved = obs & (b.distances_cm != a.distances_cm)
+        moved_total += int(np.sum(moved))
+        assert np.all(a.range_m[moved] + 2.0 * a.sigma_m[moved] > tapered.sigma_k_taper_from_m - 1e-9)
+        full_a = run(pts, sigma=sig, converged=conv, config=CFG)
+        full_b = run(pts, sigma=sig, converged=conv, config=dataclasses.replace(
+            CFG, sigma_k_far=1.0, sigma_k_taper_from_m=10.0, sigma_k_taper_to_m=20.0))
+        assert not np.any((full_b.state == SectorState.CLEAR) & (full_a.state != SectorState.CLEAR))
+    assert moved_total > 50  # the scenes exercise the taper
+
+
+@pytest.mark.parametrize("kw, msg", [
+    (dict(sigma_k_taper_from_m=20.0, sigma_k_taper_to_m=10.0), "sigma_k_taper_to_m must exceed"),
+    (dict(sigma_k_far=2.5, sigma_k_taper_to_m=20.0), "sigma_k_far must not exceed sigma_k"),
+    (dict(sigma_k_far=-1.0), "sigma_k_far"),
+    (dict(sigma_k_taper_to_m=math.nan), "sigma_k_taper_to_m"),
+])
+def test_a_bad_taper_is_refused(kw, msg):
+    with pytest.raises(ConfigError, match=msg):
+        SectorConfig(**kw)

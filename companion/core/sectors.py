@@ -72,9 +72,11 @@ from companion.core.sectors_types import (  # noqa: F401
     SectorSource,
     SectorState,
     UnknownReason,
+    estimate_from_conservative,
     fold_into_bins,
     forward_reading_consistent,
     forward_unknown_reason,
+    margin_k,
     rotate_sectors,
     sector_index,
     unknown_reasons,
@@ -352,7 +354,11 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     r_cons = np.maximum(r - config.sigma_k * np.where(usable, sig, 0.0), 0.0)
     d_cons = d_h * (r_cons / r_safe)  # conservative horizontal range
     max_m = config.max_distance_m
-    near = d_cons <= max_m
+    near = d_cons <= max_m  # may lie within max_distance: judged with the full margin, taper or not
+    if config.sigma_k_taper_to_m > 0:
+        # the values claimed: the full sigma_k margin near, narrowed far away ("The margin's taper"); no state changes
+        r_cons = np.maximum(r - _k_at(d_h, config) * np.where(usable, sig, 0.0), 0.0)
+        d_cons = d_h * (r_cons / r_safe)
 
     obs_pts = in_band & conv & near
     # the sector's nearest surface from the live points consistent with its nearest one, not the
@@ -542,15 +548,21 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     )
 
 
+def _k_at(d_m, config: SectorConfig):
+    """k of the conservative value at horizontal estimates ``d_m`` (:func:`margin_k` with the config's taper)."""
+    return margin_k(d_m, config.sigma_k, config.sigma_k_far, config.sigma_k_taper_from_m, config.sigma_k_taper_to_m)
+
+
 def _nearer_surface(est_m, sigma, range_m, sigma_m, config: SectorConfig) -> np.ndarray:
     """Whether points above or below the band at horizontal estimates ``est_m`` (range σ ``sigma``) lie on a
     different, nearer surface than their sectors' claims (published ``range_m``, σ ``sigma_m``; the claim's
-    estimate is ``range_m + sigma_k·sigma_m``): nearer by more than ``cap_gate_k`` combined σ
+    estimate is the one whose conservative value is ``range_m``: ``range_m + sigma_k·sigma_m`` without the taper): nearer by more than ``cap_gate_k`` combined σ
     (docs/derivations/sectors.md, rules 7 and 8).  Always true with ``cap_gate_k`` = 0, and where a σ is
     not a number (the rule then keeps its nearer value)."""
     if config.cap_gate_k <= 0:
         return np.ones(np.shape(est_m), bool)
-    est_s = range_m + config.sigma_k * sigma_m
+    est_s = estimate_from_conservative(range_m, sigma_m, config.sigma_k, config.sigma_k_far,
+                                       config.sigma_k_taper_from_m, config.sigma_k_taper_to_m)
     return ~(est_m + config.cap_gate_k * np.hypot(sigma, sigma_m) >= est_s)
 
 
@@ -562,7 +574,7 @@ def _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, cand, config: SectorCon
     inverse-variance mean d̄ with the variance of a mean of equicorrelated errors (correlation ρ =
     ``fuse_correlation``: the shared pose),
     σ̄² = ((1 − ρ) Σw + ρ (Σ 1/σ)²) / (Σw)², w = 1/σ² (horizontal σ = σ_r d_h / r),
-    replaces the conservative range of every member: min(max(d̄ − k σ̄, 0), max_distance_m); its σ̄ and
+    replaces the conservative range of every member: min(max(d̄ − k(d̄) σ̄, 0), max_distance_m); its σ̄ and
     d̄ become their published σ and estimate.  A sector whose cluster has one point is unchanged.
     Returns new (d_cons, sig_pub, est) arrays; the inputs are not modified."""
     d_cons, sig_pub, est = d_cons.copy(), sig.copy(), d_h.copy()
@@ -588,7 +600,7 @@ def _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, cand, config: SectorCon
     safe_sw = np.where(fused, sw, 1.0)
     d_bar = swd / safe_sw
     s_bar = np.sqrt(((1.0 - rho) * safe_sw + rho * (sis * sis)) / (safe_sw * safe_sw))
-    value = np.minimum(np.maximum(d_bar - config.sigma_k * s_bar, 0.0), config.max_distance_m)
+    value = np.minimum(np.maximum(d_bar - _k_at(d_bar, config) * s_bar, 0.0), config.max_distance_m)
     pts = sel[member]
     upd = fused[m_sec]
     pts, ps = pts[upd], m_sec[upd]

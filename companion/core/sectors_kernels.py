@@ -37,7 +37,7 @@ _VIEW_OFFSETS = np.radians(np.linspace(-SECTOR_DEG / 2, SECTOR_DEG / 2, _SAMPLES
  _K_VETO, _K_TOUCH, _K_SPREAD_K, _K_MAX_SPREAD_RAD, _K_DROP_SPREAD_RAD, _K_GAP, _K_REL_TOL, _K_NARROW_M, _K_NARROW_N,
  _K_VERT, _K_VERT_WIN, _K_VERT_GROUND, _K_ONE_SIDE, _K_MIN_EXTENT, _K_REACH, _K_CAP, _K_GROUND_MARGIN, _K_MIN_CM,
  _K_MAX_CM, _K_FWD_HALF, _K_NEAREST, _K_FUSE_G, _K_FUSE_RHO, _K_EDGE, _K_CAP_GATE, _K_DROP_ACROSS, _K_UCAP, _K_LOS,
- _K_CORRIDOR, _K_VETO_MARGIN, _K_CVETO_MARGIN, _K_FAR_RATIO, _K_SIZE) = range(42)
+ _K_CORRIDOR, _K_VETO_MARGIN, _K_CVETO_MARGIN, _K_FAR_RATIO, _K_K_FAR, _K_TAPER_FROM, _K_TAPER_TO, _K_SIZE) = range(45)
 
 
 def _kernel_config(config: SectorConfig) -> np.ndarray:
@@ -73,6 +73,7 @@ def _kernel_config(config: SectorConfig) -> np.ndarray:
     v[_K_LOS] = c.clear_line_of_sight and c.band_mode == "metres"
     v[_K_CORRIDOR] = c.clear_corridor_m
     v[_K_FAR_RATIO] = c.corridor_far_ratio
+    v[_K_K_FAR], v[_K_TAPER_FROM], v[_K_TAPER_TO] = c.sigma_k_far, c.sigma_k_taper_from_m, c.sigma_k_taper_to_m
     v.flags.writeable = False
     _KERNEL_CONFIGS[id(config)] = (config, v)  # the config is kept alive with its id: no reuse while cached
     if len(_KERNEL_CONFIGS) > 64:  # bounded: configs are few (one per process, a handful in tests)
@@ -274,6 +275,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     d_cons = np.empty(n)
     near = np.empty(n, np.bool_)
     n_tracked = np.zeros(SECTOR_COUNT, np.int64)  # live points in view at any height, the ground's too ("why unknown")
+    taper = cfg[_K_TAPER_TO] > 0
     for i in range(n):
         d_h[i] = np.hypot(pl[i, 0], pl[i, 1])
         height[i] = -pl[i, 2]
@@ -296,7 +298,10 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
         in_band[i] = band and usable[i] and seen[i]
         r_cons[i] = max(r[i] - cfg[_K_SIGMA_K] * (sig[i] if usable[i] else 0.0), 0.0)
         d_cons[i] = d_h[i] * (r_cons[i] / r_safe[i])
-        near[i] = d_cons[i] <= max_m
+        near[i] = d_cons[i] <= max_m  # judged with the full margin, taper or not
+        if taper:  # the values claimed: the margin narrowed far away ("The margin's taper")
+            r_cons[i] = max(r[i] - _k_at_k(d_h[i], cfg) * (sig[i] if usable[i] else 0.0), 0.0)
+            d_cons[i] = d_h[i] * (r_cons[i] / r_safe[i])
 
     # ---- per sector: counts, n-th nearest obstacle point -----------------------------------------
     veto_on = cfg[_K_VETO] != 0
@@ -305,7 +310,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     if cfg[_K_FUSE_G] > 0:
         sig_pub, est = sig.copy(), d_h.copy()
         _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, in_band & conv & near & ~mem, cfg[_K_FUSE_G],
-                                cfg[_K_FUSE_RHO], cfg[_K_SIGMA_K], max_m, sig_pub, est)
+                                cfg[_K_FUSE_RHO], cfg, max_m, sig_pub, est)
     n_obs = np.zeros(SECTOR_COUNT, np.int64)
     n_clr = np.zeros(SECTOR_COUNT, np.int64)
     n_veto = np.zeros(SECTOR_COUNT, np.int64)
@@ -564,7 +569,7 @@ def _rank_in_sectors(idx, value, sel):
 
 
 @_jit.njit
-def _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, cand, gate_k, rho, sigma_k, max_m, sig_pub, est):
+def _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, cand, gate_k, rho, cfg, max_m, sig_pub, est):
     """:func:`companion.core.sectors._fuse_nearest_surface` in place on ``d_cons``, ``sig_pub`` and ``est``
     (docs/derivations/sectors.md, "Nearest surface"); sums in the reference's order (sector, then
     conservative range, ties by index) so the results are the same to the bit."""
@@ -597,7 +602,7 @@ def _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, cand, gate_k, rho, si
             continue
         d_bar = swd / sw
         s_bar = math.sqrt(((1.0 - rho) * sw + rho * (sis * sis)) / (sw * sw))
-        value = min(max(d_bar - sigma_k * s_bar, 0.0), max_m)
+        value = min(max(d_bar - _k_at_k(d_bar, cfg) * s_bar, 0.0), max_m)
         for q in range(lo, hi):
             if member[q]:
                 i = ranked[q]
@@ -610,7 +615,38 @@ def _nearer_surface_k(est_m, sigma, range_m, sigma_m, cfg):
     g = cfg[_K_CAP_GATE]
     if g <= 0:
         return True
-    return not (est_m + g * math.hypot(sigma, sigma_m) >= range_m + cfg[_K_SIGMA_K] * sigma_m)
+    return not (est_m + g * math.hypot(sigma, sigma_m) >= _estimate_from_conservative_k(range_m, sigma_m, cfg))
+
+
+@_jit.njit(inline="always")
+def _k_at_k(d, cfg):
+    """:func:`companion.core.sectors_types.margin_k` with the kernel's config: the same expression in the
+    same order (docs/derivations/sectors.md, "The margin's taper")."""
+    k0 = cfg[_K_SIGMA_K]
+    to = cfg[_K_TAPER_TO]
+    if not to > 0:
+        return k0
+    fr = cfg[_K_TAPER_FROM]
+    frac = 1.0 if d != d else min(max((d - fr) / (to - fr), 0.0), 1.0)
+    return k0 + (cfg[_K_K_FAR] - k0) * frac
+
+
+@_jit.njit(inline="always")
+def _estimate_from_conservative_k(v, s, cfg):
+    """:func:`companion.core.sectors_types.estimate_from_conservative` for one value."""
+    k0 = cfg[_K_SIGMA_K]
+    to = cfg[_K_TAPER_TO]
+    if not to > 0:
+        return v + k0 * s
+    fr, k1 = cfg[_K_TAPER_FROM], cfg[_K_K_FAR]
+    slope = (k1 - k0) / (to - fr)
+    d_near = v + k0 * s
+    if d_near <= fr:
+        return d_near
+    d_far = v + k1 * s
+    if d_far >= to:
+        return d_far
+    return (v + (k0 - slope * fr) * s) / (1.0 - slope * s)
 
 
 @_jit.njit

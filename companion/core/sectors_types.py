@@ -115,6 +115,9 @@ class SectorConfig:
     min_distance_m: float = 0.5  # nearest range reported; nearer obstacles are reported at this distance
     max_distance_m: float = 40.0  # farthest range claimed; beyond it, with evidence, a sector is "clear" (max + 1 cm)
     sigma_k: float = 2.0  # conservative range = estimate − k·σ
+    sigma_k_far: float = 2.0  # k of the conservative range far away: k falls linearly from sigma_k at sigma_k_taper_from_m to this at sigma_k_taper_to_m (the point's horizontal estimate) and stays there beyond; at most sigma_k
+    sigma_k_taper_from_m: float = 10.0  # ... where the taper starts, m: nearer, the full sigma_k margin (where a vehicle brakes)
+    sigma_k_taper_to_m: float = 0.0  # ... where it ends, m; 0 = off (sigma_k at every range)
     band_mode: str = "metres"  # vertical band around the flight path: "metres" (fixed height) or "degrees" (cone)
     band_half_height_m: float = 1.5  # half height of the band, metres mode
     band_half_angle_deg: float = 10.0  # half angle of the band, degrees mode
@@ -163,6 +166,13 @@ class SectorConfig:
             f"max_distance_m must be < 655.33 m (max_distance + 1 cm must stay below UINT16_MAX), got {self.max_distance_m}",
         )
         require_finite("sigma_k", self.sigma_k, nonnegative=True)
+        require_finite("sigma_k_far", self.sigma_k_far, nonnegative=True)
+        require_finite("sigma_k_taper_from_m", self.sigma_k_taper_from_m, nonnegative=True)
+        require_finite("sigma_k_taper_to_m", self.sigma_k_taper_to_m, nonnegative=True)
+        if self.sigma_k_taper_to_m > 0:
+            require(self.sigma_k_taper_to_m > self.sigma_k_taper_from_m,
+                    f"sigma_k_taper_to_m must exceed sigma_k_taper_from_m ({self.sigma_k_taper_from_m}) or be 0 (off), got {self.sigma_k_taper_to_m}")
+            require(self.sigma_k_far <= self.sigma_k, f"sigma_k_far must not exceed sigma_k ({self.sigma_k}): the taper only narrows the margin far away, got {self.sigma_k_far}")
         require(self.band_mode in ("metres", "degrees"), f"band_mode must be 'metres' or 'degrees', got {self.band_mode!r}")
         require_finite("band_half_height_m", self.band_half_height_m, positive=True)
         require_finite("band_half_angle_deg", self.band_half_angle_deg, positive=True)
@@ -220,6 +230,36 @@ class SectorConfig:
     @property
     def max_distance_cm(self) -> int:
         return int(round(self.max_distance_m * 100))
+
+
+def margin_k(d_m, k_near: float, k_far: float, from_m: float, to_m: float):
+    """k of the conservative value d − k·σ at horizontal estimate ``d_m`` (docs/derivations/sectors.md,
+    "The margin's taper"): ``k_near`` up to ``from_m``, falling linearly to ``k_far`` at ``to_m`` and ``k_far``
+    beyond; ``k_near`` everywhere when ``to_m`` is 0 (off).  A distance that is not a number counts as far
+    (such a point's σ enters no value).  Scalar in, scalar out; the compiled kernel computes the same
+    expression in the same order."""
+    if not to_m > 0:
+        return np.full(np.shape(d_m), k_near) if np.ndim(d_m) else k_near
+    d = np.asarray(d_m, float)
+    frac = np.where(np.isnan(d), 1.0, np.clip((d - from_m) / (to_m - from_m), 0.0, 1.0))
+    k = k_near + (k_far - k_near) * frac
+    return k if np.ndim(d_m) else float(k)
+
+
+def estimate_from_conservative(value_m, sigma_m, k_near: float, k_far: float, from_m: float, to_m: float):
+    """The estimate d whose conservative value d − k(d)·σ (:func:`margin_k`) is ``value_m``: the inverse of
+    the publication (docs/derivations/sectors.md, "The margin's taper").  Unique, because k never grows
+    with d (d − k(d)·σ increases with d).  Piecewise: d = v + k_near·σ where that lies at or before
+    ``from_m``, d = v + k_far·σ where that lies at or beyond ``to_m``, else the linear piece solved for d."""
+    v, s = np.asarray(value_m, float), np.asarray(sigma_m, float)
+    if not to_m > 0:
+        out = v + k_near * s
+    else:
+        slope = (k_far - k_near) / (to_m - from_m)  # ≤ 0
+        d_near, d_far = v + k_near * s, v + k_far * s
+        d_mid = (v + (k_near - slope * from_m) * s) / (1.0 - slope * s)
+        out = np.where(d_near <= from_m, d_near, np.where(d_far >= to_m, d_far, d_mid))
+    return out if np.ndim(value_m) or np.ndim(sigma_m) else float(out)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -29,6 +29,9 @@ class ScoreConfig:
     tolerance_m: float = 2.0  # absolute part of the range tolerance, m
     tolerance_rel: float = 0.2  # relative part of the range tolerance, fraction of the true distance
     sigma_k: float = 2.0  # k of the companion's conservative value (estimate − k·σ), [sectors] sigma_k
+    sigma_k_far: float = 2.0  # the companion's [sectors] sigma_k_far (k far away, with its taper on)
+    sigma_k_taper_from_m: float = 10.0  # the companion's [sectors] sigma_k_taper_from_m, m
+    sigma_k_taper_to_m: float = 0.0  # the companion's [sectors] sigma_k_taper_to_m, m (0 = no taper: k = sigma_k at every range)
     quality_zero_rel_sigma: float = 0.5  # the companion's [outputs] quality_zero_rel_sigma (σ from signal_quality)
     range_bins_m: tuple[float, ...] = (0.0, 10.0, 20.0, 40.0)  # lower edges of the range bins, m (the last bin is open)
     detection_bins_m: tuple[float, ...] = (0.0, 5.0, 10.0, 20.0, 30.0, 40.0)  # lower edges of the detection-by-true-range bins, m
@@ -63,6 +66,11 @@ class ScoreConfig:
         require_finite("tolerance_m", self.tolerance_m, nonnegative=True)
         require_finite("tolerance_rel", self.tolerance_rel, nonnegative=True)
         require_finite("sigma_k", self.sigma_k, nonnegative=True)
+        for name in ("sigma_k_far", "sigma_k_taper_from_m", "sigma_k_taper_to_m"):
+            require_finite(name, getattr(self, name), nonnegative=True)
+        if self.sigma_k_taper_to_m > 0:
+            require(self.sigma_k_taper_to_m > self.sigma_k_taper_from_m and self.sigma_k_far <= self.sigma_k,
+                    "the margin's taper needs sigma_k_taper_to_m > sigma_k_taper_from_m and sigma_k_far <= sigma_k")
         require_finite("quality_zero_rel_sigma", self.quality_zero_rel_sigma, positive=True)
         for name in ("range_bins_m", "detection_bins_m"):
             b = getattr(self, name)

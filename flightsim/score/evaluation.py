@@ -18,6 +18,8 @@ from typing import Callable
 
 import numpy as np
 
+from companion.core.sectors_types import estimate_from_conservative
+
 from flightsim.score.config import (
     N_SECTORS,
     REP_CLEAR,
@@ -367,7 +369,7 @@ def evaluate(msgs: RangeMessages, truth: SectorTruth, config: ScoreConfig = Scor
     by_q = rng_ok & ~by_cov & (q >= 3) & (q <= 99)
     sig[by_q] = pub[by_q] * cfg.quality_zero_rel_sigma * (1.0 - q[by_q] / 100.0)
     src[by_q] = 2
-    est = pub + cfg.sigma_k * sig
+    est = estimate_from_conservative(pub, sig, cfg.sigma_k, cfg.sigma_k_far, cfg.sigma_k_taper_from_m, cfg.sigma_k_taper_to_m)
     ds_frame = truth.frame_at(ds_t, cfg.truth_max_age_s)
     ds_frame[ds_t - float(truth.t_s[0]) < cfg.warmup_s - 1e-9] = -1  # warm-up: not scored
     t_arr = np.where(ds_frame >= 0, truth.sector_m[np.maximum(ds_frame, 0), 0], np.nan)

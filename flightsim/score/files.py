@@ -141,13 +141,17 @@ def load_score_config(path: str | Path | None) -> ScoreConfig:
 
 
 def companion_score_params(companion_config) -> dict:
-    """``sigma_k`` and ``quality_zero_rel_sigma`` of a companion config (a CompanionConfig or a TOML path)."""
+    """``sigma_k`` (with its taper: ``sigma_k_far``, ``sigma_k_taper_from_m``, ``sigma_k_taper_to_m``) and
+    ``quality_zero_rel_sigma`` of a companion config (a CompanionConfig or a TOML path)."""
     cfg = companion_config
     if isinstance(cfg, (str, Path)):
         from companion.io.config_files import load_companion_config
 
         cfg = load_companion_config(cfg)
-    return {"sigma_k": float(cfg.sectors.sigma_k), "quality_zero_rel_sigma": float(cfg.outputs.quality_zero_rel_sigma)}
+    sc = cfg.sectors
+    return {"sigma_k": float(sc.sigma_k), "sigma_k_far": float(sc.sigma_k_far),
+            "sigma_k_taper_from_m": float(sc.sigma_k_taper_from_m), "sigma_k_taper_to_m": float(sc.sigma_k_taper_to_m),
+            "quality_zero_rel_sigma": float(cfg.outputs.quality_zero_rel_sigma)}
 
 
 def forward_from_sector_log(msgs: RangeMessages, forward: dict) -> RangeMessages:

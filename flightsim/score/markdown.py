@@ -30,6 +30,15 @@ def remembered_errors_text(rem: dict) -> str:
     return f", too near {rem['too_near']}, too far {rem['over_range']}"
 
 
+def _k_text(cfg: dict) -> str:
+    """k of the companion's conservative value as the score's config gives it: one number, or its taper
+    (older scores have no taper keys)."""
+    if not cfg.get("sigma_k_taper_to_m", 0.0) > 0:
+        return f"{cfg['sigma_k']:g}"
+    return (f"k(d) ({cfg['sigma_k']:g} to {cfg['sigma_k_taper_from_m']:g} m, {cfg['sigma_k_far']:g} from "
+            f"{cfg['sigma_k_taper_to_m']:g} m)")
+
+
 def _pc(v, digits: int = 1) -> str:
     return "–" if v is None else f"{100 * v:.{digits}f} %"
 
@@ -153,7 +162,7 @@ def markdown(score: dict, title: str = "Score") -> str:
     L += ["## Range error (published − true), by true range", ""]
     for key, label in (("published_all_sectors", "Conservative published value, all sectors (detections)"),
                        ("published_forward", "Conservative published value, forward DISTANCE_SENSOR"),
-                       ("estimate_forward", f"Estimate (published + {cfg['sigma_k']:g}·σ), forward DISTANCE_SENSOR")):
+                       ("estimate_forward", f"Estimate (published + {_k_text(cfg)}·σ), forward DISTANCE_SENSOR")):
         L += [f"{label}:", "", "| true range | n | bias m | mean abs m | median abs m | p95 abs m | mean abs % | median abs % |",
               "|---|---|---|---|---|---|---|---|"]
         for row in s["range_error"][key]:
@@ -191,7 +200,7 @@ def markdown(score: dict, title: str = "Score") -> str:
     d = s["definitions"]
     L += ["", "## Definitions", ""] + [f"- **{k.replace('_', ' ')}**: {v}" for k, v in d.items()]
     L += [f"- **range bins**: lower edges {cfg['range_bins_m']} m; σ from DISTANCE_SENSOR covariance (cm²) or "
-          f"signal_quality (zero at σ/d = {cfg['quality_zero_rel_sigma']:g}); k = {cfg['sigma_k']:g}",
+          f"signal_quality (zero at σ/d = {cfg['quality_zero_rel_sigma']:g}); k = {_k_text(cfg)}",
           "- **obstacles**: truth cells grouped by world position (link max("
           f"{cfg['obstacle_link_m']:g} m, {100 * cfg['obstacle_link_rel']:g} % of range)); in range = first message with one of its "
           "cells an obstacle cell; valid = a range within tolerance in one of its cells",
