@@ -354,18 +354,14 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     r_cons = np.maximum(r - config.sigma_k * np.where(usable, sig, 0.0), 0.0)
     d_cons = d_h * (r_cons / r_safe)  # conservative horizontal range
     max_m = config.max_distance_m
-    near = d_cons <= max_m  # may lie within max_distance: judged with the full margin, taper or not
-    if config.sigma_k_taper_to_m > 0:
-        # the values claimed: the full sigma_k margin near, narrowed far away ("The margin's taper"); no state changes
-        r_cons = np.maximum(r - _k_at(d_h, config) * np.where(usable, sig, 0.0), 0.0)
-        d_cons = d_h * (r_cons / r_safe)
+    near = d_cons <= max_m
 
     obs_pts = in_band & conv & near
     # the sector's nearest surface from the live points consistent with its nearest one, not the
     # nearest of many noisy points (docs/derivations/sectors.md, "Nearest surface")
-    sig_pub, est = sig, d_h
+    sig_pub, est, fused = sig, d_h, np.zeros(n, bool)
     if config.fuse_gate_k > 0:
-        d_cons, sig_pub, est = _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, obs_pts & ~mem, config)
+        d_cons, sig_pub, est, fused = _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, obs_pts & ~mem, config)
     clr_band = in_band
     if config.clear_line_of_sight and config.band_mode == "metres":
         # the line of sight to a point beyond max_distance is free; it proves the band free where it runs inside
@@ -406,6 +402,9 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     pt_cm = np.clip(np.rint(d_pub * 100).astype(np.int64), min_cm, max_cm)
     if config.touching_distance_m > 0:
         pt_cm = np.where(d_h <= config.touching_distance_m, 0, pt_cm)
+    d_pub_t, pt_cm_t, r_cons_t = d_pub, pt_cm, r_cons  # the values published: tapered far away when the taper is on
+    if config.sigma_k_taper_to_m > 0:
+        d_pub_t, pt_cm_t, r_cons_t = _tapered_values(d_h, r, r_safe, sig, usable, est, sig_pub, fused, config)
     obs_sec = np.flatnonzero(has_obs)
     xy_m = np.full((SECTOR_COUNT, 2), np.nan)  # levelled horizontal position of each obstacle sector's point
     if obs_sec.size:
@@ -491,6 +490,12 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         # no "clear" beside a near obstacle (docs/derivations/sectors.md, rule 10): a clear bearing there is no way
         # through for a vehicle, and PX4 steers into it
         _corridor(state, dist, range_m, config.clear_corridor_m)
+    if config.sigma_k_taper_to_m > 0:
+        # every rule above decided with the full margin; a sector claimed by a point (or a fused surface) now takes
+        # that point's value with the tapered margin ("The margin's taper": states, picks and σ unchanged)
+        claimed = (state == SectorState.OBSTACLE) & (pick >= 0)
+        range_m[claimed] = d_pub_t[pick[claimed]]
+        dist[claimed] = pt_cm_t[pick[claimed]]
     why = unknown_reasons(state, in_view, fully, n_obs, n_clr, n_veto,
                           np.bincount(idx[in_band & ~conv & ~mem], minlength=SECTOR_COUNT),
                           np.bincount(idx[tracked], minlength=SECTOR_COUNT), k, config.min_points_clear)
@@ -518,7 +523,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         order3 = np.argsort(d_cons[pts], kind="stable")[: config.nearest_count]
         for j in order3:
             pt = pts[j]
-            rc = max(float(r_cons[pt]), config.min_distance_m)
+            rc = max(float(r_cons_t[pt]), config.min_distance_m)
             scale = rc / float(r_safe[pt])
             pb = p[pt] * scale
             nearest.append(Obstacle3D((float(pb[0]), float(pb[1]), float(pb[2])), rc, float(sig[pt]), int(cand[j])))
@@ -539,13 +544,30 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
         points_used=int(np.count_nonzero(in_band & conv)),
         points_rejected=rejected,
         obstacle_bearing_rad=np.concatenate([bearing[obs_pts], np.repeat(np.radians(np.flatnonzero(inferred) * SECTOR_DEG), k)]),
-        obstacle_cm=np.concatenate([pt_cm[obs_pts], np.repeat(dist[inferred], k)]),
+        obstacle_cm=np.concatenate([pt_cm_t[obs_pts], np.repeat(dist[inferred], k)]),
         obstacle_rank=k,
         remembered_points=n_mem,
         inferred=inferred,
         inferred_vertical=vertical,
         unknown_reason=why,
     )
+
+
+def _tapered_values(d_h, r, r_safe, sig, usable, est, sig_pub, fused, config: SectorConfig):
+    """Each point's published value with the margin's taper (docs/derivations/sectors.md, "The margin's
+    taper"): its horizontal conservative range with k(d_h), a fused surface's d̄ − k(d̄)·σ̄ (clamped as
+    the fusion clamps), clamped to [min, max] and in cm as rule 1 publishes; and the slant conservative
+    range.  Returns (d_pub, pt_cm, r_cons)."""
+    r_cons_t = np.maximum(r - _k_at(d_h, config) * np.where(usable, sig, 0.0), 0.0)
+    d_t = d_h * (r_cons_t / r_safe)
+    if np.any(fused):
+        f = np.flatnonzero(fused)
+        d_t[f] = np.minimum(np.maximum(est[f] - _k_at(est[f], config) * sig_pub[f], 0.0), config.max_distance_m)
+    d_pub = np.clip(d_t, config.min_distance_m, config.max_distance_m)
+    pt_cm = np.clip(np.rint(d_pub * 100).astype(np.int64), config.min_distance_cm, config.max_distance_cm)
+    if config.touching_distance_m > 0:
+        pt_cm = np.where(d_h <= config.touching_distance_m, 0, pt_cm)
+    return d_pub, pt_cm, r_cons_t
 
 
 def _k_at(d_m, config: SectorConfig):
@@ -556,13 +578,12 @@ def _k_at(d_m, config: SectorConfig):
 def _nearer_surface(est_m, sigma, range_m, sigma_m, config: SectorConfig) -> np.ndarray:
     """Whether points above or below the band at horizontal estimates ``est_m`` (range σ ``sigma``) lie on a
     different, nearer surface than their sectors' claims (published ``range_m``, σ ``sigma_m``; the claim's
-    estimate is the one whose conservative value is ``range_m``: ``range_m + sigma_k·sigma_m`` without the taper): nearer by more than ``cap_gate_k`` combined σ
+    estimate is ``range_m + sigma_k·sigma_m``): nearer by more than ``cap_gate_k`` combined σ
     (docs/derivations/sectors.md, rules 7 and 8).  Always true with ``cap_gate_k`` = 0, and where a σ is
     not a number (the rule then keeps its nearer value)."""
     if config.cap_gate_k <= 0:
         return np.ones(np.shape(est_m), bool)
-    est_s = estimate_from_conservative(range_m, sigma_m, config.sigma_k, config.sigma_k_far,
-                                       config.sigma_k_taper_from_m, config.sigma_k_taper_to_m)
+    est_s = range_m + config.sigma_k * sigma_m
     return ~(est_m + config.cap_gate_k * np.hypot(sigma, sigma_m) >= est_s)
 
 
@@ -576,11 +597,12 @@ def _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, cand, config: SectorCon
     σ̄² = ((1 − ρ) Σw + ρ (Σ 1/σ)²) / (Σw)², w = 1/σ² (horizontal σ = σ_r d_h / r),
     replaces the conservative range of every member: min(max(d̄ − k(d̄) σ̄, 0), max_distance_m); its σ̄ and
     d̄ become their published σ and estimate.  A sector whose cluster has one point is unchanged.
-    Returns new (d_cons, sig_pub, est) arrays; the inputs are not modified."""
+    Returns new (d_cons, sig_pub, est) arrays and the mask of the points fused; the inputs are not modified."""
     d_cons, sig_pub, est = d_cons.copy(), sig.copy(), d_h.copy()
+    fused_pts = np.zeros(d_h.shape[0], bool)
     sel = np.flatnonzero(cand)
     if sel.size < 2:
-        return d_cons, sig_pub, est
+        return d_cons, sig_pub, est, fused_pts
     sel = sel[np.lexsort((d_cons[sel], idx[sel]))]  # by sector, then conservative range (ties: index)
     sec = idx[sel]
     first = np.r_[True, sec[1:] != sec[:-1]]
@@ -600,12 +622,13 @@ def _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, cand, config: SectorCon
     safe_sw = np.where(fused, sw, 1.0)
     d_bar = swd / safe_sw
     s_bar = np.sqrt(((1.0 - rho) * safe_sw + rho * (sis * sis)) / (safe_sw * safe_sw))
-    value = np.minimum(np.maximum(d_bar - _k_at(d_bar, config) * s_bar, 0.0), config.max_distance_m)
+    value = np.minimum(np.maximum(d_bar - config.sigma_k * s_bar, 0.0), config.max_distance_m)
     pts = sel[member]
     upd = fused[m_sec]
     pts, ps = pts[upd], m_sec[upd]
     d_cons[pts], sig_pub[pts], est[pts] = value[ps], s_bar[ps], d_bar[ps]
-    return d_cons, sig_pub, est
+    fused_pts[pts] = True
+    return d_cons, sig_pub, est, fused_pts
 
 
 def _corridor_reach(range_m, corridor_m: float) -> np.ndarray:

@@ -298,19 +298,17 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
         in_band[i] = band and usable[i] and seen[i]
         r_cons[i] = max(r[i] - cfg[_K_SIGMA_K] * (sig[i] if usable[i] else 0.0), 0.0)
         d_cons[i] = d_h[i] * (r_cons[i] / r_safe[i])
-        near[i] = d_cons[i] <= max_m  # judged with the full margin, taper or not
-        if taper:  # the values claimed: the margin narrowed far away ("The margin's taper")
-            r_cons[i] = max(r[i] - _k_at_k(d_h[i], cfg) * (sig[i] if usable[i] else 0.0), 0.0)
-            d_cons[i] = d_h[i] * (r_cons[i] / r_safe[i])
+        near[i] = d_cons[i] <= max_m
 
     # ---- per sector: counts, n-th nearest obstacle point -----------------------------------------
     veto_on = cfg[_K_VETO] != 0
     los_on = cfg[_K_LOS] != 0
     sig_pub, est = sig, d_h  # published σ and estimate of each point: its own unless fused
+    fused = np.zeros(n, np.bool_)
     if cfg[_K_FUSE_G] > 0:
         sig_pub, est = sig.copy(), d_h.copy()
         _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, in_band & conv & near & ~mem, cfg[_K_FUSE_G],
-                                cfg[_K_FUSE_RHO], cfg, max_m, sig_pub, est)
+                                cfg[_K_FUSE_RHO], cfg[_K_SIGMA_K], max_m, sig_pub, est, fused)
     n_obs = np.zeros(SECTOR_COUNT, np.int64)
     n_clr = np.zeros(SECTOR_COUNT, np.int64)
     n_veto = np.zeros(SECTOR_COUNT, np.int64)
@@ -369,6 +367,19 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
         pt_cm[i] = min(max(np.int64(np.rint(d_pub[i] * 100)), min_cm), max_cm)
         if touch > 0 and d_h[i] <= touch:
             pt_cm[i] = 0
+    # the values published: tapered far away when the taper is on (sectors._tapered_values)
+    d_pub_t, pt_cm_t, r_cons_t = d_pub, pt_cm, r_cons
+    if taper:
+        d_pub_t, pt_cm_t, r_cons_t = np.empty(n), np.empty(n, np.int64), np.empty(n)
+        for i in range(n):
+            r_cons_t[i] = max(r[i] - _k_at_k(d_h[i], cfg) * (sig[i] if usable[i] else 0.0), 0.0)
+            d_t = d_h[i] * (r_cons_t[i] / r_safe[i])
+            if fused[i]:
+                d_t = min(max(est[i] - _k_at_k(est[i], cfg) * sig_pub[i], 0.0), max_m)
+            d_pub_t[i] = min(max(d_t, min_m), max_m)
+            pt_cm_t[i] = min(max(np.int64(np.rint(d_pub_t[i] * 100)), min_cm), max_cm)
+            if touch > 0 and d_h[i] <= touch:
+                pt_cm_t[i] = 0
     xy_m = np.full((SECTOR_COUNT, 2), np.nan)
     has_obs = n_obs >= k
     for s in range(SECTOR_COUNT):
@@ -488,6 +499,13 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
                 state[s] = _S_UNKNOWN
                 dist[s] = UNKNOWN_CM
 
+    if taper:
+        # every rule above decided with the full margin; a sector claimed by a point (or a fused surface) takes that
+        # point's tapered value (states, picks and σ unchanged)
+        for s in range(SECTOR_COUNT):
+            if state[s] == _S_OBSTACLE and pick[s] >= 0:
+                range_m[s], dist[s] = d_pub_t[pick[s]], pt_cm_t[pick[s]]
+
     # ---- forward window (DISTANCE_SENSOR) ---------------------------------------------------------
     fwd_state = _S_UNKNOWN
     fwd_vals = np.full(3, np.nan)
@@ -524,7 +542,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     near_sector = np.empty(order3.size, np.int64)
     for q in range(order3.size):
         pt = pts[order3[q]]
-        rc = min_m if min_m > r_cons[pt] else r_cons[pt]  # Python's max(r_cons, min_distance_m)
+        rc = min_m if min_m > r_cons_t[pt] else r_cons_t[pt]  # Python's max(r_cons, min_distance_m)
         scale = rc / r_safe[pt]
         for j in range(3):
             near_p[q, j] = p[pt, j] * scale
@@ -539,7 +557,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     ob_bearing = np.empty(sel.size + n_inf * k)
     ob_cm = np.empty(sel.size + n_inf * k, np.int64)
     for q in range(sel.size):
-        ob_bearing[q], ob_cm[q] = bearing[sel[q]], pt_cm[sel[q]]
+        ob_bearing[q], ob_cm[q] = bearing[sel[q]], pt_cm_t[sel[q]]
     o = sel.size
     for s in range(SECTOR_COUNT):
         if inferred[s]:
@@ -569,8 +587,8 @@ def _rank_in_sectors(idx, value, sel):
 
 
 @_jit.njit
-def _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, cand, gate_k, rho, cfg, max_m, sig_pub, est):
-    """:func:`companion.core.sectors._fuse_nearest_surface` in place on ``d_cons``, ``sig_pub`` and ``est``
+def _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, cand, gate_k, rho, sigma_k, max_m, sig_pub, est, fused):
+    """:func:`companion.core.sectors._fuse_nearest_surface` in place on ``d_cons``, ``sig_pub``, ``est`` and ``fused``
     (docs/derivations/sectors.md, "Nearest surface"); sums in the reference's order (sector, then
     conservative range, ties by index) so the results are the same to the bit."""
     sel = np.flatnonzero(cand)
@@ -602,11 +620,12 @@ def _fuse_nearest_surface_k(idx, d_h, sig, r_safe, d_cons, cand, gate_k, rho, cf
             continue
         d_bar = swd / sw
         s_bar = math.sqrt(((1.0 - rho) * sw + rho * (sis * sis)) / (sw * sw))
-        value = min(max(d_bar - _k_at_k(d_bar, cfg) * s_bar, 0.0), max_m)
+        value = min(max(d_bar - sigma_k * s_bar, 0.0), max_m)
         for q in range(lo, hi):
             if member[q]:
                 i = ranked[q]
                 d_cons[i], sig_pub[i], est[i] = value, s_bar, d_bar
+                fused[i] = True
 
 
 @_jit.njit(inline="always")
@@ -615,7 +634,7 @@ def _nearer_surface_k(est_m, sigma, range_m, sigma_m, cfg):
     g = cfg[_K_CAP_GATE]
     if g <= 0:
         return True
-    return not (est_m + g * math.hypot(sigma, sigma_m) >= _estimate_from_conservative_k(range_m, sigma_m, cfg))
+    return not (est_m + g * math.hypot(sigma, sigma_m) >= range_m + cfg[_K_SIGMA_K] * sigma_m)
 
 
 @_jit.njit(inline="always")
@@ -629,24 +648,6 @@ def _k_at_k(d, cfg):
     fr = cfg[_K_TAPER_FROM]
     frac = 1.0 if d != d else min(max((d - fr) / (to - fr), 0.0), 1.0)
     return k0 + (cfg[_K_K_FAR] - k0) * frac
-
-
-@_jit.njit(inline="always")
-def _estimate_from_conservative_k(v, s, cfg):
-    """:func:`companion.core.sectors_types.estimate_from_conservative` for one value."""
-    k0 = cfg[_K_SIGMA_K]
-    to = cfg[_K_TAPER_TO]
-    if not to > 0:
-        return v + k0 * s
-    fr, k1 = cfg[_K_TAPER_FROM], cfg[_K_K_FAR]
-    slope = (k1 - k0) / (to - fr)
-    d_near = v + k0 * s
-    if d_near <= fr:
-        return d_near
-    d_far = v + k1 * s
-    if d_far >= to:
-        return d_far
-    return (v + (k0 - slope * fr) * s) / (1.0 - slope * s)
 
 
 @_jit.njit
