@@ -10,6 +10,7 @@ Subcommands:
   hostile   soak and fuzz: a long lockstep SITL hover under hostile MAVLink traffic and telemetry blackouts
             (bench/hostile.py; not part of `all`: the real run is 30 simulated minutes)
   too_near  the too-near cells of finished SITL campaigns split by cause (bench/too_near.py; reads campaigns, flies nothing)
+  campaign_diff  before → after of the issue targets of SITL campaigns flown twice (bench/campaign_diff.py; flies nothing)
   motion_split  detection in view of finished SITL campaigns by what the vehicle did — turning in place, hovering,
             moving — and true range, with the single camera's ceiling (bench/motion_split.py; flies nothing)
   looming_truth  the tracker's scale changes on rendered flights against the true depth ratio: is the looming σ honest,
@@ -126,7 +127,7 @@ def cmd_timing(args) -> dict:
 
 
 #: subcommands that are modules with their own argparse (``python -m bench NAME …`` = ``python -m bench.NAME …``)
-OWN_COMMAND_LINE = ("hostile", "compute", "position_states", "telemetry_ablation", "too_near", "looming_truth",
+OWN_COMMAND_LINE = ("hostile", "compute", "position_states", "telemetry_ablation", "too_near", "looming_truth", "campaign_diff",
                     "landmark_truth", "motion_split", "map_cells")
 
 
