@@ -157,7 +157,7 @@ def test_sectors_from_the_map_over_360_after_a_yaw():
     b = np.radians(np.arange(-10, 11, 2.0))
     pts = np.column_stack([np.full(b.shape, 12.0), 12.0 * np.tan(b), np.full(b.shape, -10.0)])
     m.observe(0.0, np.arange(len(b)), pts, cov(len(b), 0.2), live_keys=[])
-    cfg = SectorConfig()
+    cfg = SectorConfig(sigma_k_taper_to_m=0.0)  # values r − 2σ at any range (the margin's taper off)
     for yaw_deg, expect_sector in ((90.0, 54), (180.0, 36), (-90.0, 18)):
         R_wb = euler_zyx_to_R(0.0, 0.0, math.radians(yaw_deg))
         rem = m.remembered(1.0, p_v)

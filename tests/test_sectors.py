@@ -20,7 +20,9 @@ from companion.errors import ConfigError, InputError
 from conftest import sectors_optional_rules_off
 
 HFOV = math.radians(60.0)
-CFG = SectorConfig()  # as shipped: min 0.5 m, max 40 m, k = 2, band ±1.5 m, 1 point per obstacle, 3 per clear
+# as shipped (min 0.5 m, max 40 m, k = 2, band ±1.5 m, 1 point per obstacle, 3 per clear) but with the margin's
+# taper off, so every value below is r − 2σ at any range; the taper acts only on final values (its own tests below)
+CFG = SectorConfig(sigma_k_taper_to_m=0.0)
 CLEAR = CFG.max_distance_cm + 1
 NEAREST_POINT = dataclasses.replace(CFG, fuse_gate_k=0.0)  # each sector publishes its nearest point (no surface fusion)
 NO_CORRIDOR = dataclasses.replace(CFG, clear_corridor_m=0.0)  # "clear" may stand beside an obstacle (rule 10 off)
@@ -127,10 +129,10 @@ def test_clear_from_lines_of_sight_that_stay_in_the_band():
     is clear. 3.5 m up (1.75 m at 40 m) it leaves the band before max_distance and proves nothing; a near point
     still wins, an unconverged one still vetoes, and a degrees band (a cone, which already holds such rays) is
     unchanged."""
-    on = SectorConfig(clear_line_of_sight=True)
+    on = SectorConfig(clear_line_of_sight=True, sigma_k_taper_to_m=0.0)
     assert CFG.clear_line_of_sight
     high = wall(80.0, [-1, 0, 1]) + [0.0, 0.0, -2.5]  # body FRD: z down
-    assert run(high, sigma=1.0, config=SectorConfig(clear_line_of_sight=False)).state[0] == SectorState.UNKNOWN
+    assert run(high, sigma=1.0, config=SectorConfig(clear_line_of_sight=False, sigma_k_taper_to_m=0.0)).state[0] == SectorState.UNKNOWN
     s = run(high, sigma=1.0, config=on)
     assert s.state[0] == SectorState.CLEAR and s.distances_cm[0] == CLEAR
     assert np.all(np.delete(s.state, 0) == SectorState.UNKNOWN)
@@ -305,7 +307,7 @@ def test_near_obstacles_are_clamped_not_dropped():
 
 
 def test_min_points_obstacle_reports_nth_nearest():
-    cfg = SectorConfig(min_points_obstacle=2)
+    cfg = SectorConfig(min_points_obstacle=2, sigma_k_taper_to_m=0.0)
     pts = [[8.0, 0.0, 0.0], [12.0, 0.0, 0.0], [15.0, 0.0, 0.0]]
     assert run(pts, config=cfg).distances_cm[0] == 1100  # second nearest: 12 − 1
     assert run(pts[:1], config=cfg).distances_cm[0] == UNKNOWN_CM  # one point: no claim, and no clear either
@@ -399,7 +401,7 @@ def test_rotation_rebins_obstacle_points_instead_of_smearing_them():
 
 
 def test_rotated_with_min_points_obstacle_uses_the_nth_nearest_point():
-    cfg = SectorConfig(min_points_obstacle=2)
+    cfg = SectorConfig(min_points_obstacle=2, sigma_k_taper_to_m=0.0)
     s = run([[10.0, 0.0, 0.0], [12.0, 0.1, 0.0], [15.0, 0.2, 0.0]], sigma=0.5, config=cfg)
     assert s.distances_cm[0] == 1100  # second nearest: 12 − 2·0.5
     assert s.rotated(math.radians(0.3))[0] == 1100
@@ -578,7 +580,7 @@ def test_a_converged_point_just_outside_the_band_vetoes_clear():
     it never creates or moves an obstacle.  Above the band within ``cap_above_m`` the cap (rule 8) makes the point an
     obstacle instead, which the veto must not pre-empt."""
     cfg = sectors_optional_rules_off(clear_line_of_sight=False, clear_edge_margin_deg=0.0, unconverged_veto_margin_m=0.0,
-                                     converged_veto_margin_m=0.0)
+                                     converged_veto_margin_m=0.0, sigma_k_taper_to_m=0.0)
     assert CFG.converged_veto_margin_m == 2.5  # shipped
     hall = wall(80.0, [-1.5, -0.5, 0.8, 1.7])  # in the band (z = 0), far beyond 40 m
     pole = np.array([[30.0, 0.3, 2.8]])  # FRD: 2.8 m below the vehicle, 1.3 m below the ±1.5 m band, converged
@@ -817,9 +819,18 @@ def test_a_tapered_margin_changes_no_state_and_moves_claims_only_farther():
     assert moved_total > 50  # the scenes exercise the taper
 
 
+def test_a_margin_below_sigma_k_far_is_never_widened_by_the_taper():
+    """sigma_k below sigma_k_far (a user's overlay asks for a thin margin): k stays sigma_k at every range."""
+    for k in (0.0, 0.5):
+        cfg = SectorConfig(sigma_k=k, fuse_gate_k=0.0)  # the shipped taper: sigma_k_far 1 from 10 to 20 m
+        assert cfg.sigma_k_far == 1.0 and cfg.sigma_k_taper_to_m == 20.0
+        for d in (6.0, 15.0, 30.0):
+            s = run([[d, 0.0, 0.0]], sigma=0.1 * d, config=cfg)
+            assert s.range_m[0] == pytest.approx(d - k * 0.1 * d, abs=1e-9)
+
+
 @pytest.mark.parametrize("kw, msg", [
     (dict(sigma_k_taper_from_m=20.0, sigma_k_taper_to_m=10.0), "sigma_k_taper_to_m must exceed"),
-    (dict(sigma_k_far=2.5, sigma_k_taper_to_m=20.0), "sigma_k_far must not exceed sigma_k"),
     (dict(sigma_k_far=-1.0), "sigma_k_far"),
     (dict(sigma_k_taper_to_m=math.nan), "sigma_k_taper_to_m"),
 ])

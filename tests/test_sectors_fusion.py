@@ -12,7 +12,7 @@ from companion.core.sectors import SectorConfig, SectorState, compute_sectors, c
 from companion.errors import ConfigError
 
 HFOV = math.radians(60.0)
-CFG = SectorConfig()  # as shipped: fusion on
+CFG = SectorConfig(sigma_k_taper_to_m=0.0)  # as shipped (fusion on), the margin's taper off: values d̄ − 2σ̄ at any range
 OFF = dataclasses.replace(CFG, fuse_gate_k=0.0)
 
 

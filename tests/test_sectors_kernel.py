@@ -226,14 +226,14 @@ def test_kernel_equals_reference_on_seeded_scenes(name, config):
         if config.corridor_far_ratio > 0:  # the far part of rule 10 acts in these scenes (else the comparison is idle)
             r0 = compute_sectors_reference(*args[:-1], dataclasses.replace(config, corridor_far_ratio=0.0), **opt, **kw)
             seen["far_capped"] = seen.get("far_capped", 0) + int(np.sum(r0.distances_cm != r.distances_cm))
-        if config.sigma_k_taper_to_m > 0:  # the taper moves claims in these scenes (else the comparison is idle)
+        if config.sigma_k_taper_to_m > 0 and config.sigma_k_far < config.sigma_k:  # the taper moves claims here
             r0 = compute_sectors_reference(*args[:-1], dataclasses.replace(config, sigma_k_taper_to_m=0.0), **opt, **kw)
             both = (r0.state == SectorState.OBSTACLE) & (r.state == SectorState.OBSTACLE)
             seen["tapered"] = seen.get("tapered", 0) + int(np.sum(r0.distances_cm[both] != r.distances_cm[both]))
     # the scenes exercise what is compared (a vacuous comparison would pass anything)
     assert all(v > 0 for v in seen.values()), seen
     assert config.corridor_far_ratio == 0 or "far_capped" in seen
-    assert config.sigma_k_taper_to_m == 0 or "tapered" in seen
+    assert not (config.sigma_k_taper_to_m > 0 and config.sigma_k_far < config.sigma_k) or "tapered" in seen
 
 
 def _edge_scenes(c: SectorConfig):

@@ -646,8 +646,9 @@ def _k_at_k(d, cfg):
     if not to > 0:
         return k0
     fr = cfg[_K_TAPER_FROM]
+    k1 = min(cfg[_K_K_FAR], k0)
     frac = 1.0 if d != d else min(max((d - fr) / (to - fr), 0.0), 1.0)
-    return k0 + (cfg[_K_K_FAR] - k0) * frac
+    return k0 + (k1 - k0) * frac
 
 
 @_jit.njit

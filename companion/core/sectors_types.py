@@ -115,9 +115,9 @@ class SectorConfig:
     min_distance_m: float = 0.5  # nearest range reported; nearer obstacles are reported at this distance
     max_distance_m: float = 40.0  # farthest range claimed; beyond it, with evidence, a sector is "clear" (max + 1 cm)
     sigma_k: float = 2.0  # conservative range = estimate − k·σ
-    sigma_k_far: float = 2.0  # k of the conservative range far away: k falls linearly from sigma_k at sigma_k_taper_from_m to this at sigma_k_taper_to_m (the point's horizontal estimate) and stays there beyond; at most sigma_k
+    sigma_k_far: float = 1.0  # k of the conservative range far away: k falls linearly from sigma_k at sigma_k_taper_from_m to this at sigma_k_taper_to_m (the point's horizontal estimate) and stays there beyond; a value above sigma_k acts as sigma_k (the taper only narrows)
     sigma_k_taper_from_m: float = 10.0  # ... where the taper starts, m: nearer, the full sigma_k margin (where a vehicle brakes)
-    sigma_k_taper_to_m: float = 0.0  # ... where it ends, m; 0 = off (sigma_k at every range)
+    sigma_k_taper_to_m: float = 20.0  # ... where it ends, m; 0 = off (sigma_k at every range)
     band_mode: str = "metres"  # vertical band around the flight path: "metres" (fixed height) or "degrees" (cone)
     band_half_height_m: float = 1.5  # half height of the band, metres mode
     band_half_angle_deg: float = 10.0  # half angle of the band, degrees mode
@@ -172,7 +172,6 @@ class SectorConfig:
         if self.sigma_k_taper_to_m > 0:
             require(self.sigma_k_taper_to_m > self.sigma_k_taper_from_m,
                     f"sigma_k_taper_to_m must exceed sigma_k_taper_from_m ({self.sigma_k_taper_from_m}) or be 0 (off), got {self.sigma_k_taper_to_m}")
-            require(self.sigma_k_far <= self.sigma_k, f"sigma_k_far must not exceed sigma_k ({self.sigma_k}): the taper only narrows the margin far away, got {self.sigma_k_far}")
         require(self.band_mode in ("metres", "degrees"), f"band_mode must be 'metres' or 'degrees', got {self.band_mode!r}")
         require_finite("band_half_height_m", self.band_half_height_m, positive=True)
         require_finite("band_half_angle_deg", self.band_half_angle_deg, positive=True)
@@ -235,11 +234,12 @@ class SectorConfig:
 def margin_k(d_m, k_near: float, k_far: float, from_m: float, to_m: float):
     """k of the conservative value d − k·σ at horizontal estimate ``d_m`` (docs/derivations/sectors.md,
     "The margin's taper"): ``k_near`` up to ``from_m``, falling linearly to ``k_far`` at ``to_m`` and ``k_far``
-    beyond; ``k_near`` everywhere when ``to_m`` is 0 (off).  A distance that is not a number counts as far
-    (such a point's σ enters no value).  Scalar in, scalar out; the compiled kernel computes the same
-    expression in the same order."""
+    beyond; ``k_near`` everywhere when ``to_m`` is 0 (off).  ``k_far`` above ``k_near`` acts as ``k_near``
+    (the taper only narrows).  A distance that is not a number counts as far (such a point's σ enters no
+    value).  Scalar in, scalar out; the compiled kernel computes the same expression in the same order."""
     if not to_m > 0:
         return np.full(np.shape(d_m), k_near) if np.ndim(d_m) else k_near
+    k_far = min(k_far, k_near)
     d = np.asarray(d_m, float)
     frac = np.where(np.isnan(d), 1.0, np.clip((d - from_m) / (to_m - from_m), 0.0, 1.0))
     k = k_near + (k_far - k_near) * frac
@@ -255,6 +255,7 @@ def estimate_from_conservative(value_m, sigma_m, k_near: float, k_far: float, fr
     if not to_m > 0:
         out = v + k_near * s
     else:
+        k_far = min(k_far, k_near)
         slope = (k_far - k_near) / (to_m - from_m)  # ≤ 0
         d_near, d_far = v + k_near * s, v + k_far * s
         d_mid = (v + (k_near - slope * from_m) * s) / (1.0 - slope * s)

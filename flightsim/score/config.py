@@ -69,8 +69,8 @@ class ScoreConfig:
         for name in ("sigma_k_far", "sigma_k_taper_from_m", "sigma_k_taper_to_m"):
             require_finite(name, getattr(self, name), nonnegative=True)
         if self.sigma_k_taper_to_m > 0:
-            require(self.sigma_k_taper_to_m > self.sigma_k_taper_from_m and self.sigma_k_far <= self.sigma_k,
-                    "the margin's taper needs sigma_k_taper_to_m > sigma_k_taper_from_m and sigma_k_far <= sigma_k")
+            require(self.sigma_k_taper_to_m > self.sigma_k_taper_from_m,
+                    "the margin's taper needs sigma_k_taper_to_m > sigma_k_taper_from_m")
         require_finite("quality_zero_rel_sigma", self.quality_zero_rel_sigma, positive=True)
         for name in ("range_bins_m", "detection_bins_m"):
             b = getattr(self, name)
