@@ -290,6 +290,27 @@ def markdown(res: dict) -> str:
     return "\n".join(L) + "\n"
 
 
+def compare_markdown(before: dict, after: dict) -> str:
+    """Before → after, cell by cell (the cells of ``after``; "–" where ``before`` has none): collisions, runs
+    stopped short, stop and least clearance, false stops, progress, data while the pilot pushed, detection in
+    view and dangerous clears, in :func:`markdown`'s forms."""
+    def cells(c):
+        a = (c or {}).get("avoidance")
+        if not a:
+            return ["–"] * 9
+        return [str(a["collisions"]), str(a["stopped_short"]), _m(a["stop_clearance_m"]), _m(a["min_clearance_m"]),
+                str(a["false_stops"]), _m(a["progress"], "{:.0%}"), _m(a["data_while_pushing"], "{:.0%}"),
+                _pc(c["detection_in_view"]), _dc(c.get("dangerous_clears"))]
+
+    L = ["| scenario | model | collisions | stopped short | stop clearance m | min clearance m | false stops | progress | "
+         "data while pushing | detection in view | dangerous clears |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for key, c in after["campaigns"].items():
+        b = before["campaigns"].get(key)
+        L.append(f"| {c['scenario']} | {c['model']} | " + " | ".join(
+            f"{x} → {y}" for x, y in zip(cells(b), cells(c))) + " |")
+    return "\n".join(L) + "\n"
+
+
 def main(argv=None) -> int:
     import argparse
     import json
@@ -315,10 +336,19 @@ def main(argv=None) -> int:
                          "are merged in order (a later file's campaign or no-companion cell replaces an earlier one's)")
     ap.add_argument("--rescore", action="store_true", help="with --from-json: score the outcomes again from the runs' "
                                                            "trajectory.npz with the current scorer (no flight repeated)")
+    ap.add_argument("--before", metavar="FILE", nargs="+",
+                    help="with --from-json: results of an earlier run (merged likewise); print before → after for the "
+                         "cells of --from-json instead of the table")
     args = ap.parse_args(argv)
+    if args.before and not args.from_json:
+        ap.error("--before needs --from-json (the results after)")
     if args.from_json:
         res = merge_results([json.loads(Path(f).read_text(encoding="utf-8")) for f in args.from_json])
-        print(markdown(rescore(res) if args.rescore else res))
+        res = rescore(res) if args.rescore else res
+        if args.before:
+            print(compare_markdown(merge_results([json.loads(Path(f).read_text(encoding="utf-8")) for f in args.before]), res))
+        else:
+            print(markdown(res))
         return 0
     names = [n.strip() for n in args.scenarios.split(",") if n.strip()] if args.scenarios else None
     models = tuple(m.strip() for m in args.models.split(",") if m.strip() and m.strip() != "none")  # none: only the no-companion flights

@@ -96,6 +96,39 @@ def test_the_table_lists_dangerous_clears_and_a_dash_where_they_were_not_recorde
     assert "dangerous clears |" in A.markdown(res)
 
 
+def test_before_and_after_cell_by_cell(tmp_path, capsys):
+    """``--from-json AFTER --before BEFORE``: one row per cell of AFTER, each figure before → after; a cell
+    BEFORE lacks shows dashes."""
+    import json
+
+    def av(coll, stop):
+        return {"runs": 20, "collisions": coll, "collision_rate": coll / 20, "collision_ci95": [0.0, 0.2], "stopped_short": 20,
+                "stop_clearance_m": {"mean": stop, "std": 0.1, "min": stop - 0.2, "n": 20},
+                "min_clearance_m": {"mean": stop - 0.1, "std": 0.1, "min": stop - 0.3, "n": 20}, "false_stops": 0,
+                "progress": {"mean": 0.68, "std": 0.0, "min": 0.67, "n": 20},
+                "data_while_pushing": {"mean": 0.84, "std": 0.01, "min": 0.83, "n": 20}}
+
+    def res(cells):
+        return {"runs": 20, "no_companion": {}, "campaigns": {
+            f"{s}/{m}": {"scenario": s, "model": m, "runs_ok": 20, "runs": 20, "avoidance": a, "detection_in_view": 0.9}
+            for (s, m), a in cells.items()}}
+
+    before = res({("quad_avoid_wall_6", "ardupilot"): av(0, 2.23)})
+    after = res({("quad_avoid_wall_6", "ardupilot"): av(0, 2.09), ("quad_avoid_pole", "px4"): av(1, 1.8)})
+    (tmp_path / "b.json").write_text(json.dumps(before))
+    (tmp_path / "a.json").write_text(json.dumps(after))
+    assert A.main(["--from-json", str(tmp_path / "a.json"), "--before", str(tmp_path / "b.json")]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| quad_avoid")]
+    assert len(rows) == 2
+    wall = [c.strip() for c in rows[0].strip("|").split("|")]
+    assert wall[:4] == ["quad_avoid_wall_6", "ardupilot", "0 → 0", "20 → 20"]
+    assert wall[4].startswith("2.23 ± 0.10") and "→ 2.09 ± 0.10" in wall[4]
+    pole = [c.strip() for c in rows[1].strip("|").split("|")]
+    assert pole[2] == "– → 1" and pole[-1] == "– → –"
+    with pytest.raises(SystemExit):
+        A.main(["--before", str(tmp_path / "b.json")])
+
+
 def test_rescore_reads_the_dangerous_clears_from_each_campaign(tmp_path):
     import json
 
