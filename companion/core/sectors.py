@@ -595,7 +595,8 @@ def _fuse_nearest_surface(idx, d_h, sig, r_safe, d_cons, cand, config: SectorCon
     inverse-variance mean d̄ with the variance of a mean of equicorrelated errors (correlation ρ =
     ``fuse_correlation``: the shared pose),
     σ̄² = ((1 − ρ) Σw + ρ (Σ 1/σ)²) / (Σw)², w = 1/σ² (horizontal σ = σ_r d_h / r),
-    replaces the conservative range of every member: min(max(d̄ − k(d̄) σ̄, 0), max_distance_m); its σ̄ and
+    replaces the conservative range of every member: min(max(d̄ − k σ̄, 0), max_distance_m) with k = ``sigma_k``
+    (the value published with the margin's taper: :func:`_tapered_values`); its σ̄ and
     d̄ become their published σ and estimate.  A sector whose cluster has one point is unchanged.
     Returns new (d_cons, sig_pub, est) arrays and the mask of the points fused; the inputs are not modified."""
     d_cons, sig_pub, est = d_cons.copy(), sig.copy(), d_h.copy()
