@@ -52,7 +52,9 @@ def figures(campaign_dir: Path) -> dict:
 
 
 def _pc(v) -> str:
-    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.1f} %"
+    from flightsim.report import _pc as pc
+
+    return pc(v, 1)
 
 
 def _nees(n: dict) -> str:

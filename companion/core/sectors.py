@@ -397,11 +397,7 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     sigma_m = np.full(SECTOR_COUNT, np.nan)
     min_cm, max_cm = config.min_distance_cm, config.max_distance_cm
 
-    # published value of every obstacle point (clamped to [min, max]; 0 = touching if enabled)
-    d_pub = np.clip(d_cons, config.min_distance_m, max_m)
-    pt_cm = np.clip(np.rint(d_pub * 100).astype(np.int64), min_cm, max_cm)
-    if config.touching_distance_m > 0:
-        pt_cm = np.where(d_h <= config.touching_distance_m, 0, pt_cm)
+    d_pub, pt_cm = _published(d_cons, d_h, config)  # published value of every obstacle point
     d_pub_t, pt_cm_t, r_cons_t = d_pub, pt_cm, r_cons  # the values published: tapered far away when the taper is on
     if config.sigma_k_taper_to_m > 0:
         d_pub_t, pt_cm_t, r_cons_t = _tapered_values(d_h, r, r_safe, sig, usable, est, sig_pub, fused, config)
@@ -553,21 +549,27 @@ def _sectors_reference(inp: _SectorInputs, hfov_rad, R_cam_body, config: SectorC
     )
 
 
+def _published(d_cons, d_h, config: SectorConfig):
+    """Points' published values from their conservative horizontal ranges: (metres clamped to [min, max], the
+    same in cm; 0 = touching where the estimate ``d_h`` is at or below ``touching_distance_m``, if enabled)."""
+    d_pub = np.clip(d_cons, config.min_distance_m, config.max_distance_m)
+    pt_cm = np.clip(np.rint(d_pub * 100).astype(np.int64), config.min_distance_cm, config.max_distance_cm)
+    if config.touching_distance_m > 0:
+        pt_cm = np.where(d_h <= config.touching_distance_m, 0, pt_cm)
+    return d_pub, pt_cm
+
+
 def _tapered_values(d_h, r, r_safe, sig, usable, est, sig_pub, fused, config: SectorConfig):
     """Each point's published value with the margin's taper (docs/derivations/sectors.md, "The margin's
     taper"): its horizontal conservative range with k(d_h), a fused surface's d̄ − k(d̄)·σ̄ (clamped as
-    the fusion clamps), clamped to [min, max] and in cm as rule 1 publishes; and the slant conservative
+    the fusion clamps), published as rule 1 publishes (:func:`_published`); and the slant conservative
     range.  Returns (d_pub, pt_cm, r_cons)."""
     r_cons_t = np.maximum(r - _k_at(d_h, config) * np.where(usable, sig, 0.0), 0.0)
     d_t = d_h * (r_cons_t / r_safe)
     if np.any(fused):
         f = np.flatnonzero(fused)
         d_t[f] = np.minimum(np.maximum(est[f] - _k_at(est[f], config) * sig_pub[f], 0.0), config.max_distance_m)
-    d_pub = np.clip(d_t, config.min_distance_m, config.max_distance_m)
-    pt_cm = np.clip(np.rint(d_pub * 100).astype(np.int64), config.min_distance_cm, config.max_distance_cm)
-    if config.touching_distance_m > 0:
-        pt_cm = np.where(d_h <= config.touching_distance_m, 0, pt_cm)
-    return d_pub, pt_cm, r_cons_t
+    return (*_published(d_t, d_h, config), r_cons_t)
 
 
 def _k_at(d_m, config: SectorConfig):

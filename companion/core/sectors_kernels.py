@@ -363,10 +363,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
     pt_cm = np.empty(n, np.int64)
     touch = cfg[_K_TOUCH]
     for i in range(n):
-        d_pub[i] = min(max(d_cons[i], min_m), max_m)
-        pt_cm[i] = min(max(np.int64(np.rint(d_pub[i] * 100)), min_cm), max_cm)
-        if touch > 0 and d_h[i] <= touch:
-            pt_cm[i] = 0
+        d_pub[i], pt_cm[i] = _published_k(d_cons[i], d_h[i], min_m, max_m, min_cm, max_cm, touch)
     # the values published: tapered far away when the taper is on (sectors._tapered_values)
     d_pub_t, pt_cm_t, r_cons_t = d_pub, pt_cm, r_cons
     if taper:
@@ -376,10 +373,7 @@ def _sectors_core(p_in, sig_in, conv_in, usable_in, r_in, pl_in, n_live, mem_tan
             d_t = d_h[i] * (r_cons_t[i] / r_safe[i])
             if fused[i]:
                 d_t = min(max(est[i] - _k_at_k(est[i], cfg) * sig_pub[i], 0.0), max_m)
-            d_pub_t[i] = min(max(d_t, min_m), max_m)
-            pt_cm_t[i] = min(max(np.int64(np.rint(d_pub_t[i] * 100)), min_cm), max_cm)
-            if touch > 0 and d_h[i] <= touch:
-                pt_cm_t[i] = 0
+            d_pub_t[i], pt_cm_t[i] = _published_k(d_t, d_h[i], min_m, max_m, min_cm, max_cm, touch)
     xy_m = np.full((SECTOR_COUNT, 2), np.nan)
     has_obs = n_obs >= k
     for s in range(SECTOR_COUNT):
@@ -635,6 +629,16 @@ def _nearer_surface_k(est_m, sigma, range_m, sigma_m, cfg):
     if g <= 0:
         return True
     return not (est_m + g * math.hypot(sigma, sigma_m) >= range_m + cfg[_K_SIGMA_K] * sigma_m)
+
+
+@_jit.njit(inline="always")
+def _published_k(d_cons, d_h, min_m, max_m, min_cm, max_cm, touch):
+    """:func:`companion.core.sectors._published` for one point: (metres, cm)."""
+    d_pub = min(max(d_cons, min_m), max_m)
+    cm = min(max(np.int64(np.rint(d_pub * 100)), min_cm), max_cm)
+    if touch > 0 and d_h <= touch:
+        cm = np.int64(0)
+    return d_pub, cm
 
 
 @_jit.njit(inline="always")
