@@ -52,6 +52,7 @@ import numbers
 from collections.abc import Iterator, Mapping
 from typing import Callable
 
+import cv2
 import numpy as np
 
 from companion.config import require, require_finite, require_int
@@ -68,6 +69,9 @@ from companion.errors import InputError
 #: (OUT_OF_IMAGE, FLAT_TEMPLATE, LOW_SCORE, AMBIGUOUS, PEAK_AT_EDGE, EDGE_TEMPLATE) plus:
 DROP_DUPLICATE = 10  # two tracks converged onto the same point: the younger one is dropped
 DROP_REFERENCE = 11  # the track's reference patch no longer matches where it is: an occlusion edge or drift
+
+#: Largest scale factor (1 ± this) the drift correction may apply to a reference's warp in one frame.
+_MAX_DRIFT_SCALE = 0.1
 
 DROP_REASON_NAMES = {**_ncc.REASON_NAMES, DROP_DUPLICATE: "duplicate", DROP_REFERENCE: "reference mismatch"}
 del DROP_REASON_NAMES[_ncc.OK]
@@ -111,6 +115,9 @@ class TrackConfig:
     reference_min_ncc: float = 0.0  # a track whose reference patch correlates below this where it now is is dropped (0 = off)
     reference_half: int = 7  # half size of the reference patch: (2h+1)² px
     reference_refresh_frames: int = 1000  # a passing reference patch is re-cut after this many frames
+    reference_correct_px: float = 0.0  # > 0: each match re-aligned to the reference patch, by at most this, px (0 = off)
+    reference_correct_min_ncc: float = 0.9  # ... only where the reference then correlates at least this well
+    reference_refresh_scale: float = 1.3  # > 1: with the correction, a reference is re-cut once its scale change leaves [1/this, this] (0 = never)
     refill_backoff_frames: int = 0  # after a refill that found little, this many frames without one (0 = refill whenever short)
     refill_backoff_yield: float = 0.25  # "found little": fewer corners than this share of those asked for
     refill_backoff_priority: bool = True  # the priority region's top-up (priority_min_tracks) still runs during a pause
@@ -136,6 +143,13 @@ class TrackConfig:
         require(self.reference_min_ncc < 1.0, f"reference_min_ncc must be < 1, got {self.reference_min_ncc}")
         require_int("reference_half", self.reference_half, minimum=2)
         require_int("reference_refresh_frames", self.reference_refresh_frames, minimum=1)
+        require_finite("reference_correct_px", self.reference_correct_px, nonnegative=True)
+        require_finite("reference_correct_min_ncc", self.reference_correct_min_ncc)
+        require(-1.0 <= self.reference_correct_min_ncc < 1.0,
+                f"reference_correct_min_ncc must be in [-1, 1), got {self.reference_correct_min_ncc}")
+        require_finite("reference_refresh_scale", self.reference_refresh_scale, nonnegative=True)
+        require(self.reference_refresh_scale == 0.0 or self.reference_refresh_scale > 1.0,
+                f"reference_refresh_scale must be 0 (never) or > 1, got {self.reference_refresh_scale}")
         require_int("refill_backoff_frames", self.refill_backoff_frames, minimum=0)
         require_finite("refill_backoff_yield", self.refill_backoff_yield, nonnegative=True)
         require(self.refill_backoff_yield <= 1.0, f"refill_backoff_yield must be <= 1, got {self.refill_backoff_yield}")
@@ -466,7 +480,7 @@ class TrackManager:
                     drop_slots.append(dup)
                     drop_codes.append(np.full(len(dup), DROP_DUPLICATE, np.int8))
                     s_ok = np.setdiff1d(s_ok, dup)
-            if cfg.reference_min_ncc > 0 and len(s_ok):
+            if self._keeps_reference and len(s_ok):
                 bad = self._check_reference(gray, s_ok, frame_index)
                 if len(bad):
                     drop_slots.append(bad)
@@ -572,8 +586,14 @@ class TrackManager:
         self._h_frame[slots, 0] = frame_index
         self._h_t[slots, 0] = t
         self._slot_of.update(zip(ids.tolist(), slots.tolist()))
-        if self.config.reference_min_ncc > 0:
+        if self._keeps_reference:
             self._cut_reference(gray, slots, frame_index)
+
+    @property
+    def _keeps_reference(self) -> bool:
+        """Tracks keep their reference patch: for the check (``reference_min_ncc``) or the drift correction
+        (``reference_correct_px``)."""
+        return self.config.reference_min_ncc > 0 or self.config.reference_correct_px > 0
 
     def _cut_reference(self, gray: np.ndarray, slots: np.ndarray, frame_index: int) -> None:
         """Cut the reference patch of ``slots`` at their current pixels (sub-pixel centred)."""
@@ -642,31 +662,133 @@ class TrackManager:
         return zncc_patches(self._ref[slots], cur), inside
 
     def _check_reference(self, gray: np.ndarray, slots: np.ndarray, frame_index: int) -> np.ndarray:
-        """Slots among the matched ``slots`` whose reference patch no longer matches (feature monitoring,
-        Shi & Tomasi 1994, "Good features to track": compare the feature's patch now with the one it
-        started from, warped by the motion since; docs/derivations/tracking.md).
+        """The reference patch of the matched ``slots``: drift correction, check and refresh
+        (docs/derivations/tracking.md, "Reference patch").  Returns the slots whose reference no longer
+        matches (feature monitoring, Shi & Tomasi 1994, "Good features to track": compare the feature's
+        patch now with the one it started from, warped by the motion since).
 
         Frame-to-frame matching re-cuts the template every frame, so a track follows whatever its
-        window holds: at an occlusion edge (a T-junction of a near edge over a far texture) the two
-        layers slide apart and the track rides between them, and its triangulated range lies
-        between the two surfaces.  Here the patch cut ``reference_refresh_frames`` ago or fewer,
-        resampled by the scale change measured since (the product of the per-frame scale changes,
-        the predicted rate where one was not measured), is correlated (zero-mean NCC) with the patch
-        at the new match; below ``reference_min_ncc`` the track is returned.  Passing references
-        older than ``reference_refresh_frames`` are re-cut at the new match (bounding the rotation
-        and perspective change a check must tolerate); references that did not fit in the image
-        are re-cut and not checked."""
+        window holds: each match's sub-pixel error is inherited by the next template (the track
+        drifts as a random walk), and at an occlusion edge (a T-junction of a near edge over a far
+        texture) the two layers slide apart and the track rides between them, its triangulated range
+        between the two surfaces.  The patch cut at birth (or at the last refresh), resampled by the
+        scale change measured since (the product of the per-frame scale changes, the predicted rate
+        where one was not measured) and by the camera's rotation since, is the reference:
+
+        * with ``reference_correct_px`` > 0 each match is first re-aligned to it (:meth:`_correct_drift`), so the
+          track no longer drifts (the template update problem; Matthews, Ishikawa and Baker 2004);
+        * with ``reference_min_ncc`` > 0 it is correlated (zero-mean NCC) with the patch at the match, and below
+          ``reference_min_ncc`` the track is returned.
+
+        Passing references older than ``reference_refresh_frames``, or, with the correction, whose scale change
+        has left [1/``reference_refresh_scale``, ``reference_refresh_scale``], are re-cut at the match (bounding the
+        rotation, perspective and resampling a reference must tolerate); references that did not fit in the
+        image are re-cut and neither used nor checked."""
         cfg = self.config
         self._ref_scale[slots] *= self._scale_rate[slots]
         has = self._ref_ok[slots]
         sl = slots[has]
         bad = np.zeros(0, np.int64)
-        if len(sl):
+        if len(sl) and cfg.reference_correct_px > 0:
+            self._correct_drift(gray, sl)
+        if len(sl) and cfg.reference_min_ncc > 0:
             ncc, inside = self._reference_ncc(gray, sl)
             bad = sl[inside & (ncc < cfg.reference_min_ncc)]
-        due = slots[~has | (frame_index - self._ref_frame[slots] >= cfg.reference_refresh_frames)]
-        self._cut_reference(gray, np.setdiff1d(due, bad), frame_index)
+        due = ~has | (frame_index - self._ref_frame[slots] >= cfg.reference_refresh_frames)
+        if cfg.reference_refresh_scale > 0 and cfg.reference_correct_px > 0:
+            ls = np.abs(np.log(self._ref_scale[slots]))
+            due |= ~(ls <= math.log(cfg.reference_refresh_scale))
+        self._cut_reference(gray, np.setdiff1d(slots[due], bad), frame_index)
         return bad
+
+    def _correct_drift(self, gray: np.ndarray, slots: np.ndarray, iterations: int = 3) -> None:
+        """Re-align the matches of ``slots`` (with references) to their reference patches, in place
+        (docs/derivations/tracking.md, "Drift correction").
+
+        Gauss–Newton over a shift Δ and a scale factor (1 + ε) of the reference's warp, on the zero-mean,
+        unit-variance patches (a change of gain and offset is no residual): with T̂ the normalized
+        reference, Ĉ the normalized frame sampled at uv + Δ + (1 + ε)·A·d (A = :meth:`_reference_warp`,
+        d the reference offsets) and g = ∇I / std(C) there, the parameters take the step
+        −(Σ J Jᵀ)⁻¹ Σ J (Ĉ − T̂), J = (g_x, g_y, gᵀ A d).  The scale is estimated with the shift because
+        a patch whose texture lies off its centre shifts its best alignment when the scale is wrong
+        (the scale since the reference is a product of per-frame estimates, and drifts).  A correction
+        is taken where the shift's 2×2 normal matrix is not an edge's (λmin/λmax ≥ 0.05), |Δ| ≤
+        ``reference_correct_px``, |ε| ≤ 0.1, every sample lies in the image and the reference then
+        correlates at ``reference_correct_min_ncc`` or better; it then also corrects the scale since the
+        reference.  Elsewhere the match stands.  The corrected pixel replaces the frame's entry of the
+        track's history."""
+        cfg = self.config
+        A = self._reference_warp(slots)
+        img = gray.astype(np.float32)
+        gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+        gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+        uv0 = self._uv[slots].copy()
+        if _jit.ENABLED:
+            par = np.empty((len(slots), 3))
+            ok = np.empty(len(slots), bool)
+            _tk.correct_drift_k(img, gx, gy, self._ref[slots], np.ascontiguousarray(uv0), np.ascontiguousarray(A),
+                                float(cfg.reference_correct_px), _MAX_DRIFT_SCALE, iterations, par, ok)
+        else:
+            par, ok = self._drift_parameters(img, gx, gy, slots, uv0, A, iterations)
+        if not np.any(ok):
+            return
+        sel = slots[ok]
+        old_scale = self._ref_scale[sel].copy()
+        self._uv[sel] = uv0[ok] + par[ok, :2]
+        self._ref_scale[sel] = old_scale * (1.0 + par[ok, 2])
+        ncc, inside = self._reference_ncc(gray, sel)
+        back = ~(inside & (ncc >= cfg.reference_correct_min_ncc))
+        self._uv[sel[back]] = uv0[ok][back]
+        self._ref_scale[sel[back]] = old_scale[back]
+        keep = sel[~back]
+        k = (self._n_obs[keep] - 1) % cfg.max_history
+        self._h_uv[keep, k] = self._uv[keep]
+
+    def _drift_parameters(self, img, gx, gy, slots, uv0, A, iterations):
+        """The numpy reference of the drift correction's Gauss–Newton (:meth:`_correct_drift`; the kernel is
+        :func:`companion.core.tracks_kernels.correct_drift_k`): (n, 3) parameters (Δx, Δy, ε), 0 where
+        (n,) ``ok`` is False."""
+        cfg = self.config
+        n = len(slots)
+        T = self._ref[slots].reshape(n, -1).astype(np.float64)
+        T = T - T.mean(axis=1, keepdims=True)
+        sT = np.sqrt(np.mean(T * T, axis=1))
+        That = T / np.where(sT > 1e-6, sT, 1.0)[:, None]
+        dx, dy = self._ref_grid
+        ax = (A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy).reshape(n, -1)  # A·d, current-frame px
+        ay = (A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy).reshape(n, -1)
+        par = np.zeros((n, 3))  # Δx, Δy, ε
+        H, W = img.shape
+        ok = sT > 1e-6
+        for _ in range(iterations):
+            sc = 1.0 + par[:, 2, None]
+            X = uv0[:, 0, None] + par[:, 0, None] + sc * ax
+            Y = uv0[:, 1, None] + par[:, 1, None] + sc * ay
+            ok &= (X.min(axis=1) >= 1) & (X.max(axis=1) <= W - 2) & (Y.min(axis=1) >= 1) & (Y.max(axis=1) <= H - 2)
+            C = _bilinear(img, X, Y).astype(np.float64)
+            Gx = _bilinear(gx, X, Y).astype(np.float64)
+            Gy = _bilinear(gy, X, Y).astype(np.float64)
+            C = C - C.mean(axis=1, keepdims=True)
+            sC = np.sqrt(np.mean(C * C, axis=1))
+            ok &= sC > 1e-6
+            inv = 1.0 / np.where(sC > 1e-6, sC, 1.0)
+            r = C * inv[:, None] - That
+            Gx, Gy = Gx * inv[:, None], Gy * inv[:, None]
+            J = np.stack([Gx, Gy, Gx * ax + Gy * ay], 2)  # (n, samples, 3)
+            N = np.einsum("nsi,nsj->nij", J, J)
+            e = np.einsum("nsi,ns->ni", J, r)
+            a_, b_, c_ = N[:, 0, 0], N[:, 0, 1], N[:, 1, 1]
+            det2 = a_ * c_ - b_ * b_
+            disc = np.sqrt(np.maximum((a_ + c_) ** 2 / 4 - det2, 0.0))
+            ok &= (det2 > 1e-12) & ((a_ + c_) / 2 - disc >= 0.05 * np.maximum((a_ + c_) / 2 + disc, 1e-12))
+            N3 = np.where(ok[:, None, None], N, np.eye(3))
+            ok &= np.abs(np.linalg.det(N3)) > 1e-12
+            step = -np.linalg.solve(np.where(ok[:, None, None], N3, np.eye(3)), np.where(ok[:, None], e, 0.0)[:, :, None])[:, :, 0]
+            par = par + np.where(ok[:, None], step, 0.0)
+            ok &= (np.all(np.isfinite(par), axis=1) & (np.hypot(par[:, 0], par[:, 1]) <= cfg.reference_correct_px)
+                   & (np.abs(par[:, 2]) <= _MAX_DRIFT_SCALE))
+            par = np.where(ok[:, None], par, 0.0)
+        return par, ok
 
     def _duplicates(self, slots: np.ndarray, dist: float) -> np.ndarray:
         """Slots whose track lies within ``dist`` px of an older (smaller id) matched track.
