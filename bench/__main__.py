@@ -15,6 +15,8 @@ Subcommands:
             moving — and true range, with the single camera's ceiling (bench/motion_split.py; flies nothing)
   looming_truth  the tracker's scale changes on rendered flights against the true depth ratio: is the looming σ honest,
             are a track's errors independent (bench/looming_truth.py)
+  track_drift  how far the tracker's pixels wander from the points they were born on, on rendered flights, with the
+            drift correction off and on (bench/track_drift.py)
   landmark_truth  each converged landmark's range against the truth on a SITL flight with a landmark log: is its σ
             honest, by true range (bench/landmark_truth.py)
   map_cells  what the local obstacle map held where an obstacle out of view was reported unknown: no point, off the
@@ -128,7 +130,7 @@ def cmd_timing(args) -> dict:
 
 #: subcommands that are modules with their own argparse (``python -m bench NAME …`` = ``python -m bench.NAME …``)
 OWN_COMMAND_LINE = ("hostile", "compute", "position_states", "telemetry_ablation", "too_near", "looming_truth", "campaign_diff",
-                    "landmark_truth", "motion_split", "map_cells")
+                    "landmark_truth", "motion_split", "map_cells", "track_drift")
 
 
 def main(argv=None) -> int:
@@ -217,6 +219,9 @@ def main(argv=None) -> int:
                    add_help=False)
     sub.add_parser("looming_truth", help="the tracker's scale changes on rendered flights against the truth: the looming "
                                          "noise model checked (options: python -m bench looming_truth --help)", add_help=False)
+    sub.add_parser("track_drift", help="the tracker's pixels against the points they were born on, on rendered flights, "
+                                       "drift correction off and on (options: python -m bench track_drift --help)",
+                   add_help=False)
     sub.add_parser("landmark_truth", help="each converged landmark's range and σ against the truth on a SITL flight "
                                           "flown with --landmark-log: z by true range (options: python -m bench "
                                           "landmark_truth --help)", add_help=False)
