@@ -81,9 +81,11 @@ def fly_and_track(scenario: str | Path, seed: int, correct_px: float | None, pro
                 if np.any(have):
                     X = np.array([p[0] for p, h in zip(pts, have) if h])
                     age = frame.t_s - np.array([p[1] for p, h in zip(pts, have) if h])
-                    uv_true = cam.project(cam.world_to_camera(X, R_wc, p_wc))
-                    err = np.linalg.norm(tf.uv[old][have] - uv_true, axis=1)
-                    rows[name].append(np.column_stack([age, err]))
+                    p_cam = cam.world_to_camera(X, R_wc, p_wc)
+                    front = p_cam[:, 2] > 0.05  # a point now behind the camera: its track follows something else
+                    uv_true = cam.project(p_cam[front])
+                    err = np.linalg.norm(tf.uv[old][have][front] - uv_true, axis=1)
+                    rows[name].append(np.column_stack([age[front], err]))
         pose_prev = (R_wc, p_wc)
         k += 1
         if progress:

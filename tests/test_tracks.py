@@ -505,9 +505,9 @@ def test_drift_correction_off_changes_nothing(scene):
 
 
 def test_drift_correction_kernel_equals_the_numpy_reference(scene):
-    """The compiled Gauss–Newton (companion/core/tracks_kernels.py, correct_drift_k) against
-    TrackManager._drift_parameters: the same verdicts, parameters equal to float rounding, on shifted, scaled
-    and partly outside patches, and flat ones."""
+    """The compiled inverse-compositional Gauss–Newton (companion/core/tracks_kernels.py, correct_drift_k) against
+    TrackManager._drift_parameters: the same verdicts, parameters and NCC equal to float rounding, on shifted,
+    scaled and partly outside patches, and flat ones."""
     from companion.core import tracks_kernels
 
     frames, truth = _zoom_frames(scene, n=2, rate=1.03)
@@ -523,23 +523,22 @@ def test_drift_correction_kernel_equals_the_numpy_reference(scene):
     tm._ref_scale[:] = 1.03 * rng.uniform(0.95, 1.05, n)
     uv1 = truth(1, uv0) + rng.normal(0, 0.4, (n, 2))
     tm._uv[:] = uv1
-    A = tm._reference_warp(slots)
-    img = img1.astype(np.float32)
-    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    par_r, ok_r = tm._drift_parameters(img, gx, gy, slots, uv1, A, 3)
-    par_k, ok_k = np.empty((n, 3)), np.empty(n, bool)
-    tracks_kernels.correct_drift_k(img, gx, gy, tm._ref, np.ascontiguousarray(uv1), np.ascontiguousarray(A), 1.5,
-                                   tracks._MAX_DRIFT_SCALE, 3, par_k, ok_k)
+    A = np.ascontiguousarray(tm._reference_warp(slots))
+    par_r, ncc_r = tm._drift_parameters(img1, slots, uv1, A, 2)
+    par_k, ncc_k = np.empty((n, 3)), np.empty(n)
+    tracks_kernels.correct_drift_k(img1, tm._ref, np.ascontiguousarray(uv1), A, 1.5, tracks._MAX_DRIFT_SCALE, 2, par_k,
+                                   ncc_k)
+    ok_r, ok_k = np.isfinite(ncc_r), np.isfinite(ncc_k)
     assert np.array_equal(ok_k, ok_r) and 30 < ok_r.sum() < n - 10
     assert not ok_r[:3].any()
-    assert np.max(np.abs(par_k - par_r)) < 1e-4
-    assert np.all(par_r[~ok_r] == 0)
-    # the accepted corrections move the matches towards the truth
+    assert np.max(np.abs(par_k - par_r)) < 1e-4 and np.max(np.abs(ncc_k[ok_k] - ncc_r[ok_r])) < 1e-5
+    assert np.all(par_r[~ok_r] == [0.0, 0.0, 1.0])
+    # the corrections move the matches towards the truth, and the reference then correlates well
     moved = uv1[ok_r] + par_r[ok_r, :2]
     before = np.linalg.norm(uv1[ok_r] - truth(1, uv0[ok_r]), axis=1)
     after = np.linalg.norm(moved - truth(1, uv0[ok_r]), axis=1)
     assert np.median(after) < 0.5 * np.median(before)
+    assert np.median(ncc_r[ok_r]) > 0.9
 
 
 @pytest.mark.parametrize("bad", [dict(reference_correct_px=-1.0), dict(reference_correct_px=float("nan")),

@@ -52,7 +52,6 @@ import numbers
 from collections.abc import Iterator, Mapping
 from typing import Callable
 
-import cv2
 import numpy as np
 
 from companion.config import require, require_finite, require_int
@@ -70,7 +69,7 @@ from companion.errors import InputError
 DROP_DUPLICATE = 10  # two tracks converged onto the same point: the younger one is dropped
 DROP_REFERENCE = 11  # the track's reference patch no longer matches where it is: an occlusion edge or drift
 
-#: Largest scale factor (1 ± this) the drift correction may apply to a reference's warp in one frame.
+#: Largest change of scale (s = 1 ± this) the drift correction may apply to a reference's warp in one frame.
 _MAX_DRIFT_SCALE = 0.1
 
 DROP_REASON_NAMES = {**_ncc.REASON_NAMES, DROP_DUPLICATE: "duplicate", DROP_REFERENCE: "reference mismatch"}
@@ -701,94 +700,96 @@ class TrackManager:
         self._cut_reference(gray, np.setdiff1d(slots[due], bad), frame_index)
         return bad
 
-    def _correct_drift(self, gray: np.ndarray, slots: np.ndarray, iterations: int = 3) -> None:
+    def _correct_drift(self, gray: np.ndarray, slots: np.ndarray, iterations: int = 1) -> None:
         """Re-align the matches of ``slots`` (with references) to their reference patches, in place
         (docs/derivations/tracking.md, "Drift correction").
 
-        Gauss–Newton over a shift Δ and a scale factor (1 + ε) of the reference's warp, on the zero-mean,
-        unit-variance patches (a change of gain and offset is no residual): with T̂ the normalized
-        reference, Ĉ the normalized frame sampled at uv + Δ + (1 + ε)·A·d (A = :meth:`_reference_warp`,
-        d the reference offsets) and g = ∇I / std(C) there, the parameters take the step
-        −(Σ J Jᵀ)⁻¹ Σ J (Ĉ − T̂), J = (g_x, g_y, gᵀ A d).  The scale is estimated with the shift because
-        a patch whose texture lies off its centre shifts its best alignment when the scale is wrong
-        (the scale since the reference is a product of per-frame estimates, and drifts).  A correction
-        is taken where the shift's 2×2 normal matrix is not an edge's (λmin/λmax ≥ 0.05), |Δ| ≤
-        ``reference_correct_px``, |ε| ≤ 0.1, every sample lies in the image and the reference then
-        correlates at ``reference_correct_min_ncc`` or better; it then also corrects the scale since the
-        reference.  Elsewhere the match stands.  The corrected pixel replaces the frame's entry of the
-        track's history."""
+        Inverse-compositional Gauss–Newton (Baker and Matthews 2004) over a shift Δ and a scale factor s of the
+        reference's warp, on the zero-mean, unit-variance patches (a change of gain and offset is no residual): the
+        frame is sampled at uv + Δ + s·A·d (A = :meth:`_reference_warp`, d the reference offsets), and the step is
+        solved on the reference's own gradients, so each step samples the frame once and the normal matrix is the
+        reference's.  One step a frame (``iterations``): the correction runs every frame, so what one step leaves is
+        taken up in the next.  The scale is estimated with the shift because a patch whose texture lies off its centre moves
+        its best alignment when the scale is wrong (the scale since the reference is a product of per-frame
+        estimates, and wanders).  A correction is taken where the reference's 2×2 normal matrix is not an edge's
+        (λmin/λmax ≥ 0.05), every sample lies in the frame, |Δ| ≤ ``reference_correct_px``, |s − 1| ≤ 0.1 and the
+        reference correlates (zero-mean NCC, where the last step started) at ``reference_correct_min_ncc`` or better; the match moves to
+        uv + Δ, the scale since the reference takes the factor s, and the frame's entry of the track's history is
+        the corrected pixel.  Elsewhere the match stands."""
         cfg = self.config
-        A = self._reference_warp(slots)
-        img = gray.astype(np.float32)
-        gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-        gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-        uv0 = self._uv[slots].copy()
+        A = np.ascontiguousarray(self._reference_warp(slots))
+        uv0 = np.ascontiguousarray(self._uv[slots])
         if _jit.ENABLED:
             par = np.empty((len(slots), 3))
-            ok = np.empty(len(slots), bool)
-            _tk.correct_drift_k(img, gx, gy, self._ref[slots], np.ascontiguousarray(uv0), np.ascontiguousarray(A),
-                                float(cfg.reference_correct_px), _MAX_DRIFT_SCALE, iterations, par, ok)
+            ncc = np.empty(len(slots))
+            _tk.correct_drift_k(gray, self._ref[slots], uv0, A, float(cfg.reference_correct_px), _MAX_DRIFT_SCALE,
+                                iterations, par, ncc)
         else:
-            par, ok = self._drift_parameters(img, gx, gy, slots, uv0, A, iterations)
+            par, ncc = self._drift_parameters(gray, slots, uv0, A, iterations)
+        ok = np.isfinite(ncc) & (ncc >= cfg.reference_correct_min_ncc)
         if not np.any(ok):
             return
-        sel = slots[ok]
-        old_scale = self._ref_scale[sel].copy()
-        self._uv[sel] = uv0[ok] + par[ok, :2]
-        self._ref_scale[sel] = old_scale * (1.0 + par[ok, 2])
-        ncc, inside = self._reference_ncc(gray, sel)
-        back = ~(inside & (ncc >= cfg.reference_correct_min_ncc))
-        self._uv[sel[back]] = uv0[ok][back]
-        self._ref_scale[sel[back]] = old_scale[back]
-        keep = sel[~back]
+        keep = slots[ok]
+        self._uv[keep] = uv0[ok] + par[ok, :2]
+        self._ref_scale[keep] *= par[ok, 2]
         k = (self._n_obs[keep] - 1) % cfg.max_history
         self._h_uv[keep, k] = self._uv[keep]
 
-    def _drift_parameters(self, img, gx, gy, slots, uv0, A, iterations):
-        """The numpy reference of the drift correction's Gauss–Newton (:meth:`_correct_drift`; the kernel is
-        :func:`companion.core.tracks_kernels.correct_drift_k`): (n, 3) parameters (Δx, Δy, ε), 0 where
-        (n,) ``ok`` is False."""
+    def _drift_parameters(self, gray, slots, uv0, A, iterations):
+        """The numpy reference of the drift correction (:meth:`_correct_drift`; the kernel is
+        :func:`companion.core.tracks_kernels.correct_drift_k`): (n, 3) parameters (Δx, Δy, s) and (n,) the NCC of the
+        reference with the frame where the last step started; (0, 0, 1) and NaN where a track fails."""
         cfg = self.config
         n = len(slots)
-        T = self._ref[slots].reshape(n, -1).astype(np.float64)
-        T = T - T.mean(axis=1, keepdims=True)
-        sT = np.sqrt(np.mean(T * T, axis=1))
-        That = T / np.where(sT > 1e-6, sT, 1.0)[:, None]
-        dx, dy = self._ref_grid
-        ax = (A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy).reshape(n, -1)  # A·d, current-frame px
-        ay = (A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy).reshape(n, -1)
-        par = np.zeros((n, 3))  # Δx, Δy, ε
-        H, W = img.shape
+        h = cfg.reference_half
+        T = self._ref[slots].astype(np.float64)
+        T = T - T.mean(axis=(1, 2), keepdims=True)
+        sT = np.sqrt(np.mean(T * T, axis=(1, 2)))
         ok = sT > 1e-6
-        for _ in range(iterations):
-            sc = 1.0 + par[:, 2, None]
-            X = uv0[:, 0, None] + par[:, 0, None] + sc * ax
-            Y = uv0[:, 1, None] + par[:, 1, None] + sc * ay
-            ok &= (X.min(axis=1) >= 1) & (X.max(axis=1) <= W - 2) & (Y.min(axis=1) >= 1) & (Y.max(axis=1) <= H - 2)
-            C = _bilinear(img, X, Y).astype(np.float64)
-            Gx = _bilinear(gx, X, Y).astype(np.float64)
-            Gy = _bilinear(gy, X, Y).astype(np.float64)
+        T = T / np.where(ok, sT, 1.0)[:, None, None]
+        gx, gy = np.gradient(T, axis=2), np.gradient(T, axis=1)  # central inside, one-sided at the border
+        dx, dy = self._ref_grid
+        J = np.stack([gx, gy, gx * dx + gy * dy], -1).reshape(n, -1, 3)
+        Hm = np.einsum("nsi,nsj->nij", J, J)
+        a_, b_, c_ = Hm[:, 0, 0], Hm[:, 0, 1], Hm[:, 1, 1]
+        det2 = a_ * c_ - b_ * b_
+        disc = np.sqrt(np.maximum((a_ + c_) ** 2 / 4 - det2, 0.0))
+        ok &= (det2 > 1e-12) & ((a_ + c_) / 2 - disc >= 0.05 * np.maximum((a_ + c_) / 2 + disc, 1e-12))
+        Hm = np.where(ok[:, None, None], Hm, np.eye(3))
+        ok &= np.abs(np.linalg.det(Hm)) > 1e-12
+        Hinv = np.linalg.inv(np.where(ok[:, None, None], Hm, np.eye(3)))
+        Tf = T.reshape(n, -1)
+        img = gray.astype(np.float32)
+        H, W = gray.shape
+        ax = A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy  # A·d, frame px
+        ay = A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
+
+        def sample(d, s):
+            X = uv0[:, 0, None, None] + d[:, 0, None, None] + s[:, None, None] * ax
+            Y = uv0[:, 1, None, None] + d[:, 1, None, None] + s[:, None, None] * ay
+            inside = (X.min(axis=(1, 2)) >= 0) & (X.max(axis=(1, 2)) <= W - 1) & (Y.min(axis=(1, 2)) >= 0) & (Y.max(axis=(1, 2)) <= H - 1)
+            C = _bilinear(img, X, Y).reshape(n, -1).astype(np.float64)
             C = C - C.mean(axis=1, keepdims=True)
             sC = np.sqrt(np.mean(C * C, axis=1))
-            ok &= sC > 1e-6
-            inv = 1.0 / np.where(sC > 1e-6, sC, 1.0)
-            r = C * inv[:, None] - That
-            Gx, Gy = Gx * inv[:, None], Gy * inv[:, None]
-            J = np.stack([Gx, Gy, Gx * ax + Gy * ay], 2)  # (n, samples, 3)
-            N = np.einsum("nsi,nsj->nij", J, J)
-            e = np.einsum("nsi,ns->ni", J, r)
-            a_, b_, c_ = N[:, 0, 0], N[:, 0, 1], N[:, 1, 1]
-            det2 = a_ * c_ - b_ * b_
-            disc = np.sqrt(np.maximum((a_ + c_) ** 2 / 4 - det2, 0.0))
-            ok &= (det2 > 1e-12) & ((a_ + c_) / 2 - disc >= 0.05 * np.maximum((a_ + c_) / 2 + disc, 1e-12))
-            N3 = np.where(ok[:, None, None], N, np.eye(3))
-            ok &= np.abs(np.linalg.det(N3)) > 1e-12
-            step = -np.linalg.solve(np.where(ok[:, None, None], N3, np.eye(3)), np.where(ok[:, None], e, 0.0)[:, :, None])[:, :, 0]
-            par = par + np.where(ok[:, None], step, 0.0)
-            ok &= (np.all(np.isfinite(par), axis=1) & (np.hypot(par[:, 0], par[:, 1]) <= cfg.reference_correct_px)
-                   & (np.abs(par[:, 2]) <= _MAX_DRIFT_SCALE))
-            par = np.where(ok[:, None], par, 0.0)
-        return par, ok
+            return C / np.where(sC > 1e-6, sC, 1.0)[:, None], inside & (sC > 1e-6)
+
+        d = np.zeros((n, 2))
+        s = np.ones(n)
+        ncc = np.full(n, np.nan)
+        for _ in range(iterations):
+            C, good = sample(d, s)
+            ok &= good
+            ncc = np.mean(C * Tf, axis=1)
+            q = np.einsum("nij,nj->ni", Hinv, np.einsum("nsi,ns->ni", J, C - Tf))
+            k = s / (1.0 + q[:, 2])  # compose with the inverse of the reference's warp d → (1 + q2)·d + q
+            d = d - k[:, None] * np.einsum("nij,nj->ni", A, q[:, :2])
+            s = k
+            ok &= (np.all(np.isfinite(d), axis=1) & np.isfinite(s) & (np.hypot(d[:, 0], d[:, 1]) <= cfg.reference_correct_px)
+                   & (np.abs(s - 1.0) <= _MAX_DRIFT_SCALE))
+            d = np.where(ok[:, None], d, 0.0)
+            s = np.where(ok, s, 1.0)
+        ncc = np.where(ok, ncc, np.nan)
+        return np.column_stack([np.where(ok[:, None], d, 0.0), np.where(ok, s, 1.0)]), ncc
 
     def _duplicates(self, slots: np.ndarray, dist: float) -> np.ndarray:
         """Slots whose track lies within ``dist`` px of an older (smaller id) matched track.
