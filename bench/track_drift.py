@@ -1,13 +1,14 @@
 """How far the tracker's pixels wander from the points they were born on, on rendered flights, with and without
 the drift correction (docs/derivations/tracking.md, "Drift correction").
 
-``python -m bench track_drift [--scenario S …] [--seed N] [--correct-px X] [--max-frames K] [--json]``
+``python -m bench track_drift [--scenario S …] [--seed N] [--correct-px X] [--config TOML] [--max-frames K] [--json]``
 
 Frame-to-frame NCC re-cuts each template at its latest match, so a track inherits every match's sub-pixel error
 and random-walks off its point; the estimator takes its pixels as independent errors of ``[ekf_anchored] sigma_px``.
 This benchmark measures the walk where it happens: it flies a scenario in-process (``flightsim.fly.Flight``: JSBSim,
 the renderer, no companion), and runs the companion's tracker (the scenario's companion configuration; search
-windows predicted from the *true* camera poses) on every frame twice — with the drift correction off, and with
+windows predicted from the *true* camera poses; ``--config`` another companion configuration, e.g. an overlay with
+another ``reference_half``) on every frame twice — with the drift correction off, and with
 ``[tracks] reference_correct_px`` = X (default: the configuration's value, 0.5 px where it is off).  Each track's
 birth pixel is cast from the true camera into the world (``World.raycast``; the sky and the ground are skipped),
 and in every later frame the track's pixel is compared with the projection of that point through the true camera.
@@ -34,7 +35,7 @@ AGE_BINS_S = ((0.0, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, math.inf))
 
 
 def fly_and_track(scenario: str | Path, seed: int, correct_px: float | None, progress=None,
-                  max_frames: int | None = None) -> dict:
+                  max_frames: int | None = None, config: str | Path | None = None) -> dict:
     """Fly ``scenario`` once and track it with each variant: {variant: (N, 2) array of (age s, error px)}, where the
     variants are "off" and "on" (``reference_correct_px`` = ``correct_px``, or the configuration's, or 0.5)."""
     from companion.core.prediction import make_track_predictor
@@ -45,7 +46,7 @@ def fly_and_track(scenario: str | Path, seed: int, correct_px: float | None, pro
     from flightsim.world.geometry import GROUND, SKY
 
     sc = load_scenario(scenario, seed=seed)
-    cfg = load_companion_config(resolve_companion_config(sc) or ROOT / "configs" / "companion.toml")
+    cfg = load_companion_config(config or resolve_companion_config(sc) or ROOT / "configs" / "companion.toml")
     on_px = correct_px if correct_px is not None else (cfg.tracks.reference_correct_px or 0.5)
     variants = {"off": dataclasses.replace(cfg.tracks, reference_correct_px=0.0),
                 "on": dataclasses.replace(cfg.tracks, reference_correct_px=float(on_px))}
@@ -111,11 +112,12 @@ def summarize(d: dict) -> dict:
     return res
 
 
-def run(scenarios, seed: int, correct_px: float | None = None, progress=None, max_frames: int | None = None) -> dict:
+def run(scenarios, seed: int, correct_px: float | None = None, progress=None, max_frames: int | None = None,
+        config: str | Path | None = None) -> dict:
     out = []
     for name in scenarios:
         path = Path(name) if name.endswith(".toml") else ROOT / "configs" / "scenarios" / f"{name}.toml"
-        d = fly_and_track(path, seed, correct_px, progress, max_frames)
+        d = fly_and_track(path, seed, correct_px, progress, max_frames, config)
         out.append({"scenario": path.stem, "seed": seed, **summarize(d)})
     return {"seed": seed, "scenarios": out}
 
@@ -159,20 +161,25 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1, help="the flight's seed (default 1)")
     ap.add_argument("--correct-px", type=float, default=None, metavar="X",
                     help="reference_correct_px of the 'on' variant (default: the configuration's, 0.5 where it is off)")
+    ap.add_argument("--config", metavar="TOML", help="companion configuration to track with (default: the scenario's, else "
+                                                      "configs/companion.toml); an overlay may set [tracks] reference_half")
     ap.add_argument("--max-frames", type=int, default=None, metavar="K", help="track only the first K frames (default all)")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON instead of markdown")
     a = ap.parse_args(argv)
     if a.correct_px is not None and not (math.isfinite(a.correct_px) and a.correct_px > 0):
         ap.error("--correct-px must be a positive number")
+    if a.config is not None and not Path(a.config).is_file():
+        ap.error(f"--config: no such file: {a.config}")
     if a.max_frames is not None and a.max_frames < 2:
         ap.error("--max-frames must be at least 2")
     scenarios = a.scenario or list(DEFAULT_SCENARIOS)
     from companion.io.progress import ProgressBar
 
     with ProgressBar("frames tracked", total=None, enabled=False if a.json else None) as bar:
-        res = run(scenarios, a.seed, a.correct_px, progress=bar.advance, max_frames=a.max_frames)
+        res = run(scenarios, a.seed, a.correct_px, progress=bar.advance, max_frames=a.max_frames, config=a.config)
     cmd = (COMMAND + "".join(f" --scenario {s}" for s in (a.scenario or [])) + f" --seed {a.seed}"
            + (f" --correct-px {a.correct_px:g}" if a.correct_px is not None else "")
+           + (f" --config {a.config}" if a.config is not None else "")
            + (f" --max-frames {a.max_frames}" if a.max_frames is not None else ""))
     print(json.dumps(res, indent=2) if a.json else markdown(res, cmd))
     return 0
