@@ -28,7 +28,6 @@ rendered flights' real errors.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -49,6 +48,7 @@ def fly_and_track(scenario: str | Path, seed: int, progress=None, max_frames: in
     """Fly ``scenario`` with ``seed`` (its first ``max_frames`` frames, default all); every scale the
     tracker measured with its truth: a dict of (N,) arrays t, track, k (frame index), s, sigma (the
     matcher's σ), s_true, depth (true Z now), ground, and the filter's floor."""
+    from bench.report import rendered_frames
     from companion.core.prediction import make_track_predictor
     from companion.core.tracks import TrackManager
     from companion.io.config_files import load_companion_config
@@ -63,14 +63,7 @@ def fly_and_track(scenario: str | Path, seed: int, progress=None, max_frames: in
     cam = flight.cam
     tracks = TrackManager(cam, cfg.harris, cfg.ncc, cfg.tracks)
     out: dict[str, list] = {k: [] for k in ("t", "track", "k", "s", "sigma", "s_true", "depth", "ground")}
-    pose_prev = None
-    k = 0
-    while flight.step() is not None and (max_frames is None or k < max_frames):
-        if not flight.frame_due():
-            continue
-        frame = flight.capture()
-        R_wc = flight.truth["R_world_cam"][-1]
-        p_wc = flight.truth["p_world_cam"][-1]
+    for k, frame, R_wc, p_wc, pose_prev in rendered_frames(flight, max_frames, progress):
         predict = None if pose_prev is None else make_track_predictor(cam, cfg.prediction, pose_prev, (R_wc, p_wc))
         tf = tracks.step(frame.image, frame.t_s, k, predict, R_world_cam=R_wc)
         have = np.flatnonzero(np.isfinite(tf.scale)) if pose_prev is not None else np.zeros(0, int)
@@ -91,10 +84,6 @@ def fly_and_track(scenario: str | Path, seed: int, progress=None, max_frames: in
             out["s_true"].append(Z_prev / Z)
             out["depth"].append(Z)
             out["ground"].append(hits.index[seen] == GROUND)
-        pose_prev = (R_wc, p_wc)
-        k += 1
-        if progress:
-            progress(1)
     return {name: (np.concatenate(v) if v else np.zeros(0)) for name, v in out.items()} | {"floor": float(cfg.ekf_anchored.looming_sigma_floor)}
 
 
@@ -185,13 +174,9 @@ def markdown(res: dict, command: str = COMMAND) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(
-        prog=COMMAND, description=__doc__.split("\n\n")[0] + " Flies each scenario once, in-process, with the companion's tracker.",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="Example:\n  python -m bench looming_truth --scenario quad_approach --scenario fixedwing_tower --seed 1")
-    ap.add_argument("--scenario", action="append", help=f"scenario name in configs/scenarios or a .toml path (repeatable; "
-                                                        f"default: {', '.join(DEFAULT_SCENARIOS)})")
-    ap.add_argument("--seed", type=int, default=1, help="the flight's seed (default 1)")
+    from bench.report import rendered_flight_parser
+
+    ap = rendered_flight_parser(COMMAND, __doc__, DEFAULT_SCENARIOS, "python -m bench looming_truth --scenario quad_approach --scenario fixedwing_tower --seed 1")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON instead of markdown")
     a = ap.parse_args(argv)
     scenarios = a.scenario or list(DEFAULT_SCENARIOS)

@@ -344,6 +344,39 @@ def landmark_run_parser(command: str, doc: str):
     return ap
 
 
+def rendered_flight_parser(command: str, doc: str, defaults, example: str):
+    """The argument parser shared by the commands that fly scenarios in-process and run the companion's tracker on
+    the rendered frames (``bench.looming_truth``, ``bench.track_drift``): the module docstring's first paragraph as
+    description, ``--scenario`` (repeatable; ``defaults`` when absent) and ``--seed``; callers add their own options."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog=command, description=doc.split("\n\n")[0] + " Flies each scenario once, in-process.",
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=f"Example:\n  {example}")
+    ap.add_argument("--scenario", action="append", help=f"scenario name in configs/scenarios or a .toml path (repeatable; "
+                                                        f"default: {', '.join(defaults)})")
+    ap.add_argument("--seed", type=int, default=1, help="the flight's seed (default 1)")
+    return ap
+
+
+def rendered_frames(flight, max_frames: int | None = None, progress=None):
+    """The camera frames of an in-process flight (``flightsim.fly.Flight``), at most ``max_frames``: yields
+    ``(k, frame, R_world_cam, p_world_cam, pose_prev)`` with the true camera pose of the frame and that of the
+    previous frame (None for the first), then advances ``progress`` by one."""
+    pose_prev = None
+    k = 0
+    while flight.step() is not None and (max_frames is None or k < max_frames):
+        if not flight.frame_due():
+            continue
+        frame = flight.capture()
+        R_wc = flight.truth["R_world_cam"][-1]
+        p_wc = flight.truth["p_world_cam"][-1]
+        yield k, frame, R_wc, p_wc, pose_prev
+        pose_prev = (R_wc, p_wc)
+        k += 1
+        if progress:
+            progress(1)
+
+
 def run_dirs(path) -> list:
     """The run directories a path stands for: a campaign's ``runs/seed_*``, else the path itself."""
     from pathlib import Path

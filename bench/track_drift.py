@@ -19,7 +19,6 @@ else: an occlusion edge), so the tail says as much about T-junctions as about dr
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -38,6 +37,7 @@ def fly_and_track(scenario: str | Path, seed: int, correct_px: float | None, pro
                   max_frames: int | None = None, config: str | Path | None = None) -> dict:
     """Fly ``scenario`` once and track it with each variant: {variant: (N, 2) array of (age s, error px)}, where the
     variants are "off" and "on" (``reference_correct_px`` = ``correct_px``, or the configuration's, or 0.5)."""
+    from bench.report import rendered_frames
     from companion.core.prediction import make_track_predictor
     from companion.core.tracks import TrackManager
     from companion.io.config_files import load_companion_config
@@ -55,14 +55,9 @@ def fly_and_track(scenario: str | Path, seed: int, correct_px: float | None, pro
     managers = {name: TrackManager(cam, cfg.harris, cfg.ncc, tc) for name, tc in variants.items()}
     born: dict[str, dict[int, tuple]] = {name: {} for name in variants}  # id → (point or None, birth time)
     rows: dict[str, list] = {name: [] for name in variants}
-    pose_prev = None
-    k = 0
-    while flight.step() is not None and (max_frames is None or k < max_frames):
-        if not flight.frame_due():
-            continue
-        frame = flight.capture()
-        R_wc = flight.truth["R_world_cam"][-1]
-        p_wc = flight.truth["p_world_cam"][-1]
+    n_frames = 0
+    for k, frame, R_wc, p_wc, pose_prev in rendered_frames(flight, max_frames, progress):
+        n_frames = k + 1
         for name, tm in managers.items():
             predict = None if pose_prev is None else make_track_predictor(cam, cfg.prediction, pose_prev, (R_wc, p_wc))
             tf = tm.step(frame.image, frame.t_s, k, predict, R_world_cam=R_wc)
@@ -87,12 +82,8 @@ def fly_and_track(scenario: str | Path, seed: int, correct_px: float | None, pro
                     uv_true = cam.project(p_cam[front])
                     err = np.linalg.norm(tf.uv[old][have][front] - uv_true, axis=1)
                     rows[name].append(np.column_stack([age[front], err]))
-        pose_prev = (R_wc, p_wc)
-        k += 1
-        if progress:
-            progress(1)
     out = {name: (np.concatenate(v) if v else np.zeros((0, 2))) for name, v in rows.items()}
-    return {"correct_px": float(on_px), "frames": k, **out}
+    return {"correct_px": float(on_px), "frames": n_frames, **out}
 
 
 def summarize(d: dict) -> dict:
@@ -152,13 +143,9 @@ def markdown(res: dict, command: str = COMMAND) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(
-        prog=COMMAND, description=__doc__.split("\n\n")[0] + " Flies each scenario once, in-process.",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="Example:\n  python -m bench track_drift --scenario quad_approach --scenario quad_slalom --seed 1")
-    ap.add_argument("--scenario", action="append", help=f"scenario name in configs/scenarios or a .toml path (repeatable; "
-                                                        f"default: {', '.join(DEFAULT_SCENARIOS)})")
-    ap.add_argument("--seed", type=int, default=1, help="the flight's seed (default 1)")
+    from bench.report import rendered_flight_parser
+
+    ap = rendered_flight_parser(COMMAND, __doc__, DEFAULT_SCENARIOS, "python -m bench track_drift --scenario quad_approach --scenario quad_slalom --seed 1")
     ap.add_argument("--correct-px", type=float, default=None, metavar="X",
                     help="reference_correct_px of the 'on' variant (default: the configuration's, 0.5 where it is off)")
     ap.add_argument("--config", metavar="TOML", help="companion configuration to track with (default: the scenario's, else "

@@ -25,6 +25,21 @@ from companion.core import jit as _jit
 
 
 @_jit.njit
+def _bilinear_u8(gray, X, Y):
+    """Bilinear sample of the uint8 frame at (X, Y) inside it (the right and lower taps clamped to the border)."""
+    H, W = gray.shape
+    x0 = int(math.floor(X))
+    y0 = int(math.floor(Y))
+    fx = X - x0
+    fy = Y - y0
+    x1 = min(x0 + 1, W - 1)
+    y1 = min(y0 + 1, H - 1)
+    top = (1.0 - fx) * gray[y0, x0] + fx * gray[y0, x1]
+    bot = (1.0 - fx) * gray[y1, x0] + fx * gray[y1, x1]
+    return (1.0 - fy) * top + fy * bot
+
+
+@_jit.njit
 def reference_ncc_k(gray, ref, uv, A, ncc, inside):
     """Fill ``ncc`` (n,) and ``inside`` (n,) bool for the n tracks: ``gray`` (H, W) uint8 frame,
     ``ref`` (n, m, m) float32 reference patches (m = 2h+1), ``uv`` (n, 2) current pixels, ``A``
@@ -58,17 +73,7 @@ def reference_ncc_k(gray, ref, uv, A, ncc, inside):
             dy = r - h
             for c in range(m):
                 dx = c - h
-                X = u + a00 * dx + a01 * dy
-                Y = v + a10 * dx + a11 * dy
-                x0 = int(math.floor(X))
-                y0 = int(math.floor(Y))
-                fx = X - x0
-                fy = Y - y0
-                x1 = min(x0 + 1, W - 1)
-                y1 = min(y0 + 1, H - 1)
-                top = (1.0 - fx) * gray[y0, x0] + fx * gray[y0, x1]
-                bot = (1.0 - fx) * gray[y1, x0] + fx * gray[y1, x1]
-                b = (1.0 - fy) * top + fy * bot
+                b = _bilinear_u8(gray, u + a00 * dx + a01 * dy, v + a10 * dx + a11 * dy)
                 a = np.float64(ref[i, r, c])
                 sa += a
                 sb += b
@@ -116,34 +121,31 @@ def _sample_normalized(gray, u, v, s, a00, a01, a10, a11, h, m, C):
         Y = v + s * (a10 * cx + a11 * cy)
         if not (X >= 0 and X <= W - 1 and Y >= 0 and Y <= H - 1):
             return False
-    N = m * m
-    tot = 0.0
     for r in range(m):
         dy = r - h
         for c in range(m):
             dx = c - h
-            X = u + s * (a00 * dx + a01 * dy)
-            Y = v + s * (a10 * dx + a11 * dy)
-            x0 = int(math.floor(X))
-            y0 = int(math.floor(Y))
-            fx = X - x0
-            fy = Y - y0
-            x1 = min(x0 + 1, W - 1)
-            y1 = min(y0 + 1, H - 1)
-            top = (1.0 - fx) * gray[y0, x0] + fx * gray[y0, x1]
-            bot = (1.0 - fx) * gray[y1, x0] + fx * gray[y1, x1]
-            C[r * m + c] = (1.0 - fy) * top + fy * bot
-            tot += C[r * m + c]
+            C[r * m + c] = _bilinear_u8(gray, u + s * (a00 * dx + a01 * dy), v + s * (a10 * dx + a11 * dy))
+    return _normalize(C)
+
+
+@_jit.njit
+def _normalize(V):
+    """V in place to zero mean and unit variance; False (V then zero-mean only) where its σ is 1e-6 or less."""
+    N = V.shape[0]
+    tot = 0.0
+    for j in range(N):
+        tot += V[j]
     mean = tot / N
     var = 0.0
     for j in range(N):
-        C[j] -= mean
-        var += C[j] * C[j]
+        V[j] -= mean
+        var += V[j] * V[j]
     sd = math.sqrt(var / N)
     if not sd > 1e-6:
         return False
     for j in range(N):
-        C[j] /= sd
+        V[j] /= sd
     return True
 
 
@@ -166,21 +168,11 @@ def correct_drift_k(gray, ref, uv, A, max_px, max_scale, iterations, par, ncc):
         a00, a01, a10, a11 = A[i, 0, 0], A[i, 0, 1], A[i, 1, 0], A[i, 1, 1]
         par[i, 0], par[i, 1], par[i, 2] = 0.0, 0.0, 1.0
         ncc[i] = np.nan
-        st = 0.0
         for r in range(m):
             for c in range(m):
                 T[r * m + c] = np.float64(ref[i, r, c])
-                st += T[r * m + c]
-        mt = st / N
-        vt = 0.0
-        for j in range(N):
-            T[j] -= mt
-            vt += T[j] * T[j]
-        sT = math.sqrt(vt / N)
-        if not sT > 1e-6:
+        if not _normalize(T):
             continue
-        for j in range(N):
-            T[j] /= sT
         _template_gradients(T, m, GX, GY)
         n00 = n01 = n02 = n11 = n12 = n22 = 0.0
         for r in range(m):
