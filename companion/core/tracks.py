@@ -709,21 +709,21 @@ class TrackManager:
         frame is sampled at uv + Δ + s·A·d (A = :meth:`_reference_warp`, d the reference offsets), and the step is
         solved on the reference's own gradients, so each step samples the frame once and the normal matrix is the
         reference's.  One step a frame (``iterations``): the correction runs every frame, so what one step leaves is
-        taken up in the next.  The scale is estimated with the shift because a patch whose texture lies off its centre moves
-        its best alignment when the scale is wrong (the scale since the reference is a product of per-frame
-        estimates, and wanders).  A correction is taken where the reference's 2×2 normal matrix is not an edge's
-        (λmin/λmax ≥ 0.05), every sample lies in the frame, |Δ| ≤ ``reference_correct_px``, |s − 1| ≤ 0.1 and the
-        reference correlates (zero-mean NCC, where the last step started) at ``reference_correct_min_ncc`` or better; the match moves to
-        uv + Δ, the scale since the reference takes the factor s, and the frame's entry of the track's history is
-        the corrected pixel.  Elsewhere the match stands."""
+        taken up in the next.  The scale is estimated with the shift because a patch whose texture lies off its
+        centre moves its best alignment when the scale is wrong (the scale since the reference is a product of
+        per-frame estimates, and wanders).  A correction is taken where the reference's 2×2 normal matrix is not an
+        edge's (λmin/λmax ≥ 0.05), every sample lies in the frame, |Δ| ≤ ``reference_correct_px``, |s − 1| ≤ 0.1 and
+        the reference correlates (zero-mean NCC, where the last step started) at ``reference_correct_min_ncc`` or
+        better; the match moves to uv + Δ, the scale since the reference takes the factor s, and the frame's entry
+        of the track's history is the corrected pixel.  Elsewhere the match stands."""
         cfg = self.config
         A = np.ascontiguousarray(self._reference_warp(slots))
         uv0 = np.ascontiguousarray(self._uv[slots])
         if _jit.ENABLED:
             par = np.empty((len(slots), 3))
             ncc = np.empty(len(slots))
-            _tk.correct_drift_k(gray, self._ref[slots], uv0, A, float(cfg.reference_correct_px), _MAX_DRIFT_SCALE,
-                                iterations, par, ncc)
+            _tk.correct_drift_k(np.ascontiguousarray(gray), self._ref[slots], uv0, A, float(cfg.reference_correct_px),
+                                _MAX_DRIFT_SCALE, iterations, par, ncc)
         else:
             par, ncc = self._drift_parameters(gray, slots, uv0, A, iterations)
         ok = np.isfinite(ncc) & (ncc >= cfg.reference_correct_min_ncc)
