@@ -629,12 +629,14 @@ class TrackManager:
             J[rot] = np.where(np.isfinite(Jp) & (q[:, 2] > 1e-6)[:, None, None], Jp, J[rot])
         return J * self._ref_scale[slots, None, None]
 
-    def _warped_patches(self, gray: np.ndarray, slots: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The numpy reference of the check's sampling: the patches at the slots' current pixels
-        sampled where the reference offsets d land, uv + A·d (bilinear, border replicated).  Returns
+    def _warped_patches(self, gray: np.ndarray, slots: np.ndarray, A: np.ndarray,
+                        uv: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The numpy reference of the check's sampling: the patches at the slots' current pixels (or at ``uv``,
+        (N, 2)) sampled where the reference offsets d land, uv + A·d (bilinear, border replicated).  Returns
         the (N, 2h+1, 2h+1) float32 patches and whether each grid lies inside the image."""
         h = self.config.reference_half
-        u, v = self._uv[slots, 0, None, None], self._uv[slots, 1, None, None]
+        uv = self._uv[slots] if uv is None else uv
+        u, v = uv[:, 0, None, None], uv[:, 1, None, None]
         # the grid is an affine image of the offsets: its extremes are at the four corners (same arithmetic)
         cx, cy = np.array([[[-h, h, -h, h]]], float), np.array([[[-h, -h, h, h]]], float)
         Xc = u + A[:, 0, 0, None, None] * cx + A[:, 0, 1, None, None] * cy
@@ -646,11 +648,11 @@ class TrackManager:
         Y = v + A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
         return _bilinear(gray.astype(np.float32), X, Y), inside
 
-    def _reference_ncc(self, gray: np.ndarray, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _reference_ncc(self, gray: np.ndarray, slots: np.ndarray, A: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(N,) NCC of the slots' reference patches with the frame where they now map to, and (N,) bool
         whether that grid lies in the image: the compiled kernel (companion/core/tracks_kernels.py)
         when kernels are enabled, else :meth:`_warped_patches` and :func:`zncc_patches`."""
-        A = self._reference_warp(slots)
+        A = self._reference_warp(slots) if A is None else A
         if _jit.ENABLED:
             ncc = np.empty(len(slots))
             inside = np.empty(len(slots), bool)
@@ -688,10 +690,11 @@ class TrackManager:
         has = self._ref_ok[slots]
         sl = slots[has]
         bad = np.zeros(0, np.int64)
+        A = self._reference_warp(sl) if len(sl) else None
         if len(sl) and cfg.reference_correct_px > 0:
-            self._correct_drift(gray, sl)
+            A = A * self._correct_drift(gray, sl, A)[:, None, None]  # the warp at the corrected scale
         if len(sl) and cfg.reference_min_ncc > 0:
-            ncc, inside = self._reference_ncc(gray, sl)
+            ncc, inside = self._reference_ncc(gray, sl, A)
             bad = sl[inside & (ncc < cfg.reference_min_ncc)]
         due = ~has | (frame_index - self._ref_frame[slots] >= cfg.reference_refresh_frames)
         if cfg.reference_refresh_scale > 0 and cfg.reference_correct_px > 0:
@@ -700,9 +703,10 @@ class TrackManager:
         self._cut_reference(gray, np.setdiff1d(slots[due], bad), frame_index)
         return bad
 
-    def _correct_drift(self, gray: np.ndarray, slots: np.ndarray, iterations: int = 1) -> None:
-        """Re-align the matches of ``slots`` (with references) to their reference patches, in place
-        (docs/derivations/tracking.md, "Drift correction").
+    def _correct_drift(self, gray: np.ndarray, slots: np.ndarray, A: np.ndarray, iterations: int = 1) -> np.ndarray:
+        """Re-align the matches of ``slots`` (with references; ``A`` their :meth:`_reference_warp`) to their reference
+        patches, in place (docs/derivations/tracking.md, "Drift correction"); returns (n,) the factor each slot's scale
+        since the reference took (1 where the match stands).
 
         Inverse-compositional Gauss–Newton (Baker and Matthews 2004) over a shift Δ and a scale factor s of the
         reference's warp, on the zero-mean, unit-variance patches (a change of gain and offset is no residual): the
@@ -717,7 +721,7 @@ class TrackManager:
         better; the match moves to uv + Δ, the scale since the reference takes the factor s, and the frame's entry
         of the track's history is the corrected pixel.  Elsewhere the match stands."""
         cfg = self.config
-        A = np.ascontiguousarray(self._reference_warp(slots))
+        A = np.ascontiguousarray(A)
         uv0 = np.ascontiguousarray(self._uv[slots])
         if _jit.ENABLED:
             par = np.empty((len(slots), 3))
@@ -727,26 +731,29 @@ class TrackManager:
         else:
             par, ncc = self._drift_parameters(gray, slots, uv0, A, iterations)
         ok = np.isfinite(ncc) & (ncc >= cfg.reference_correct_min_ncc)
-        if not np.any(ok):
-            return
+        factor = np.where(ok, par[:, 2], 1.0)
         keep = slots[ok]
         self._uv[keep] = uv0[ok] + par[ok, :2]
-        self._ref_scale[keep] *= par[ok, 2]
+        self._ref_scale[keep] *= factor[ok]
         k = (self._n_obs[keep] - 1) % cfg.max_history
         self._h_uv[keep, k] = self._uv[keep]
+        return factor
 
     def _drift_parameters(self, gray, slots, uv0, A, iterations):
         """The numpy reference of the drift correction (:meth:`_correct_drift`; the kernel is
         :func:`companion.core.tracks_kernels.correct_drift_k`): (n, 3) parameters (Δx, Δy, s) and (n,) the NCC of the
-        reference with the frame where the last step started; (0, 0, 1) and NaN where a track fails."""
+        reference with the frame where the last step started; (0, 0, 1) and NaN where a track fails.  The frame is
+        sampled by :meth:`_warped_patches` (at uv + Δ, with the warp s·A)."""
         cfg = self.config
         n = len(slots)
-        h = cfg.reference_half
-        T = self._ref[slots].astype(np.float64)
-        T = T - T.mean(axis=(1, 2), keepdims=True)
-        sT = np.sqrt(np.mean(T * T, axis=(1, 2)))
-        ok = sT > 1e-6
-        T = T / np.where(ok, sT, 1.0)[:, None, None]
+
+        def standardized(V):  # (n, samples) to zero mean and unit variance, and whether each was not flat
+            V = V - V.mean(axis=1, keepdims=True)
+            sd = np.sqrt(np.mean(V * V, axis=1))
+            return V / np.where(sd > 1e-6, sd, 1.0)[:, None], sd > 1e-6
+
+        Tf, ok = standardized(self._ref[slots].reshape(n, -1).astype(np.float64))
+        T = Tf.reshape(self._ref[slots].shape)
         gx, gy = np.gradient(T, axis=2), np.gradient(T, axis=1)  # central inside, one-sided at the border
         dx, dy = self._ref_grid
         J = np.stack([gx, gy, gx * dx + gy * dy], -1).reshape(n, -1, 3)
@@ -758,27 +765,13 @@ class TrackManager:
         Hm = np.where(ok[:, None, None], Hm, np.eye(3))
         ok &= np.abs(np.linalg.det(Hm)) > 1e-12
         Hinv = np.linalg.inv(np.where(ok[:, None, None], Hm, np.eye(3)))
-        Tf = T.reshape(n, -1)
-        img = gray.astype(np.float32)
-        H, W = gray.shape
-        ax = A[:, 0, 0, None, None] * dx + A[:, 0, 1, None, None] * dy  # A·d, frame px
-        ay = A[:, 1, 0, None, None] * dx + A[:, 1, 1, None, None] * dy
-
-        def sample(d, s):
-            X = uv0[:, 0, None, None] + d[:, 0, None, None] + s[:, None, None] * ax
-            Y = uv0[:, 1, None, None] + d[:, 1, None, None] + s[:, None, None] * ay
-            inside = (X.min(axis=(1, 2)) >= 0) & (X.max(axis=(1, 2)) <= W - 1) & (Y.min(axis=(1, 2)) >= 0) & (Y.max(axis=(1, 2)) <= H - 1)
-            C = _bilinear(img, X, Y).reshape(n, -1).astype(np.float64)
-            C = C - C.mean(axis=1, keepdims=True)
-            sC = np.sqrt(np.mean(C * C, axis=1))
-            return C / np.where(sC > 1e-6, sC, 1.0)[:, None], inside & (sC > 1e-6)
-
         d = np.zeros((n, 2))
         s = np.ones(n)
         ncc = np.full(n, np.nan)
         for _ in range(iterations):
-            C, good = sample(d, s)
-            ok &= good
+            cur, inside = self._warped_patches(gray, slots, A * s[:, None, None], uv=uv0 + d)
+            C, flat_free = standardized(cur.reshape(n, -1).astype(np.float64))
+            ok &= inside & flat_free
             ncc = np.mean(C * Tf, axis=1)
             q = np.einsum("nij,nj->ni", Hinv, np.einsum("nsi,ns->ni", J, C - Tf))
             k = s / (1.0 + q[:, 2])  # compose with the inverse of the reference's warp d → (1 + q2)·d + q
