@@ -526,8 +526,10 @@ def test_drift_correction_kernel_equals_the_numpy_reference(scene):
     A = np.ascontiguousarray(tm._reference_warp(slots))
     par_r, ncc_r = tm._drift_parameters(img1, slots, uv1, A, 2)
     par_k, ncc_k = np.empty((n, 3)), np.empty(n)
-    tracks_kernels.correct_drift_k(img1, tm._ref, np.ascontiguousarray(uv1), A, 1.5, tracks._MAX_DRIFT_SCALE, 2, par_k,
-                                   ncc_k)
+    tracks_kernels.prepare_reference_k(tm._ref, slots, tm._ref_T, tm._ref_G, tm._ref_Nc, tm._ref_fit)
+    assert not tm._ref_fit[:3].any()  # flat references cannot be aligned
+    tracks_kernels.correct_drift_k(img1, tm._ref_T, tm._ref_G, tm._ref_Nc, tm._ref_fit, slots, np.ascontiguousarray(uv1),
+                                   A, 1.5, tracks._MAX_DRIFT_SCALE, 2, par_k, ncc_k)
     ok_r, ok_k = np.isfinite(ncc_r), np.isfinite(ncc_k)
     assert np.array_equal(ok_k, ok_r) and 30 < ok_r.sum() < n - 10
     assert not ok_r[:3].any()

@@ -254,6 +254,13 @@ class TrackManager:
         self._ref_scale = np.ones(s)  # patch scale change since then
         self._ref_R = np.tile(np.eye(3), (s, 1, 1))  # camera attitude R_world_cam when it was cut (identity: unknown)
         self._ref_R_ok = np.zeros(s, bool)
+        # the drift correction's kernel keeps, per reference, what changes only when it is cut
+        # (tracks_kernels.prepare_reference_k), filled at the first correction after the cut
+        self._ref_T = np.zeros((s, rr * rr))  # the reference at zero mean and unit variance
+        self._ref_G = np.zeros((s, 3, rr * rr))  # its steepest-descent images (shift x, shift y, scale)
+        self._ref_Nc = np.zeros((s, 7))  # cofactors and determinant of its 3 × 3 normal matrix
+        self._ref_fit = np.zeros(s, bool)  # it can be aligned (not flat, not an edge)
+        self._ref_prepared = np.zeros(s, bool)  # the four above are this reference's
         off = np.arange(-config.reference_half, config.reference_half + 1, dtype=float)
         self._ref_grid = np.meshgrid(off, off)
         self._R_now: np.ndarray | None = None
@@ -601,6 +608,7 @@ class TrackManager:
         tpl, _, inside = extract_scaled_templates(gray, self._uv[slots], self.config.reference_half, np.ones(len(slots)))
         self._ref[slots] = tpl[:, 1:-1, 1:-1]
         self._ref_ok[slots] = inside
+        self._ref_prepared[slots] = False
         self._ref_frame[slots] = frame_index
         self._ref_uv[slots] = self._uv[slots]
         self._ref_scale[slots] = 1.0
@@ -724,9 +732,14 @@ class TrackManager:
         A = np.ascontiguousarray(A)
         uv0 = np.ascontiguousarray(self._uv[slots])
         if _jit.ENABLED:
+            fresh = slots[~self._ref_prepared[slots]]
+            if len(fresh):
+                _tk.prepare_reference_k(self._ref, fresh, self._ref_T, self._ref_G, self._ref_Nc, self._ref_fit)
+                self._ref_prepared[fresh] = True
             par = np.empty((len(slots), 3))
             ncc = np.empty(len(slots))
-            _tk.correct_drift_k(np.ascontiguousarray(gray), self._ref[slots], uv0, A, float(cfg.reference_correct_px),
+            _tk.correct_drift_k(np.ascontiguousarray(gray), self._ref_T, self._ref_G, self._ref_Nc, self._ref_fit,
+                                np.ascontiguousarray(slots, dtype=np.int64), uv0, A, float(cfg.reference_correct_px),
                                 _MAX_DRIFT_SCALE, iterations, par, ncc)
         else:
             par, ncc = self._drift_parameters(gray, slots, uv0, A, iterations)

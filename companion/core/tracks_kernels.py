@@ -12,7 +12,8 @@ cv2.remap in float32 and two-pass sums; tests/test_tracks.py bounds the differen
 :func:`correct_drift_k` does per track what :meth:`companion.core.tracks.TrackManager._drift_parameters` does with
 numpy: the inverse-compositional Gauss–Newton re-alignment of the match to the warped reference (a shift and a scale
 factor; the reference's own gradients, one bilinear sample of the frame per grid point and step, border test as the
-check's) and the NCC where its last step started.  It agrees with the reference to float rounding (tests/test_tracks.py).
+check's) and the NCC where its last step started.  What depends on the reference alone (its normalization, gradients
+and normal matrix) is computed once per reference by :func:`prepare_reference_k`, not every frame.  It agrees with the reference to float rounding (tests/test_tracks.py).
 """
 
 from __future__ import annotations
@@ -150,35 +151,35 @@ def _normalize(V):
 
 
 @_jit.njit
-def correct_drift_k(gray, ref, uv, A, max_px, max_scale, iterations, par, ncc):
-    """Fill ``par`` (n, 3) = (Δx, Δy, s) and ``ncc`` (n,) for the n tracks (the inverse-compositional Gauss–Newton of
-    :meth:`companion.core.tracks.TrackManager._drift_parameters`): ``gray`` (H, W) uint8 frame, ``ref`` (n, m, m) float32
-    reference patches, ``uv`` (n, 2) matched pixels, ``A`` (n, 2, 2) the reference warps; ``iterations`` steps (one
-    sample of the frame each) and the zero-mean NCC of the reference with the frame where the last step started.  A track that fails (a flat reference or
-    frame patch, an edge's normal matrix, a grid leaving the frame, a shift beyond ``max_px`` or a scale beyond
-    1 ± ``max_scale``) gets (0, 0, 1) and NaN."""
-    n, m = ref.shape[0], ref.shape[1]
+def prepare_reference_k(ref, slots, T, G, Nc, fit):
+    """What the drift correction needs of a reference patch and what changes only when it is cut: for each of
+    ``slots``, ``T[slot]`` (m·m,) the reference ``ref[slot]`` (m, m) float32 at zero mean and unit variance, ``G[slot]``
+    (3, m·m) its steepest-descent images (∂T/∂x, ∂T/∂y, and x·∂T/∂x + y·∂T/∂y for the scale; central differences,
+    one-sided at the border), ``Nc[slot]`` (7,) the cofactors c00, c01, c02, c11, c12, c22 and the determinant of its
+    3 × 3 normal matrix, and ``fit[slot]`` whether it can be aligned (not flat, the 2 × 2 shift block not an edge's:
+    λmin/λmax ≥ 0.05, the 3 × 3 matrix not singular)."""
+    m = ref.shape[1]
     h = (m - 1) // 2
     N = m * m
-    T = np.empty(N)
-    C = np.empty(N)
-    GX = np.empty(N)
-    GY = np.empty(N)
-    for i in range(n):
-        a00, a01, a10, a11 = A[i, 0, 0], A[i, 0, 1], A[i, 1, 0], A[i, 1, 1]
-        par[i, 0], par[i, 1], par[i, 2] = 0.0, 0.0, 1.0
-        ncc[i] = np.nan
+    for ii in range(slots.shape[0]):
+        i = slots[ii]
+        fit[i] = False
+        Ti = T[i]
         for r in range(m):
             for c in range(m):
-                T[r * m + c] = np.float64(ref[i, r, c])
-        if not _normalize(T):
+                Ti[r * m + c] = np.float64(ref[i, r, c])
+        if not _normalize(Ti):
             continue
-        _template_gradients(T, m, GX, GY)
+        GX = G[i, 0]
+        GY = G[i, 1]
+        G2 = G[i, 2]
+        _template_gradients(Ti, m, GX, GY)
         n00 = n01 = n02 = n11 = n12 = n22 = 0.0
         for r in range(m):
             for c in range(m):
                 j = r * m + c
                 g2 = GX[j] * (c - h) + GY[j] * (r - h)
+                G2[j] = g2
                 n00 += GX[j] * GX[j]
                 n01 += GX[j] * GY[j]
                 n02 += GX[j] * g2
@@ -199,23 +200,50 @@ def correct_drift_k(gray, ref, uv, A, max_px, max_scale, iterations, par, ncc):
         det3 = n00 * c00 + n01 * c01 + n02 * c02
         if not abs(det3) > 1e-12:
             continue
+        Nc[i, 0], Nc[i, 1], Nc[i, 2], Nc[i, 3], Nc[i, 4], Nc[i, 5], Nc[i, 6] = c00, c01, c02, c11, c12, c22, det3
+        fit[i] = True
+
+
+@_jit.njit
+def correct_drift_k(gray, T, G, Nc, fit, slots, uv, A, max_px, max_scale, iterations, par, ncc):
+    """Fill ``par`` (n, 3) = (Δx, Δy, s) and ``ncc`` (n,) for the n = len(``slots``) tracks (the inverse-compositional
+    Gauss–Newton of :meth:`companion.core.tracks.TrackManager._drift_parameters`): ``gray`` (H, W) uint8 frame; ``T``,
+    ``G``, ``Nc``, ``fit`` the references as :func:`prepare_reference_k` left them, indexed by slot; ``uv`` (n, 2)
+    matched pixels and ``A`` (n, 2, 2) the reference warps, in the order of ``slots``; ``iterations`` steps (one sample
+    of the frame each) and the zero-mean NCC of the reference with the frame where the last step started.  A track that
+    fails (a reference that does not fit, a flat frame patch, a grid leaving the frame, a shift beyond ``max_px`` or a
+    scale beyond 1 ± ``max_scale``) gets (0, 0, 1) and NaN."""
+    m = int(round(math.sqrt(T.shape[1])))
+    h = (m - 1) // 2
+    N = m * m
+    C = np.empty(N)
+    for ii in range(slots.shape[0]):
+        i = slots[ii]
+        a00, a01, a10, a11 = A[ii, 0, 0], A[ii, 0, 1], A[ii, 1, 0], A[ii, 1, 1]
+        par[ii, 0], par[ii, 1], par[ii, 2] = 0.0, 0.0, 1.0
+        ncc[ii] = np.nan
+        if not fit[i]:
+            continue
+        Ti = T[i]
+        GX = G[i, 0]
+        GY = G[i, 1]
+        G2 = G[i, 2]
+        c00, c01, c02, c11, c12, c22, det3 = Nc[i, 0], Nc[i, 1], Nc[i, 2], Nc[i, 3], Nc[i, 4], Nc[i, 5], Nc[i, 6]
         dx_, dy_, s = 0.0, 0.0, 1.0
         good = True
         acc = 0.0
         for _ in range(iterations):
-            if not _sample_normalized(gray, uv[i, 0] + dx_, uv[i, 1] + dy_, s, a00, a01, a10, a11, h, m, C):
+            if not _sample_normalized(gray, uv[ii, 0] + dx_, uv[ii, 1] + dy_, s, a00, a01, a10, a11, h, m, C):
                 good = False
                 break
             e0 = e1 = e2 = 0.0
             acc = 0.0
-            for r in range(m):
-                for c in range(m):
-                    j = r * m + c
-                    e = C[j] - T[j]
-                    acc += C[j] * T[j]
-                    e0 += GX[j] * e
-                    e1 += GY[j] * e
-                    e2 += (GX[j] * (c - h) + GY[j] * (r - h)) * e
+            for j in range(N):
+                e = C[j] - Ti[j]
+                acc += C[j] * Ti[j]
+                e0 += GX[j] * e
+                e1 += GY[j] * e
+                e2 += G2[j] * e
             q0 = (c00 * e0 + c01 * e1 + c02 * e2) / det3
             q1 = (c01 * e0 + c11 * e1 + c12 * e2) / det3
             q2 = (c02 * e0 + c12 * e1 + c22 * e2) / det3
@@ -229,15 +257,19 @@ def correct_drift_k(gray, ref, uv, A, max_px, max_scale, iterations, par, ncc):
                 break
         if not good:
             continue
-        par[i, 0], par[i, 1], par[i, 2] = dx_, dy_, s
-        ncc[i] = acc / N
+        par[ii, 0], par[ii, 1], par[ii, 2] = dx_, dy_, s
+        ncc[ii] = acc / N
 
 
 @_jit.register_warmup
 def _warm_up() -> None:
-    """Compile :func:`reference_ncc_k` and :func:`correct_drift_k` on a tiny frame."""
+    """Compile :func:`reference_ncc_k`, :func:`prepare_reference_k` and :func:`correct_drift_k` on a tiny frame."""
     gray = np.zeros((20, 20), np.uint8)
     gray[::2] = 200
     ref = np.ones((1, 5, 5), np.float32)
     reference_ncc_k(gray, ref, np.array([[10.0, 10.0]]), np.eye(2)[None], np.zeros(1), np.zeros(1, np.bool_))
-    correct_drift_k(gray, ref, np.array([[10.0, 10.0]]), np.eye(2)[None], 1.0, 0.1, 1, np.zeros((1, 3)), np.zeros(1))
+    slots = np.zeros(1, np.int64)
+    T, G, Nc, fit = np.zeros((1, 25)), np.zeros((1, 3, 25)), np.zeros((1, 7)), np.zeros(1, np.bool_)
+    prepare_reference_k(ref, slots, T, G, Nc, fit)
+    correct_drift_k(gray, T, G, Nc, fit, slots, np.array([[10.0, 10.0]]), np.eye(2)[None], 1.0, 0.1, 1, np.zeros((1, 3)),
+                    np.zeros(1))
