@@ -176,7 +176,9 @@ def test_fixed_wing_config_differs_from_the_default_only_where_a_fixed_wing_need
                        "map.support_column_radius_m",
                        "sectors.infer_vertical", "sectors.cap_above_m", "sectors.unconverged_cap_k",
                        "sectors.clear_line_of_sight", "sectors.clear_corridor_m",
-                       "sectors.infer_vertical_one_side", "ekf_anchored.looming_sigma_floor", "sectors.sigma_k_taper_to_m"}
+                       "sectors.infer_vertical_one_side", "ekf_anchored.looming_sigma_floor", "sectors.sigma_k_taper_to_m",
+                       "tracks.reference_correct_px"}
+    assert fw.tracks.reference_correct_px == 0.0 and base.tracks.reference_correct_px > 0  # the quads only
     assert fw.sectors.max_distance_m == 150.0 and round(fw.sectors.max_distance_m * 100) + 1 < 65535
     sc = load_scenario(SCEN / "fixedwing_pass.toml")
     assert sc.meta.sector_max_distance_m > fw.sectors.max_distance_m  # the truth reaches beyond the companion's range

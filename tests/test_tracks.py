@@ -42,6 +42,9 @@ def camera():
 
 
 def manager(max_tracks=120, **kw):
+    """A tracker; the plain frame-to-frame one (drift correction off, the 15 × 15 reference these tests were written
+    for) unless ``kw`` says otherwise: the tests of the correction turn it on themselves."""
+    kw = {"reference_correct_px": 0.0, "reference_half": 7, **kw}
     return TrackManager(camera(), HarrisConfig(), NCCConfig(), TrackConfig(max_tracks=max_tracks, **kw))
 
 
@@ -550,3 +553,47 @@ def test_drift_correction_kernel_equals_the_numpy_reference(scene):
 def test_drift_correction_settings_are_validated(bad):
     with pytest.raises(ConfigError):
         TrackConfig(**bad)
+
+
+def test_reference_cut_and_warp_kernels_equal_the_numpy_reference(scene, monkeypatch):
+    """The compiled reference cut and reference warp (companion/core/tracks_kernels.py: cut_reference_k,
+    reference_warp_k) against TrackManager's numpy lines (extract_scaled_templates at scale 1; the einsum warp):
+    the same in-image verdicts, patches within one grey level (the reference's remap puts the sub-pixel point on a
+    1/32 px grid), warps equal to float rounding, with rotated and unknown attitudes, points near and behind the
+    camera's plane and slots in any order."""
+    from companion.core import jit
+
+    if not jit.ENABLED:
+        pytest.skip("compiled kernels off: nothing to compare")
+    img = scene.render((0.0, 0.0))
+    rng = np.random.default_rng(7)
+    n = 200
+    slots = rng.permutation(n)
+    uv0 = np.column_stack([rng.uniform(-5, W + 5, n), rng.uniform(-5, H + 5, n)])
+    out = {}
+    for kernels in (False, True):
+        monkeypatch.setattr(jit, "ENABLED", kernels)
+        tm = manager(max_tracks=n, reference_correct_px=0.5)
+        tm._uv[:] = uv0
+        tm._cut_reference(img, slots, 0)
+        warps = []
+        for trial in range(40):
+            r = np.random.default_rng(100 + trial)
+            Q, _ = np.linalg.qr(r.normal(size=(3, 3)))
+            tm._ref_R[:] = Q @ (np.eye(3) + r.normal(0, 0.3 if trial % 4 == 0 else 0.05, (n, 3, 3)))
+            tm._ref_R_ok[:] = r.random(n) > 0.1
+            tm._ref_uv[:] = np.column_stack([r.uniform(0, W, n), r.uniform(0, H, n)])
+            tm._ref_scale[:] = r.uniform(0.8, 1.3, n)
+            tm._R_now = None if trial % 10 == 0 else Q @ (np.eye(3) + r.normal(0, 0.05, (3, 3)))
+            warps.append(tm._reference_warp(slots))
+        out[kernels] = dict(ref=tm._ref.copy(), ok=tm._ref_ok.copy(), A=np.stack(warps))
+    ref_np, ref_k = out[False], out[True]
+    assert np.array_equal(ref_np["ok"], ref_k["ok"]) and 20 < ref_np["ok"].sum() < n
+    assert np.all(ref_k["ref"][~ref_k["ok"]] == 0)
+    d = np.abs(ref_np["ref"].astype(float) - ref_k["ref"])
+    assert d.max() <= 1.0 and (d > 0).mean() < 0.1
+    A_np, A_k = ref_np["A"], ref_k["A"]
+    assert np.all(np.isfinite(A_k))
+    assert np.max(np.abs(A_np - A_k)) < 1e-12
+    eye = np.all(A_np == np.eye(2) * A_np[..., :1, :1], axis=(2, 3))
+    assert eye.any() and not eye.all()  # unknown attitudes and turned-away points stay at S·I; others are warped

@@ -112,9 +112,9 @@ class TrackConfig:
     priority_band_range_m: float = 8.0  # the flight-path band of the region: rows within ± band_half_height_m at this range (pipeline)
     priority_path_half_width_deg: float = 15.0  # ... and the columns within this bearing of the flight path (pipeline)
     reference_min_ncc: float = 0.0  # a track whose reference patch correlates below this where it now is is dropped (0 = off)
-    reference_half: int = 7  # half size of the reference patch: (2h+1)² px
+    reference_half: int = 5  # half size of the reference patch: (2h+1)² px
     reference_refresh_frames: int = 1000  # a passing reference patch is re-cut after this many frames
-    reference_correct_px: float = 0.0  # > 0: each match re-aligned to the reference patch, by at most this, px (0 = off)
+    reference_correct_px: float = 0.5  # > 0: each match re-aligned to the reference patch, by at most this, px (0 = off)
     reference_correct_min_ncc: float = 0.9  # ... only where the reference then correlates at least this well
     reference_refresh_scale: float = 1.3  # > 1: with the correction, a reference is re-cut once its scale change leaves [1/this, this] (0 = never)
     refill_backoff_frames: int = 0  # after a refill that found little, this many frames without one (0 = refill whenever short)
@@ -605,9 +605,14 @@ class TrackManager:
         """Cut the reference patch of ``slots`` at their current pixels (sub-pixel centred)."""
         if len(slots) == 0:
             return
-        tpl, _, inside = extract_scaled_templates(gray, self._uv[slots], self.config.reference_half, np.ones(len(slots)))
-        self._ref[slots] = tpl[:, 1:-1, 1:-1]
-        self._ref_ok[slots] = inside
+        if _jit.ENABLED:
+            _tk.cut_reference_k(np.ascontiguousarray(gray), np.ascontiguousarray(self._uv[slots]),
+                                np.ascontiguousarray(slots, dtype=np.int64), self.config.reference_half, self._ref,
+                                self._ref_ok)
+        else:
+            tpl, _, inside = extract_scaled_templates(gray, self._uv[slots], self.config.reference_half, np.ones(len(slots)))
+            self._ref[slots] = tpl[:, 1:-1, 1:-1]
+            self._ref_ok[slots] = inside
         self._ref_prepared[slots] = False
         self._ref_frame[slots] = frame_index
         self._ref_uv[slots] = self._uv[slots]
@@ -620,7 +625,15 @@ class TrackManager:
         """(N, 2, 2) the warp S·J of the slots' reference offsets into the current frame: S the scale
         change since the reference and J the 2×2 Jacobian, at the reference pixel, of the infinite
         homography K R K⁻¹ of the camera's rotation since then (R = R_world_cam,nowᵀ R_world_cam,ref;
-        J = I where either attitude is unknown)."""
+        J = I where either attitude is unknown).  The compiled kernel (``reference_warp_k``) when kernels are enabled;
+        these lines are its reference."""
+        if _jit.ENABLED:
+            A = np.empty((len(slots), 2, 2))
+            c = self.camera.config
+            has_R = self._R_now is not None
+            _tk.reference_warp_k(self._R_now if has_R else np.eye(3), has_R, self._ref_R, self._ref_R_ok, self._ref_uv,
+                                 self._ref_scale, np.ascontiguousarray(slots, dtype=np.int64), c.fx, c.fy, c.cx, c.cy, A)
+            return A
         n = len(slots)
         J = np.tile(np.eye(2), (n, 1, 1))
         rot = self._ref_R_ok[slots] if self._R_now is not None else np.zeros(n, bool)

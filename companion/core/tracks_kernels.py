@@ -151,6 +151,75 @@ def _normalize(V):
 
 
 @_jit.njit
+def cut_reference_k(gray, uv, slots, h, ref, ok):
+    """Cut the (2h+1)² reference patch of each of ``slots`` centred on its sub-pixel ``uv`` (n, 2), in the order of
+    ``slots``, into ``ref[slot]`` (float32) and ``ok[slot]``: the frame sampled bilinearly at uv + d for the integer
+    offsets d, rounded to grey levels (as :func:`companion.core.ncc_templates.extract_scaled_templates` at scale 1,
+    the numpy reference, whose remap quantizes the sub-pixel position to 1/32 px; tests/test_tracks.py bounds the
+    difference); ``ok`` False (and the patch zero) unless the patch and a one-pixel rim fit, as there."""
+    H, W = gray.shape
+    m = 2 * h + 1
+    ext = h + 2.0
+    for ii in range(slots.shape[0]):
+        i = slots[ii]
+        u, v = uv[ii, 0], uv[ii, 1]
+        if not (u - ext >= 0 and u + ext <= W - 1 and v - ext >= 0 and v + ext <= H - 1):
+            ok[i] = False
+            for r in range(m):
+                for c in range(m):
+                    ref[i, r, c] = 0.0
+            continue
+        ok[i] = True
+        for r in range(m):
+            for c in range(m):
+                b = _bilinear_u8(gray, u + (c - h), v + (r - h))
+                ref[i, r, c] = np.float32(min(max(np.rint(b), 0.0), 255.0))
+
+
+@_jit.njit
+def reference_warp_k(R_now, has_R, ref_R, ref_R_ok, ref_uv, ref_scale, slots, fx, fy, cx, cy, A):
+    """Fill ``A`` (n, 2, 2), in the order of ``slots``, with each reference's warp S·J
+    (:meth:`companion.core.tracks.TrackManager._reference_warp`, its numpy reference, to float rounding): S =
+    ``ref_scale[slot]`` and J the Jacobian at ``ref_uv[slot]`` of the infinite homography of the rotation
+    R = R_nowᵀ ``ref_R[slot]`` (J = I where ``has_R`` is False or ``ref_R_ok[slot]`` is, and per element where
+    it is not finite or the point has turned behind the camera)."""
+    rxy = fx / fy
+    ryx = fy / fx
+    R = np.empty((3, 3))
+    for ii in range(slots.shape[0]):
+        i = slots[ii]
+        j00, j01, j10, j11 = 1.0, 0.0, 0.0, 1.0
+        if has_R and ref_R_ok[i]:
+            for a in range(3):
+                for c in range(3):
+                    R[a, c] = R_now[0, a] * ref_R[i, 0, c] + R_now[1, a] * ref_R[i, 1, c] + R_now[2, a] * ref_R[i, 2, c]
+            x0 = (ref_uv[i, 0] - cx) / fx
+            x1 = (ref_uv[i, 1] - cy) / fy
+            q0 = R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2]
+            q1 = R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2]
+            q2 = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2]
+            if q2 > 1e-6:
+                d = q2 * q2
+                p00 = (R[0, 0] * q2 - q0 * R[2, 0]) / d
+                p01 = (R[0, 1] * q2 - q0 * R[2, 1]) / d * rxy
+                p10 = (R[1, 0] * q2 - q1 * R[2, 0]) / d * ryx
+                p11 = (R[1, 1] * q2 - q1 * R[2, 1]) / d
+                if math.isfinite(p00):
+                    j00 = p00
+                if math.isfinite(p01):
+                    j01 = p01
+                if math.isfinite(p10):
+                    j10 = p10
+                if math.isfinite(p11):
+                    j11 = p11
+        S = ref_scale[i]
+        A[ii, 0, 0] = j00 * S
+        A[ii, 0, 1] = j01 * S
+        A[ii, 1, 0] = j10 * S
+        A[ii, 1, 1] = j11 * S
+
+
+@_jit.njit
 def prepare_reference_k(ref, slots, T, G, Nc, fit):
     """What the drift correction needs of a reference patch and what changes only when it is cut: for each of
     ``slots``, ``T[slot]`` (m·m,) the reference ``ref[slot]`` (m, m) float32 at zero mean and unit variance, ``G[slot]``
@@ -263,13 +332,17 @@ def correct_drift_k(gray, T, G, Nc, fit, slots, uv, A, max_px, max_scale, iterat
 
 @_jit.register_warmup
 def _warm_up() -> None:
-    """Compile :func:`reference_ncc_k`, :func:`prepare_reference_k` and :func:`correct_drift_k` on a tiny frame."""
+    """Compile every kernel of this module on a tiny frame."""
     gray = np.zeros((20, 20), np.uint8)
     gray[::2] = 200
     ref = np.ones((1, 5, 5), np.float32)
     reference_ncc_k(gray, ref, np.array([[10.0, 10.0]]), np.eye(2)[None], np.zeros(1), np.zeros(1, np.bool_))
     slots = np.zeros(1, np.int64)
     T, G, Nc, fit = np.zeros((1, 25)), np.zeros((1, 3, 25)), np.zeros((1, 7)), np.zeros(1, np.bool_)
+    ok = np.zeros(1, np.bool_)
+    cut_reference_k(gray, np.array([[10.0, 10.0]]), slots, 2, ref, ok)
+    reference_warp_k(np.eye(3), True, np.eye(3)[None], ok, np.array([[10.0, 10.0]]), np.ones(1), slots, 100.0, 100.0,
+                     10.0, 10.0, np.zeros((1, 2, 2)))
     prepare_reference_k(ref, slots, T, G, Nc, fit)
     correct_drift_k(gray, T, G, Nc, fit, slots, np.array([[10.0, 10.0]]), np.eye(2)[None], 1.0, 0.1, 1, np.zeros((1, 3)),
                     np.zeros(1))
