@@ -13,7 +13,13 @@ cv2.remap in float32 and two-pass sums; tests/test_tracks.py bounds the differen
 numpy: the inverse-compositional Gauss–Newton re-alignment of the match to the warped reference (a shift and a scale
 factor; the reference's own gradients, one bilinear sample of the frame per grid point and step, border test as the
 check's) and the NCC where its last step started.  What depends on the reference alone (its normalization, gradients
-and normal matrix) is computed once per reference by :func:`prepare_reference_k`, not every frame.  It agrees with the reference to float rounding (tests/test_tracks.py).
+and normal matrix) is computed once per reference by :func:`prepare_reference_k`, not every frame.  It agrees with the
+reference to float rounding (tests/test_tracks.py).
+
+:func:`cut_reference_k` and :func:`reference_warp_k` cut a reference patch and compute each reference's warp, what
+:meth:`companion.core.tracks.TrackManager._cut_reference` and ``_reference_warp`` do with numpy (``cv2.remap`` on the
+whole frame converted to float32, einsums over small arrays), per track and without allocating
+(docs/derivations/compute.md bounds the differences).
 """
 
 from __future__ import annotations
@@ -181,8 +187,8 @@ def reference_warp_k(R_now, has_R, ref_R, ref_R_ok, ref_uv, ref_scale, slots, fx
     """Fill ``A`` (n, 2, 2), in the order of ``slots``, with each reference's warp S·J
     (:meth:`companion.core.tracks.TrackManager._reference_warp`, its numpy reference, to float rounding): S =
     ``ref_scale[slot]`` and J the Jacobian at ``ref_uv[slot]`` of the infinite homography of the rotation
-    R = R_nowᵀ ``ref_R[slot]`` (J = I where ``has_R`` is False or ``ref_R_ok[slot]`` is, and per element where
-    it is not finite or the point has turned behind the camera)."""
+    R = R_nowᵀ ``ref_R[slot]`` (J = I where either attitude is unknown, ``has_R`` or ``ref_R_ok[slot]`` False, or
+    where the point has turned behind the camera; an element of J that is not finite stays the identity's)."""
     rxy = fx / fy
     ryx = fy / fx
     R = np.empty((3, 3))
