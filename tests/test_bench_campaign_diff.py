@@ -44,3 +44,13 @@ def test_a_missing_campaign_is_exit_code_2_and_pairs_are_checked(tmp_path, capsy
     with pytest.raises(SystemExit) as e:
         campaign_diff.main([str(tmp_path / "a")])
     assert e.value.code == 2
+
+
+def test_a_share_of_no_cells_prints_as_none(tmp_path, capsys):
+    """A pooled share that is NaN (no cells of its kind, e.g. no obstacle within 10 m) prints as "–", not "nan %"."""
+    _campaign(tmp_path / "a_quad_approach", 0.829, float("nan"), 1.33, 0.56)
+    _campaign(tmp_path / "b_quad_approach", 0.891, 0.061, 1.10, 0.25)
+    assert campaign_diff.main([str(tmp_path / "a_quad_approach"), str(tmp_path / "b_quad_approach")]) == 0
+    row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| quad_approach"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[4] == "– → 6.1 %" and "nan" not in row
