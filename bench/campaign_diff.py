@@ -52,10 +52,9 @@ def figures(campaign_dir: Path) -> dict:
 
 
 def _pc(v) -> str:
-    """A share as "12.3 %"; "–" where there is none (None, or NaN: a share of no cells)."""
     from flightsim.report import _pc as pc
 
-    return pc(None if v is None or v != v else v, 1)
+    return pc(v, 1)
 
 
 def _nees(n: dict) -> str:

@@ -345,7 +345,8 @@ def plot_nees(series: dict[int, dict], campaign: dict, path: Path) -> Path:
 
 # ---------------------------------------------------------------------- index.md ----------------
 def _pc(v, d: int = 2) -> str:
-    return "–" if v is None else f"{100 * v:.{d}f} %"
+    """A share as "12.34 %"; "–" where there is none (None, or NaN: a share of no cells)."""
+    return "–" if v is None or v != v else f"{100 * v:.{d}f} %"
 
 
 def _f(v, fmt: str = "{:.2f}") -> str:

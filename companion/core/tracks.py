@@ -255,12 +255,11 @@ class TrackManager:
         self._ref_R = np.tile(np.eye(3), (s, 1, 1))  # camera attitude R_world_cam when it was cut (identity: unknown)
         self._ref_R_ok = np.zeros(s, bool)
         # the drift correction's kernel keeps, per reference, what changes only when it is cut
-        # (tracks_kernels.prepare_reference_k), filled at the first correction after the cut
+        # (tracks_kernels.prepare_reference_k, run by _cut_reference)
         self._ref_T = np.zeros((s, rr * rr))  # the reference at zero mean and unit variance
         self._ref_G = np.zeros((s, 3, rr * rr))  # its steepest-descent images (shift x, shift y, scale)
         self._ref_Nc = np.zeros((s, 7))  # cofactors and determinant of its 3 × 3 normal matrix
         self._ref_fit = np.zeros(s, bool)  # it can be aligned (not flat, not an edge)
-        self._ref_prepared = np.zeros(s, bool)  # the four above are this reference's
         off = np.arange(-config.reference_half, config.reference_half + 1, dtype=float)
         self._ref_grid = np.meshgrid(off, off)
         self._R_now: np.ndarray | None = None
@@ -602,18 +601,21 @@ class TrackManager:
         return self.config.reference_min_ncc > 0 or self.config.reference_correct_px > 0
 
     def _cut_reference(self, gray: np.ndarray, slots: np.ndarray, frame_index: int) -> None:
-        """Cut the reference patch of ``slots`` at their current pixels (sub-pixel centred)."""
+        """Cut the reference patch of ``slots`` at their current pixels (sub-pixel centred); with kernels and the drift
+        correction on, also what the correction's kernel needs of each reference (``prepare_reference_k``; the numpy
+        reference, :meth:`_drift_parameters`, derives it from the patch each call)."""
         if len(slots) == 0:
             return
         if _jit.ENABLED:
-            _tk.cut_reference_k(np.ascontiguousarray(gray), np.ascontiguousarray(self._uv[slots]),
-                                np.ascontiguousarray(slots, dtype=np.int64), self.config.reference_half, self._ref,
-                                self._ref_ok)
+            sl = np.ascontiguousarray(slots, dtype=np.int64)
+            _tk.cut_reference_k(np.ascontiguousarray(gray), np.ascontiguousarray(self._uv[slots]), sl,
+                                self.config.reference_half, self._ref, self._ref_ok)
+            if self.config.reference_correct_px > 0:
+                _tk.prepare_reference_k(self._ref, sl, self._ref_T, self._ref_G, self._ref_Nc, self._ref_fit)
         else:
             tpl, _, inside = extract_scaled_templates(gray, self._uv[slots], self.config.reference_half, np.ones(len(slots)))
             self._ref[slots] = tpl[:, 1:-1, 1:-1]
             self._ref_ok[slots] = inside
-        self._ref_prepared[slots] = False
         self._ref_frame[slots] = frame_index
         self._ref_uv[slots] = self._uv[slots]
         self._ref_scale[slots] = 1.0
@@ -745,10 +747,6 @@ class TrackManager:
         A = np.ascontiguousarray(A)
         uv0 = np.ascontiguousarray(self._uv[slots])
         if _jit.ENABLED:
-            fresh = slots[~self._ref_prepared[slots]]
-            if len(fresh):
-                _tk.prepare_reference_k(self._ref, fresh, self._ref_T, self._ref_G, self._ref_Nc, self._ref_fit)
-                self._ref_prepared[fresh] = True
             par = np.empty((len(slots), 3))
             ncc = np.empty(len(slots))
             _tk.correct_drift_k(np.ascontiguousarray(gray), self._ref_T, self._ref_G, self._ref_Nc, self._ref_fit,
